@@ -1,0 +1,402 @@
+"""Per-patient self-supervised optimisation: modes, presets and the training loop.
+
+Modes (the paper's method and its ablations, Tables 1–4)
+    ``sdfcar``        SDF field, λ1·L_geo + λ2·L_occ   (SDF-CAR)
+    ``neca``          occupancy field, L_occ            (NeCA baseline)
+    ``occ-combined``  occupancy field, λ1·L_geo + λ2·L_occ
+    ``sdf-occ``       SDF field, L_occ
+
+Presets
+    ``paper``  the published recipe: the field on every voxel of the grid, 16-level hash grid
+               (2^19 table, 2 features), 8 × 256 residual MLP, α = 50, λ = (1, 0.25), Adam at
+               lr 1e-4 for 5000 steps, L_geo at full detector resolution every step.
+    ``fast``   the same losses and representation, sized for a CPU: the field is evaluated only
+               on the visual hull of the masks widened by a margin (elsewhere the occupancy is 0,
+               which any mask already demands), a smaller MLP and hash table, a higher learning
+               rate and fewer steps, L_geo on a 4× max-pooled image. ``bench/`` compares it with
+               ``paper`` side by side.
+
+The loop calls ``progress(dict)`` with step, total, losses, elapsed and ETA, and stops with
+``ReconstructionCancelled`` as soon as ``cancel()`` returns true (checked every step).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import platform
+import time
+from dataclasses import dataclass, field
+from typing import Any, Callable, Dict, List, Optional, Sequence
+
+import numpy as np
+import torch
+
+from . import __version__
+from .field import FieldConfig, ImplicitField
+from .geometry import Geometry
+from .hull import support_mask
+from .losses import DistanceSettings, GeometricLoss, ViewTarget, make_target, occupancy_loss, silhouette
+from .projector import ConeBeamProjector
+
+MODES: Dict[str, Dict[str, Any]] = {
+    "sdfcar": {"field": "sdf", "geometric": True, "title": "SDF-CAR (SDF rep. + combined loss)"},
+    "neca": {"field": "occupancy", "geometric": False, "title": "NeCA (occupancy rep. + occupancy loss)"},
+    "occ-combined": {"field": "occupancy", "geometric": True, "title": "Occ. rep. + combined loss"},
+    "sdf-occ": {"field": "sdf", "geometric": False, "title": "SDF rep. + occupancy loss"},
+}
+
+TARGET_KINDS = ("mask", "line_integral")
+
+
+class ReconstructionError(ValueError):
+    """The inputs cannot be reconstructed; the message names the problem and the fix."""
+
+
+class ReconstructionCancelled(RuntimeError):
+    """The user cancelled the reconstruction."""
+
+
+@dataclass
+class Settings:
+    preset: str = "fast"
+    mode: str = "sdfcar"
+    steps: int = 400
+    learning_rate: float = 1e-2
+    lambda_geo: float = 1.0
+    lambda_occ: float = 0.25
+    alpha: float = 50.0
+    silhouette_length_mm: float = 0.3
+    support: str = "hull"  # "hull" | "full"
+    support_margin_mm: float = 0.5
+    dt_downsample: int = 4
+    dt_threshold: float = 0.5
+    dt_truncation_mm: float = 5.0
+    dt_kernel_size: int = 3
+    levels: int = 16
+    features_per_level: int = 2
+    log2_table_size: int = 19
+    base_resolution: int = 16
+    max_resolution: int = 256
+    width: int = 256
+    depth: int = 8
+    initial_occupancy: float = 0.01
+    sparsity_weight: float = 0.0
+    chord_weight: float = 0.0
+    chord_tolerance: float = 1.5
+    width_silhouette: bool = False
+    threshold: float = 0.5
+    seed: int = 0
+    device: str = "auto"
+    threads: Optional[int] = None
+
+    def validate(self) -> None:
+        if self.mode not in MODES:
+            raise ReconstructionError(f"unknown mode {self.mode!r}; choose one of {', '.join(MODES)}")
+        if self.support not in ("hull", "full"):
+            raise ReconstructionError(f"support must be 'hull' or 'full', got {self.support!r}")
+        if self.steps < 1:
+            raise ReconstructionError(f"steps must be at least 1, got {self.steps}")
+        for name in ("learning_rate", "alpha", "silhouette_length_mm"):
+            if not getattr(self, name) > 0:
+                raise ReconstructionError(f"{name} must be positive, got {getattr(self, name)}")
+        if self.dt_downsample < 1:
+            raise ReconstructionError("dt_downsample must be at least 1")
+        if self.device not in ("auto", "cpu", "cuda") and not str(self.device).startswith("cuda:"):
+            raise ReconstructionError(f"device must be auto, cpu or cuda, got {self.device!r}")
+
+    def field_config(self) -> FieldConfig:
+        return FieldConfig(
+            levels=self.levels, features_per_level=self.features_per_level, log2_table_size=self.log2_table_size,
+            base_resolution=self.base_resolution, max_resolution=self.max_resolution, width=self.width,
+            depth=self.depth, kind=MODES[self.mode]["field"], alpha=self.alpha, initial_occupancy=self.initial_occupancy,
+        )
+
+    def to_dict(self) -> Dict[str, Any]:
+        return dataclasses.asdict(self)
+
+
+PRESETS: Dict[str, Dict[str, Any]] = {
+    "paper": dict(
+        steps=5000, learning_rate=1e-4, support="full", dt_downsample=1, levels=16, log2_table_size=19,
+        features_per_level=2, base_resolution=16, max_resolution=256, width=256, depth=8,
+    ),
+    "fast": dict(
+        steps=400, learning_rate=1e-2, support="hull", support_margin_mm=0.5, dt_downsample=4, levels=8,
+        log2_table_size=17, features_per_level=2, base_resolution=16, max_resolution=256, width=64, depth=8,
+    ),
+}
+
+
+def make_settings(preset: str = "fast", **overrides: Any) -> Settings:
+    """Settings of a preset, with any field overridden (None values are ignored)."""
+    if preset not in PRESETS:
+        raise ReconstructionError(f"unknown preset {preset!r}; choose one of {', '.join(PRESETS)}")
+    values = dict(PRESETS[preset])
+    values.update({k: v for k, v in overrides.items() if v is not None})
+    known = {f.name for f in dataclasses.fields(Settings)}
+    unknown = sorted(set(values) - known)
+    if unknown:
+        raise ReconstructionError(f"unknown setting(s): {', '.join(unknown)}")
+    settings = Settings(preset=preset, **values)
+    settings.validate()
+    return settings
+
+
+def resolve_device(requested: str) -> torch.device:
+    if requested == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    if str(requested).startswith("cuda") and not torch.cuda.is_available():
+        raise ReconstructionError("device 'cuda' was requested but no CUDA GPU is available to torch; use --device cpu or auto")
+    return torch.device(requested)
+
+
+def validate_targets(targets: Sequence[np.ndarray], geometry: Geometry, kind: str) -> List[np.ndarray]:
+    """Check the per-view targets and return them as float32 arrays (masks as 0/1)."""
+    if kind not in TARGET_KINDS:
+        raise ReconstructionError(f"target kind must be one of {TARGET_KINDS}, got {kind!r}")
+    if len(targets) != len(geometry.views):
+        raise ReconstructionError(f"{len(targets)} target image(s) for {len(geometry.views)} view(s) in the geometry; give one per view")
+    out = []
+    for n, (target, view) in enumerate(zip(targets, geometry.views), start=1):
+        a = np.asarray(target)
+        if a.shape != tuple(view.detector_shape):
+            raise ReconstructionError(
+                f"view {n}: image shape {a.shape} differs from the detector shape {tuple(view.detector_shape)} "
+                "in the geometry; use the mask of that view or fix detector_shape")
+        if not np.issubdtype(a.dtype, np.number) and a.dtype != bool:
+            raise ReconstructionError(f"view {n}: image data type {a.dtype} is not numeric")
+        a = a.astype(np.float32)
+        if not np.all(np.isfinite(a)):
+            raise ReconstructionError(f"view {n}: the image contains NaN or infinite values; fix the input image")
+        if kind == "mask":
+            values = np.unique(a)
+            if values.size > 2 or (values.size == 2 and values[0] != 0):
+                raise ReconstructionError(
+                    f"view {n}: the mask is not binary (values {values[:6].tolist()}{'…' if values.size > 6 else ''}); "
+                    "give a mask with 0 for background and one non-zero value for vessel")
+            a = (a != 0).astype(np.float32)
+            if not a.any():
+                raise ReconstructionError(f"view {n}: the mask is empty (no vessel pixel); segment the vessels of this view first")
+            if a.all():
+                raise ReconstructionError(f"view {n}: the mask covers the whole image; it is not a vessel segmentation")
+        else:
+            if a.min() < 0:
+                raise ReconstructionError(f"view {n}: line integrals must be non-negative (min {a.min():.3g})")
+            if not a.any():
+                raise ReconstructionError(f"view {n}: the line-integral image is all zero; there is no vessel to reconstruct")
+        out.append(a)
+    return out
+
+
+@dataclass
+class Reconstruction:
+    """Result of ``reconstruct``: volumes on ``geometry.volume`` (arrays ``[i, j, k]``) and a report."""
+
+    geometry: Geometry
+    settings: Settings
+    occupancy: np.ndarray  # float32 in [0, 1]
+    field: np.ndarray  # float32: s (sdf modes, mm-free units) or logit (occupancy modes)
+    segmentation: np.ndarray  # bool, occupancy >= threshold
+    support: Optional[np.ndarray]  # bool voxels the field was evaluated on (None: all)
+    report: Dict[str, Any] = field(default_factory=dict)
+    history: List[Dict[str, float]] = field(default_factory=list)
+
+
+def _normalised_points(geometry: Geometry, flat: np.ndarray, device: torch.device) -> torch.Tensor:
+    shape = np.asarray(geometry.volume.shape)
+    ijk = np.stack(np.unravel_index(flat, tuple(shape)), axis=-1)
+    return torch.as_tensor((ijk + 0.5) / shape, dtype=torch.float32, device=device)
+
+
+def _is_cancelled(cancel: Optional[Callable[[], bool]]) -> bool:
+    return bool(cancel is not None and cancel())
+
+
+def versions() -> Dict[str, str]:
+    import kornia
+    import scipy
+    import skimage
+
+    return {
+        "sdfcar": __version__, "python": platform.python_version(), "torch": torch.__version__,
+        "kornia": kornia.__version__, "numpy": np.__version__, "scipy": scipy.__version__, "scikit-image": skimage.__version__,
+    }
+
+
+def device_description(device: torch.device) -> str:
+    if device.type == "cuda":
+        return f"cuda ({torch.cuda.get_device_name(device)})"
+    return f"cpu ({platform.processor() or platform.machine()}, {torch.get_num_threads()} threads)"
+
+
+def reconstruct(
+    geometry: Geometry,
+    targets: Sequence[np.ndarray],
+    settings: Optional[Settings] = None,
+    target_kind: str = "mask",
+    progress: Optional[Callable[[Dict[str, Any]], None]] = None,
+    cancel: Optional[Callable[[], bool]] = None,
+    progress_interval_s: float = 0.5,
+) -> Reconstruction:
+    """Reconstruct the vessel tree seen in ``targets`` (one image per view of ``geometry``)."""
+    settings = settings or make_settings("fast")
+    settings.validate()
+    t_start = time.perf_counter()
+    arrays = validate_targets(targets, geometry, target_kind)
+    device = resolve_device(settings.device)
+    if settings.threads:
+        torch.set_num_threads(int(settings.threads))
+    torch.manual_seed(settings.seed)
+    np.random.seed(settings.seed % (2**32))
+    mode = MODES[settings.mode]
+    grid = geometry.volume
+
+    def report_progress(**info: Any) -> None:
+        if progress is not None:
+            progress(info)
+
+    report_progress(phase="setup", step=0, total=settings.steps, elapsed_s=0.0, eta_s=None, device=str(device))
+
+    # Support: where the field is evaluated.
+    if settings.support == "hull":
+        support = support_mask([a > 0 for a in arrays], geometry.views, grid, settings.support_margin_mm)
+        voxels = np.flatnonzero(support.reshape(-1))
+        if voxels.size == 0:
+            raise ReconstructionError(
+                "the masks' back-projections do not intersect inside the volume: check the view angles, "
+                "that mask 1 and mask 2 belong to views 1 and 2, and the volume centre")
+    else:
+        support, voxels = None, np.arange(grid.num_voxels)
+    points = _normalised_points(geometry, voxels, device)
+    projectors = [
+        ConeBeamProjector(view, grid, voxels=None if support is None else voxels, device=str(device))
+        for view in geometry.views
+    ]
+    view_targets: List[ViewTarget] = [
+        make_target(torch.as_tensor(array, device=device), target_kind, settings.silhouette_length_mm) for array in arrays
+    ]
+    tau = [settings.silhouette_length_mm] * len(arrays)
+    if settings.width_silhouette and target_kind == "mask":
+        from .priors import chord_length_estimate
+        tau = [torch.as_tensor(np.maximum(chord_length_estimate(a > 0, float(np.mean(v.isocenter_pixel_spacing_mm))) / 3.0,
+                                          settings.silhouette_length_mm), device=device) for a, v in zip(arrays, geometry.views)]
+    geometric: Optional[GeometricLoss] = None
+    if mode["geometric"]:
+        geometric = GeometricLoss(
+            [t.silhouette for t in view_targets],
+            [float(np.mean(v.isocenter_pixel_spacing_mm)) for v in geometry.views],
+            [None if support is None else p.pixels for p in projectors],
+            DistanceSettings(settings.dt_downsample, settings.dt_threshold, settings.dt_truncation_mm, settings.dt_kernel_size),
+        )
+    chord_limits = None
+    if settings.chord_weight > 0 and target_kind == "mask":
+        from .priors import chord_length_estimate
+        chord_limits = []
+        for array, view, projector in zip(arrays, geometry.views, projectors):
+            estimate = chord_length_estimate(array > 0, float(np.mean(view.isocenter_pixel_spacing_mm)))
+            chord_limits.append(torch.as_tensor(estimate.reshape(-1)[projector.pixels] * settings.chord_tolerance, device=device))
+    if _is_cancelled(cancel):
+        raise ReconstructionCancelled("cancelled before the optimisation started")
+
+    model = ImplicitField(settings.field_config()).to(device)
+    encoded = model.prepare(points)
+    optimiser = torch.optim.Adam(model.parameters(), lr=settings.learning_rate)
+    setup_s = time.perf_counter() - t_start
+
+    history: List[Dict[str, float]] = []
+    t_loop = time.perf_counter()
+    last_report = -math.inf
+    losses: Dict[str, float] = {}
+    for step in range(1, settings.steps + 1):
+        if _is_cancelled(cancel):
+            raise ReconstructionCancelled(f"cancelled at step {step - 1} of {settings.steps}")
+        optimiser.zero_grad(set_to_none=True)
+        occupancy = model(encoded)
+        line_integrals = [projector.render(occupancy) for projector in projectors]
+        l_occ = sum(occupancy_loss(t.rendered(li, ta), t.image)
+                    for li, t, ta in zip(line_integrals, view_targets, tau)) / len(projectors)
+        loss = settings.lambda_occ * l_occ
+        l_geo = torch.zeros((), device=device)
+        if geometric is not None:
+            l_geo = geometric([silhouette(li, ta) for li, ta in zip(line_integrals, tau)])
+            loss = loss + settings.lambda_geo * l_geo
+        if settings.sparsity_weight > 0:
+            loss = loss + settings.sparsity_weight * occupancy.mean()
+        if chord_limits is not None:
+            excess = sum(torch.mean(torch.relu(p.line_integrals(occupancy) - limit) ** 2) for p, limit in zip(projectors, chord_limits))
+            loss = loss + settings.chord_weight * excess / len(projectors)
+        loss.backward()
+        optimiser.step()
+        losses = {"loss": float(loss.detach()), "l_occ": float(l_occ.detach()), "l_geo": float(l_geo.detach())}
+        history.append({"step": step, **losses})
+        now = time.perf_counter()
+        if now - last_report >= progress_interval_s or step == settings.steps:
+            elapsed = now - t_loop
+            report_progress(phase="optimise", step=step, total=settings.steps, elapsed_s=elapsed,
+                            eta_s=elapsed / step * (settings.steps - step), device=str(device), **losses)
+            last_report = now
+    optimise_s = time.perf_counter() - t_loop
+
+    report_progress(phase="output", step=settings.steps, total=settings.steps, elapsed_s=time.perf_counter() - t_loop, eta_s=0.0, device=str(device))
+    t_out = time.perf_counter()
+    occupancy_volume, field_volume = _evaluate_volume(model, geometry, voxels, support is None, device)
+    segmentation = occupancy_volume >= settings.threshold
+    reprojection = _reprojection_dice(segmentation, geometry, arrays, target_kind)
+    output_s = time.perf_counter() - t_out
+
+    report: Dict[str, Any] = {
+        "method": MODES[settings.mode]["title"],
+        "settings": settings.to_dict(),
+        "target_kind": target_kind,
+        "seed": settings.seed,
+        "device": device_description(device),
+        "versions": versions(),
+        "geometry": geometry.to_dict(),
+        "geometry_digest": geometry.digest(),
+        "support_voxels": int(voxels.size),
+        "segmented_voxels": int(segmentation.sum()),
+        "projector_nonzeros": [p.nnz for p in projectors],
+        "final_losses": losses,
+        "reprojection_dice": reprojection,
+        "timings_s": {"setup": setup_s, "optimise": optimise_s, "output": output_s,
+                      "total": time.perf_counter() - t_start, "per_step": optimise_s / settings.steps},
+    }
+    return Reconstruction(geometry, settings, occupancy_volume, field_volume, segmentation, support, report, history)
+
+
+@torch.no_grad()
+def _evaluate_volume(model: ImplicitField, geometry: Geometry, voxels: np.ndarray, dense: bool,
+                     device: torch.device, chunk: int = 262144):
+    grid = geometry.volume
+    raw_values = []
+    for start in range(0, voxels.size, chunk):
+        raw_values.append(model.raw(_normalised_points(geometry, voxels[start:start + chunk], device)).float().cpu())
+    raw = torch.cat(raw_values) if raw_values else torch.zeros(0)
+    occupancy = model.occupancy_from_raw(raw).numpy()
+    occ_volume = np.zeros(grid.num_voxels, dtype=np.float32)
+    occ_volume[voxels] = occupancy
+    # Outside the support the field was never evaluated: record it as clearly outside.
+    if model.config.kind == "sdf":
+        outside = max(float(raw.max()) if raw.numel() else 1.0, 1.0)
+    else:
+        outside = min(float(raw.min()) if raw.numel() else -10.0, -10.0)
+    field_volume = np.full(grid.num_voxels, outside, dtype=np.float32)
+    field_volume[voxels] = raw.numpy()
+    return occ_volume.reshape(grid.shape), field_volume.reshape(grid.shape)
+
+
+def _reprojection_dice(segmentation: np.ndarray, geometry: Geometry, targets: Sequence[np.ndarray], kind: str,
+                       mask_threshold_mm: float = 0.2) -> List[float]:
+    from .metrics import mask_dice
+    from .projector import project_volume
+
+    out = []
+    for view, target in zip(geometry.views, targets):
+        if segmentation.any():
+            projected = project_volume(segmentation.astype(np.float32), view, geometry.volume) > mask_threshold_mm
+        else:
+            projected = np.zeros(view.detector_shape, dtype=bool)
+        reference = target > 0 if kind == "mask" else target > mask_threshold_mm
+        out.append(mask_dice(projected, reference))
+    return out

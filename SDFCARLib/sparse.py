@@ -1,0 +1,70 @@
+"""Fixed sparse linear operators with a precomputed transpose.
+
+The projector (rays × voxels) and the hash encoding of fixed points (features × table rows) are
+both linear maps that never change during a reconstruction. Storing the matrix and its transpose
+in CSR form makes the forward pass and the gradient one sparse product each, on CPU and CUDA,
+instead of re-deriving gather/scatter indices every step.
+"""
+
+from __future__ import annotations
+
+import warnings
+from typing import Tuple
+
+import torch
+
+
+def csr_from_sorted(rows: torch.Tensor, cols: torch.Tensor, values: torch.Tensor, shape: Tuple[int, int]) -> torch.Tensor:
+    """CSR matrix from COO entries already sorted by row (no duplicates)."""
+    counts = torch.bincount(rows, minlength=shape[0])
+    crow = torch.zeros(shape[0] + 1, dtype=torch.int64, device=rows.device)
+    torch.cumsum(counts, 0, out=crow[1:])
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message="Sparse CSR tensor support is in beta")
+        return torch.sparse_csr_tensor(crow, cols, values, size=shape, check_invariants=False)
+
+
+class _Apply(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, x: torch.Tensor, matrix: torch.Tensor, matrix_t: torch.Tensor) -> torch.Tensor:  # type: ignore[override]
+        ctx.matrix_t = matrix_t
+        return torch.mv(matrix, x) if x.dim() == 1 else torch.mm(matrix, x)
+
+    @staticmethod
+    def backward(ctx, grad: torch.Tensor):  # type: ignore[override]
+        grad = grad.contiguous()
+        return (torch.mv(ctx.matrix_t, grad) if grad.dim() == 1 else torch.mm(ctx.matrix_t, grad)), None, None
+
+
+class SparseOperator:
+    """y = A x for x of shape (n,) or (n, k), differentiable in x; A is fixed."""
+
+    def __init__(self, rows: torch.Tensor, cols: torch.Tensor, values: torch.Tensor, shape: Tuple[int, int],
+                 sorted_by_row: bool = False, coalesce: bool = False) -> None:
+        rows, cols = rows.long(), cols.long()
+        if coalesce:
+            coo = torch.sparse_coo_tensor(torch.stack([rows, cols]), values, shape, check_invariants=False).coalesce()
+            rows, cols = coo.indices()
+            values = coo.values()
+            sorted_by_row = True
+        if not sorted_by_row:
+            order = torch.argsort(rows, stable=True)
+            rows, cols, values = rows[order], cols[order], values[order]
+        self.shape = (int(shape[0]), int(shape[1]))
+        self.matrix = csr_from_sorted(rows, cols, values, self.shape)
+        order = torch.argsort(cols, stable=True)
+        self.matrix_t = csr_from_sorted(cols[order], rows[order], values[order], (self.shape[1], self.shape[0]))
+
+    @property
+    def nnz(self) -> int:
+        return int(self.matrix.values().numel())
+
+    def __call__(self, x: torch.Tensor) -> torch.Tensor:
+        if x.shape[0] != self.shape[1]:
+            raise ValueError(f"operator takes {self.shape[1]} inputs, got {x.shape[0]}")
+        return _Apply.apply(x.to(self.matrix.dtype), self.matrix, self.matrix_t)
+
+    def to(self, device) -> "SparseOperator":
+        self.matrix = self.matrix.to(device)
+        self.matrix_t = self.matrix_t.to(device)
+        return self
