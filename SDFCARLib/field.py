@@ -169,24 +169,37 @@ class ImplicitField(nn.Module):
         self.mlp = ResidualMLP(self.encoding.output_dim, config.width, config.depth, 1)
         logit = math.log(config.initial_occupancy / (1 - config.initial_occupancy))
         with torch.no_grad():
-            # Start empty: a small output layer plus a bias that gives initial_occupancy.
-            self.mlp.output.weight.mul_(0.01)
+            # Start empty: a small output layer plus a bias that gives initial_occupancy. The SDF's
+            # logit is −α·s, so its layer is scaled by 1/α for both kinds to start equally close.
+            self.mlp.output.weight.mul_(0.01 / config.alpha if config.kind == "sdf" else 0.01)
             self.mlp.output.bias.fill_(-logit / config.alpha if config.kind == "sdf" else logit)
 
     def prepare(self, x: torch.Tensor) -> EncodedPoints:
         return self.encoding.prepare(x)
 
-    def raw(self, x) -> torch.Tensor:
+    def raw(self, x, checkpoint_points: int = 0) -> torch.Tensor:
         """The network's scalar output (N,): s for an SDF field, the logit for occupancy.
 
-        ``x``: points (N, 3) in [0, 1]³, or ``EncodedPoints`` from ``prepare``.
+        ``x``: points (N, 3) in [0, 1]³, or ``EncodedPoints`` from ``prepare``. With
+        ``checkpoint_points`` > 0 the MLP runs in chunks of that many points whose activations are
+        recomputed in the backward pass: the paper's 8 × 256 MLP on every voxel of a 128³ grid
+        would otherwise keep tens of GB of activations.
         """
-        return self.mlp(self.encoding(x)).squeeze(-1)
+        features = self.encoding(x)
+        n = features.shape[0]
+        if checkpoint_points and n > checkpoint_points and torch.is_grad_enabled():
+            from torch.utils.checkpoint import checkpoint
+
+            out = torch.cat([checkpoint(self.mlp, features[i:i + checkpoint_points], use_reentrant=False)
+                             for i in range(0, n, checkpoint_points)])
+        else:
+            out = self.mlp(features)
+        return out.squeeze(-1)
 
     def occupancy_from_raw(self, raw: torch.Tensor) -> torch.Tensor:
         if self.config.kind == "sdf":
             return torch.sigmoid(-self.config.alpha * raw)
         return torch.sigmoid(raw)
 
-    def forward(self, x) -> torch.Tensor:
-        return self.occupancy_from_raw(self.raw(x))
+    def forward(self, x, checkpoint_points: int = 0) -> torch.Tensor:
+        return self.occupancy_from_raw(self.raw(x, checkpoint_points))

@@ -114,8 +114,8 @@ class CArmView:
         _require(sod > 0, f"{where}.sod_mm must be positive, got {sod}")
         _require(
             sod < sid,
-            f"{where}: source-to-isocenter distance sod_mm ({sod}) must be smaller than the "
-            f"source-to-detector distance sid_mm ({sid}); check that the two values are not swapped",
+            f"{where}.sod_mm = {sod} must be smaller than {where}.sid_mm = {sid} (the source-to-isocenter "
+            "distance lies inside the source-to-detector distance); check that the two values are not swapped",
         )
         ps = _number_list(self.pixel_spacing_mm, 2, f"{where}.pixel_spacing_mm")
         _require(all(p > 0 for p in ps), f"{where}.pixel_spacing_mm must be positive, got {list(ps)}")
@@ -243,7 +243,7 @@ class CArmView:
         except GeometryError as exc:
             # Range checks in validate() speak of "view"; give the caller's field path instead.
             message = str(exc)
-            if message.startswith("view"):
+            if message.startswith(("view.", "view:")):
                 message = where + message[len("view"):]
             raise GeometryError(message) from None
 

@@ -158,9 +158,15 @@ def _add_tortuosity(path: np.ndarray, rng: np.random.Generator, amplitude_mm: fl
     s = np.concatenate([[0.0], np.cumsum(seg)])
     tangent = np.gradient(path, axis=0)
     tangent /= np.linalg.norm(tangent, axis=1, keepdims=True) + 1e-12
-    helper = np.where(np.abs(tangent[:, [2]]) < 0.9, [[0.0, 0.0, 1.0]], [[1.0, 0.0, 0.0]])
-    n1 = np.cross(tangent, helper)
-    n1 /= np.linalg.norm(n1, axis=1, keepdims=True)
+    # Parallel transport of one normal: the frame turns with the tangent and never flips, so the
+    # displacement stays continuous.
+    helper = np.array([0.0, 0.0, 1.0]) if abs(tangent[0, 2]) < 0.9 else np.array([1.0, 0.0, 0.0])
+    n1 = np.empty_like(path)
+    n1[0] = np.cross(tangent[0], helper)
+    n1[0] /= np.linalg.norm(n1[0])
+    for i in range(1, len(path)):
+        n = n1[i - 1] - (n1[i - 1] @ tangent[i]) * tangent[i]
+        n1[i] = n / np.linalg.norm(n)
     n2 = np.cross(tangent, n1)
     ramp = np.clip(s / 8.0, 0.0, 1.0)
     offset = np.zeros_like(path)

@@ -1,0 +1,116 @@
+"""Visual hull: contains the object, is close to it for a sphere, and lies inside the support."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from SDFCARLib.geometry import CArmView, VolumeGrid
+from SDFCARLib.hull import support_mask, visual_hull
+from SDFCARLib.phantoms import Branch, CenterlineTree, simulate_views, voxelize
+
+
+@pytest.fixture(scope="module")
+def tube_case():
+    grid = VolumeGrid((32, 32, 32), (1.0, 1.0, 1.0))
+    views = [CArmView(30.0, 0.0, 1000.0, 750.0, (0.5, 0.5), (96, 96)),
+             CArmView(-30.0, 15.0, 1000.0, 750.0, (0.5, 0.5), (96, 96))]
+    tree = CenterlineTree([
+        Branch(np.array([[-12.0, -4.0, -11.0], [0.0, 3.0, 0.0], [11.0, -2.0, 12.0]]), np.array([2.0, 1.5, 1.0])),
+        Branch(np.array([[0.0, 3.0, 0.0], [8.0, 8.0, -9.0]]), np.array([1.2, 0.7])),
+    ])
+    label = voxelize(tree, grid)
+    _, masks = simulate_views(label, grid, views)
+    return grid, views, label, masks
+
+
+def test_hull_contains_the_label(tube_case):
+    grid, views, label, masks = tube_case
+    hull = visual_hull(masks, views, grid)
+    assert hull.shape == grid.shape and hull.dtype == bool
+    assert not np.any(label & ~hull)
+    assert hull.sum() > label.sum()  # two views cannot pin the tree down exactly
+
+
+def test_hull_of_one_view_contains_hull_of_two(tube_case):
+    grid, views, _, masks = tube_case
+    both = visual_hull(masks, views, grid)
+    for mask, view in zip(masks, views):
+        single = visual_hull([mask], [view], grid)
+        assert not np.any(both & ~single)
+        assert single.sum() > both.sum()
+
+
+def test_hull_voxels_project_into_every_mask(tube_case):
+    grid, views, _, masks = tube_case
+    hull = visual_hull(masks, views, grid)
+    centres = grid.voxel_centers(np.flatnonzero(hull))
+    for mask, view in zip(masks, views):
+        row, col, _ = view.project(centres)
+        assert mask[np.rint(row).astype(int), np.rint(col).astype(int)].all()
+
+
+def test_support_contains_the_hull(tube_case):
+    grid, views, label, masks = tube_case
+    hull = visual_hull(masks, views, grid)
+    for margin in (0.0, 0.5, 2.0):
+        support = support_mask(masks, views, grid, margin_mm=margin)
+        assert not np.any(hull & ~support)
+        assert not np.any(label & ~support)
+    wide, narrow = support_mask(masks, views, grid, 2.0), support_mask(masks, views, grid, 0.0)
+    assert not np.any(narrow & ~wide) and wide.sum() > narrow.sum()
+
+
+def test_hull_of_a_sphere_from_orthogonal_views():
+    # Seen from AP and LAO 90 (nearly parallel rays), a sphere's hull is the intersection of two
+    # perpendicular cylinders of the sphere's radius, the Steinmetz solid of volume 16/3·R³, whose
+    # farthest points are R·√2 from the centre.
+    radius, h = 7.0, 0.5
+    grid = VolumeGrid((40, 40, 40), (h, h, h))
+    centres = grid.voxel_centers()
+    sphere = (np.linalg.norm(centres, axis=-1) <= radius).reshape(grid.shape)
+    views = [CArmView(a, 0.0, 1000.0, 750.0, (0.25, 0.25), (96, 96)) for a in (0.0, 90.0)]
+    steinmetz = 16 / 3 * radius**3
+    distance = np.linalg.norm(centres, axis=-1).reshape(grid.shape)
+
+    # exact silhouettes (pixels whose ray passes within R of the centre): the hull's own geometry
+    exact = []
+    for view in views:
+        origin, direction = view.rays(*view.pixel_grid())
+        w = -origin
+        exact.append(np.linalg.norm(w - (direction @ w)[..., None] * direction, axis=-1) <= radius)
+    hull = visual_hull(exact, views, grid)
+    assert hull.sum() * h**3 == pytest.approx(steinmetz, rel=0.02)
+    assert distance[hull].max() <= radius * math.sqrt(2) + h
+
+    # simulated masks (line integral > 0.2 mm): a superset of the sphere, close to the solid
+    _, masks = simulate_views(sphere, grid, views)
+    hull = visual_hull(masks, views, grid)
+    assert not np.any(sphere & ~hull)
+    assert steinmetz <= hull.sum() * h**3 <= 1.1 * steinmetz
+    assert distance[hull].max() <= radius * math.sqrt(2) + 2 * h
+
+
+def test_margin_widens_the_hull(tube_case):
+    grid, views, _, masks = tube_case
+    plain = visual_hull(masks, views, grid)
+    wider = visual_hull(masks, views, grid, margin_px=3.0)
+    footprint = visual_hull(masks, views, grid, include_footprint=True)
+    assert not np.any(plain & ~wider) and wider.sum() > plain.sum()
+    assert not np.any(plain & ~footprint) and footprint.sum() > plain.sum()
+
+
+def test_hull_errors(tube_case):
+    grid, views, _, masks = tube_case
+    with pytest.raises(ValueError, match="2 masks for 1 views"):
+        visual_hull(masks, views[:1], grid)
+    with pytest.raises(ValueError, match="detector shape"):
+        visual_hull([masks[0][:50], masks[1]], views, grid)
+
+
+def test_empty_mask_gives_empty_hull(tube_case):
+    grid, views, _, masks = tube_case
+    hull = visual_hull([np.zeros_like(masks[0]), masks[1]], views, grid)
+    assert not hull.any()

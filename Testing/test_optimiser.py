@@ -1,0 +1,273 @@
+"""Optimiser: presets and modes, input validation, and tiny end-to-end reconstructions."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from SDFCARLib.geometry import CArmView, Geometry, VolumeGrid
+from SDFCARLib.losses import silhouette
+from SDFCARLib.optimiser import (
+    MODES,
+    PRESETS,
+    ReconstructionCancelled,
+    ReconstructionError,
+    make_settings,
+    reconstruct,
+    resolve_device,
+    validate_targets,
+)
+from SDFCARLib.phantoms import Branch, CenterlineTree, simulate_views, voxelize
+from SDFCARLib.projector import project_volume
+
+
+# --- presets and modes --------------------------------------------------------------------------------------
+def test_paper_preset_is_the_published_recipe():
+    s = make_settings("paper")
+    assert s.preset == "paper" and s.mode == "sdfcar"
+    assert s.learning_rate == 1e-4 and s.steps == 5000
+    assert (s.lambda_geo, s.lambda_occ, s.alpha) == (1.0, 0.25, 50.0)
+    assert (s.levels, s.log2_table_size, s.features_per_level) == (16, 19, 2)
+    assert (s.width, s.depth) == (256, 8)
+    assert s.support == "full" and s.dt_downsample == 1
+    config = s.field_config()
+    assert config.kind == "sdf" and config.alpha == 50.0 and config.levels == 16
+
+
+def test_fast_preset_keeps_losses_and_representation():
+    paper, fast = make_settings("paper"), make_settings("fast")
+    assert fast.preset == "fast" and fast.support == "hull"
+    assert fast.steps < paper.steps
+    assert (fast.lambda_geo, fast.lambda_occ, fast.alpha) == (paper.lambda_geo, paper.lambda_occ, paper.alpha)
+    assert fast.field_config().kind == paper.field_config().kind
+
+
+@pytest.mark.parametrize("preset", sorted(PRESETS))
+@pytest.mark.parametrize("mode, kind, geometric", [
+    ("sdfcar", "sdf", True), ("neca", "occupancy", False), ("occ-combined", "occupancy", True), ("sdf-occ", "sdf", False),
+])
+def test_modes_select_representation_and_loss(preset, mode, kind, geometric):
+    s = make_settings(preset, mode=mode)
+    assert s.mode == mode and s.preset == preset
+    assert s.field_config().kind == kind
+    assert MODES[mode]["geometric"] is geometric
+    assert s.to_dict()["mode"] == mode
+
+
+def test_overrides_and_none_values():
+    s = make_settings("fast", steps=30, seed=5, learning_rate=None)
+    assert s.steps == 30 and s.seed == 5
+    assert s.learning_rate == make_settings("fast").learning_rate  # None leaves the preset's value
+
+
+@pytest.mark.parametrize("kwargs, fragment", [
+    (dict(preset="slow"), "unknown preset 'slow'"),
+    (dict(mode="nerf"), "unknown mode 'nerf'"),
+    (dict(stepz=10), "unknown setting(s): stepz"),
+    (dict(steps=0), "steps"),
+    (dict(learning_rate=-1.0), "learning_rate"),
+    (dict(alpha=0.0), "alpha"),
+    (dict(device="tpu"), "device"),
+    (dict(support="box"), "support"),
+    (dict(dt_downsample=0), "dt_downsample"),
+])
+def test_bad_settings(kwargs, fragment):
+    kwargs = dict(kwargs)
+    preset = kwargs.pop("preset", "fast")
+    with pytest.raises(ReconstructionError) as info:
+        make_settings(preset, **kwargs)
+    assert fragment in str(info.value)
+
+
+def test_resolve_device():
+    assert resolve_device("cpu") == torch.device("cpu")
+    assert resolve_device("auto").type == ("cuda" if torch.cuda.is_available() else "cpu")
+    if torch.cuda.is_available():
+        assert resolve_device("cuda").type == "cuda"
+    else:
+        with pytest.raises(ReconstructionError, match="no CUDA"):
+            resolve_device("cuda")
+
+
+# --- target validation -------------------------------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def case():
+    grid = VolumeGrid((24, 24, 24), (2.0, 2.0, 2.0))
+    views = [CArmView(a, 0.0, 1000.0, 750.0, (1.0, 1.0), (64, 64)) for a in (30.0, -30.0)]
+    tree = CenterlineTree([Branch(np.array([[-12.0, -6.0, -10.0], [0.0, 2.0, 0.0], [12.0, 6.0, 10.0]]),
+                                  np.array([3.0, 2.5, 2.0]))])
+    label = voxelize(tree, grid)
+    line_integrals, masks = simulate_views(label, grid, views)
+    return Geometry(grid, views), label, line_integrals, masks
+
+
+def _masks(case):
+    return [m.astype(np.uint8) * 255 for m in case[3]]
+
+
+def test_validate_targets_accepts_and_normalises_masks(case):
+    geometry = case[0]
+    out = validate_targets(_masks(case), geometry, "mask")
+    assert all(a.dtype == np.float32 and set(np.unique(a)) == {0.0, 1.0} for a in out)
+    out = validate_targets([m.astype(bool) for m in case[3]], geometry, "mask")
+    assert len(out) == 2
+    out = validate_targets(case[2], geometry, "line_integral")
+    np.testing.assert_allclose(out[0], case[2][0])
+
+
+def _replace(items, index, value):
+    items = list(items)
+    items[index] = value
+    return items
+
+
+@pytest.mark.parametrize("make_bad, fragment", [
+    (lambda m: m[:1], "1 target image(s) for 2 view(s)"),
+    (lambda m: m + m[:1], "3 target image(s) for 2 view(s)"),
+    (lambda m: _replace(m, 1, m[1][:60]), "view 2: image shape (60, 64)"),
+    (lambda m: _replace(m, 0, np.where(m[0] > 0, np.nan, 0.0)), "view 1: the image contains NaN"),
+    (lambda m: _replace(m, 1, np.zeros_like(m[1])), "view 2: the mask is empty"),
+    (lambda m: _replace(m, 0, np.full_like(m[0], 255)), "view 1: the mask covers the whole image"),
+    (lambda m: _replace(m, 0, m[0] // 255 * np.arange(64, dtype=np.uint8)[None, :]), "view 1: the mask is not binary"),
+    (lambda m: _replace(m, 1, np.full(m[1].shape, "a")), "view 2: image data type"),
+])
+def test_validate_targets_errors(case, make_bad, fragment):
+    with pytest.raises(ReconstructionError) as info:
+        validate_targets(make_bad(_masks(case)), case[0], "mask")
+    assert fragment in str(info.value)
+
+
+def test_validate_line_integral_targets_errors(case):
+    geometry, _, line_integrals, _ = case
+    with pytest.raises(ReconstructionError, match="non-negative"):
+        validate_targets(_replace(line_integrals, 0, line_integrals[0] - 1.0), geometry, "line_integral")
+    with pytest.raises(ReconstructionError, match="all zero"):
+        validate_targets(_replace(line_integrals, 1, np.zeros_like(line_integrals[1])), geometry, "line_integral")
+    with pytest.raises(ReconstructionError, match="target kind"):
+        validate_targets(line_integrals, geometry, "density")
+
+
+def test_reconstruct_rejects_bad_input_before_working(case):
+    geometry = case[0]
+    calls = []
+    with pytest.raises(ReconstructionError, match="mask is empty"):
+        reconstruct(geometry, _replace(_masks(case), 0, np.zeros((64, 64))), make_settings("fast", steps=5),
+                    progress=calls.append)
+    assert calls == []
+    # masks whose back-projections never meet inside the volume (mask 2 of a distant region)
+    corner = np.zeros((64, 64), np.uint8)
+    corner[:3, :3] = 1
+    far = _replace(_masks(case), 1, corner)
+    with pytest.raises(ReconstructionError, match="do not intersect"):
+        reconstruct(geometry, far, make_settings("fast", steps=5))
+
+
+# --- tiny reconstructions -----------------------------------------------------------------------------------------------
+STEPS = 100  # the fast preset warms up for 20 steps; the occupancy modes need ~100 here
+
+
+@pytest.fixture(scope="module", params=sorted(MODES))
+def run(request, case):
+    geometry = case[0]
+    events = []
+    result = reconstruct(geometry, _masks(case), make_settings("fast", mode=request.param, steps=STEPS, device="cpu"),
+                         progress=events.append, progress_interval_s=0.0)
+    return request.param, result, events
+
+
+def test_reconstruction_outputs(run, case):
+    mode, result, _ = run
+    grid = case[0].volume
+    assert result.occupancy.shape == result.field.shape == result.segmentation.shape == grid.shape
+    assert result.occupancy.dtype == np.float32 and result.segmentation.dtype == bool
+    assert np.all((result.occupancy >= 0) & (result.occupancy <= 1))
+    np.testing.assert_array_equal(result.segmentation, result.occupancy >= result.settings.threshold)
+    assert result.support is not None and result.support.shape == grid.shape
+    assert not np.any(case[1] & ~result.support)  # the fast preset's support holds the whole vessel
+    assert not np.any(result.occupancy[~result.support])
+    assert result.settings.mode == mode and result.geometry == case[0]
+    assert len(result.history) == STEPS and result.history[-1]["step"] == STEPS
+    assert all(np.isfinite(h["loss"]) for h in result.history)
+
+
+def test_reconstruction_report(run):
+    mode, result, _ = run
+    report = result.report
+    for key in ("settings", "seed", "device", "versions", "timings_s", "final_losses", "reprojection_dice", "geometry"):
+        assert key in report, key
+    assert report["settings"]["mode"] == mode and report["seed"] == 0
+    assert len(report["reprojection_dice"]) == 2
+    assert all(0.0 <= d <= 1.0 for d in report["reprojection_dice"])
+    assert report["timings_s"]["total"] > 0
+    assert report["device"].startswith("cpu")
+    assert "torch" in report["versions"]
+    assert (report["final_losses"]["l_geo"] > 0) == MODES[mode]["geometric"]
+
+
+def test_progress_reaches_total_with_increasing_steps(run):
+    _, _, events = run
+    steps = [e["step"] for e in events if e.get("phase") == "optimise"]
+    assert steps == list(range(1, STEPS + 1))  # progress_interval_s=0: every step, in order
+    last = [e for e in events if e.get("phase") == "optimise"][-1]
+    assert last["total"] == STEPS and last["eta_s"] == pytest.approx(0.0)
+    assert all(e["elapsed_s"] >= 0 for e in events)
+    assert all({"loss", "l_occ", "l_geo", "eta_s"} <= set(e) for e in events if e.get("phase") == "optimise")
+    assert events[0]["phase"] == "setup" and events[-1]["phase"] == "output"
+
+
+def test_reconstruction_beats_the_empty_prediction(run, case):
+    # Independently of the optimiser's own bookkeeping: reproject the occupancy volume, compare it
+    # with the masks in the optimiser's image model, and compare the volume with the label.
+    # The empty prediction scores L_occ = mean(mask) and soft Dice 0.
+    mode, result, _ = run
+    geometry, label, _, masks = case
+    tau = result.settings.silhouette_length_mm
+    occupancy = result.occupancy
+    rendered = [silhouette(torch.as_tensor(project_volume(occupancy, v, geometry.volume)), tau).numpy() for v in geometry.views]
+    l_occ = np.mean([np.mean((r - m) ** 2) for r, m in zip(rendered, masks)])
+    l_occ_empty = np.mean([np.mean(m.astype(float)) for m in masks])
+    soft_dice = 2 * float((occupancy * label).sum()) / (float(occupancy.sum()) + float(label.sum()))
+    assert l_occ < 0.5 * l_occ_empty, f"{mode}: L_occ {l_occ:.4f} vs empty {l_occ_empty:.4f}"
+    assert soft_dice > 0.1, f"{mode}: soft Dice {soft_dice:.3f}"
+
+
+def test_line_integral_targets(case):
+    geometry, label, line_integrals, _ = case
+    result = reconstruct(geometry, line_integrals, make_settings("fast", mode="neca", steps=10, device="cpu"),
+                         target_kind="line_integral")
+    assert result.report["target_kind"] == "line_integral"
+    assert result.history[-1]["l_occ"] < result.history[0]["l_occ"]
+
+
+# --- cancel and repeatability ---------------------------------------------------------------------------------------------
+def test_cancel_at_step_k(case):
+    geometry = case[0]
+    seen = []
+
+    def cancel():
+        return bool(seen) and seen[-1] >= 3
+
+    with pytest.raises(ReconstructionCancelled, match="step 3"):
+        reconstruct(geometry, _masks(case), make_settings("fast", steps=50, device="cpu"),
+                    progress=lambda e: seen.append(e["step"]), cancel=cancel, progress_interval_s=0.0)
+    assert max(seen) == 3
+
+
+def test_cancel_before_start(case):
+    with pytest.raises(ReconstructionCancelled):
+        reconstruct(case[0], _masks(case), make_settings("fast", steps=50, device="cpu"), cancel=lambda: True)
+
+
+def test_same_seed_same_result_different_seed_different_result(case):
+    geometry = case[0]
+
+    def once(seed):
+        return reconstruct(geometry, _masks(case), make_settings("fast", steps=5, seed=seed, device="cpu"))
+
+    a, b, c = once(1), once(1), once(2)
+    np.testing.assert_array_equal(a.field, b.field)
+    np.testing.assert_array_equal(a.occupancy, b.occupancy)
+    assert [h["loss"] for h in a.history] == [h["loss"] for h in b.history]
+    assert not np.array_equal(a.field, c.field)
+    assert a.report["seed"] == 1 and c.report["seed"] == 2
