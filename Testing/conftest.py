@@ -1,0 +1,67 @@
+"""Shared fixtures: a tiny geometry and a tiny simulated case, small enough for 2 CPU cores.
+
+The tiny case is a three-branch tube tree (radii 2.5–4 mm) on a 32³ grid at 2 mm, seen in an
+LAO 30 / RAO 30 pair on a 96² detector at 1 mm: every view sees it, and simulation takes seconds.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any, Dict
+
+import numpy as np
+import pytest
+
+from SDFCARLib.geometry import Geometry, standard_geometry
+
+TINY_SHAPE = (32, 32, 32)
+TINY_SPACING_MM = 2.0
+TINY_DETECTOR = (96, 96)
+TINY_DETECTOR_SPACING_MM = 1.0
+
+
+def tiny_geometry_dict() -> Dict[str, Any]:
+    """The tiny geometry as GEOM.json content (a fresh dict each call, free to corrupt)."""
+    return standard_geometry("lao30-rao30", volume_shape=TINY_SHAPE, spacing_mm=TINY_SPACING_MM,
+                             detector_shape=TINY_DETECTOR, detector_spacing_mm=TINY_DETECTOR_SPACING_MM).to_dict()
+
+
+def write_json(path: Path, data: Any) -> Path:
+    path.write_text(json.dumps(data, indent=2), encoding="utf-8")
+    return path
+
+
+def tiny_tree():
+    from SDFCARLib.phantoms import Branch, CenterlineTree
+
+    return CenterlineTree([
+        Branch(np.array([[-20.0, -5.0, 20.0], [0.0, 0.0, 0.0], [5.0, 5.0, -20.0]]), np.array([4.0, 3.5, 3.0]), "main"),
+        Branch(np.array([[0.0, 0.0, 0.0], [20.0, -5.0, -10.0]]), np.array([3.0, 2.5]), "side"),
+    ], "tiny")
+
+
+@pytest.fixture(scope="session")
+def tiny_geometry() -> Geometry:
+    return Geometry.from_dict(tiny_geometry_dict())
+
+
+@pytest.fixture(scope="session")
+def tiny_case(tiny_geometry):
+    """Label, line integrals and masks of the tiny tree (simulated once per test session)."""
+    from SDFCARLib.phantoms import make_case
+
+    return make_case(tiny_tree(), tiny_geometry, name="tiny")
+
+
+@pytest.fixture
+def geometry_file(tmp_path) -> Path:
+    return write_json(tmp_path / "geometry.json", tiny_geometry_dict())
+
+
+@pytest.fixture
+def mask_files(tmp_path, tiny_case):
+    """The tiny case's two masks as 0/255 PNGs."""
+    from SDFCARLib.io import write_mask_png
+
+    return [write_mask_png(tmp_path / f"view{n}_mask.png", m) for n, m in enumerate(tiny_case.masks, start=1)]
