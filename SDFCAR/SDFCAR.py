@@ -1,0 +1,609 @@
+"""SDFCAR: 3D coronary artery tree from two X-ray angiography views (SDF-CAR), as a Slicer module.
+
+A thin GUI over SDFCARLib: every computation lives in the library (``SDFCARLib.mrml`` for the scene,
+``SDFCARLib.jobs`` for the background reconstruction); this file only wires widgets to it.
+"""
+
+import logging
+import os
+import re
+import sys
+import time
+from pathlib import Path
+from typing import Annotated, Union
+
+import qt
+import vtk
+
+import slicer
+from slicer import vtkMRMLLabelMapVolumeNode, vtkMRMLScalarVolumeNode, vtkMRMLSegmentationNode
+from slicer.parameterNodeWrapper import Choice, WithinRange, parameterNodeWrapper
+from slicer.ScriptedLoadableModule import (
+    ScriptedLoadableModule,
+    ScriptedLoadableModuleLogic,
+    ScriptedLoadableModuleTest,
+    ScriptedLoadableModuleWidget,
+)
+from slicer.util import VTKObservationMixin
+
+
+def _addLibraryPath():
+    """Put the folder holding SDFCARLib on sys.path: next to this file when installed as an
+    extension, the repository root when the module is used from a source checkout."""
+    here = Path(__file__).resolve().parent
+    for folder in (here, here.parent):
+        if (folder / "SDFCARLib" / "__init__.py").is_file():
+            if str(folder) not in sys.path:
+                sys.path.insert(0, str(folder))
+            return folder
+    return None
+
+
+_addLibraryPath()
+
+#: Python packages the reconstruction needs: import name -> pip requirement.
+REQUIREMENTS = {"torch": "torch", "kornia": "kornia>=0.7", "skimage": "scikit-image", "pydicom": "pydicom"}
+PRESETS = ["fast", "paper"]
+MODES = ["sdfcar", "neca", "occ-combined", "sdf-occ"]
+DEVICES = ["auto", "cpu", "cuda"]
+
+
+class SDFCAR(ScriptedLoadableModule):
+    def __init__(self, parent):
+        ScriptedLoadableModule.__init__(self, parent)
+        self.parent.title = "SDFCAR"
+        self.parent.categories = ["Cardiac"]
+        self.parent.dependencies = []
+        self.parent.contributors = ["The SDFCAR authors"]
+        self.parent.helpText = """
+Reconstructs the 3D coronary artery tree from two X-ray angiography views by per-patient
+self-supervised optimisation of a signed-distance field (SDF-CAR). Choose the two frames (DICOM
+XA runs or images) and their vessel masks, check the C-arm geometry (filled from the DICOM tags),
+and press Apply. The result is a segmentation ("Coronary tree") and a surface model, with the
+settings, losses and versions stored as node attributes (SDFCAR.*).
+Method: "SDF-CAR: 3D Coronary Artery Reconstruction from Two Views with a Hybrid SDF-Occupancy
+Implicit Representation" (MIDL 2026 submission); please cite it (see Acknowledgment).
+"""
+        self.parent.acknowledgementText = """
+Please cite the method when you use this module: "SDF-CAR: 3D Coronary Artery Reconstruction from
+Two Views with a Hybrid SDF-Occupancy Implicit Representation" (under review for MIDL 2026; code
+of the paper: <a href="https://github.com/reda1609/SDF-CAR">github.com/reda1609/SDF-CAR</a>).
+It builds on NeCA (Wang et al., 2024). Not a medical device: for research use only.
+"""
+        slicer.app.connect("startupCompleted()", registerSampleData)
+
+
+def registerSampleData():
+    """Register the bundled two-view sample case with the Sample Data module."""
+    import SampleData
+
+    if _addLibraryPath() is None:
+        return
+    from SDFCARLib.sample_data import SAMPLE_DIR
+
+    iconsPath = os.path.join(os.path.dirname(__file__), "Resources", "Icons")
+    SampleData.SampleDataLogic.registerCustomSampleDataSource(
+        category="SDFCAR",
+        sampleName="SDFCAR two-view case",
+        thumbnailFileName=os.path.join(iconsPath, "SDFCAR.png"),
+        # Bundled files: nothing to download, the custom loader reads them in place.
+        uris=(SAMPLE_DIR / "geometry.json").as_uri(),
+        fileNames="geometry.json",
+        nodeNames="SDFCAR sample",
+        customDownloader=lambda source: SDFCARLogic().loadSampleCase(),
+    )
+
+
+@parameterNodeWrapper
+class SDFCARParameterNode:
+    frame1: vtkMRMLScalarVolumeNode
+    frame1Index: Annotated[int, WithinRange(-1, 100000)] = -1
+    mask1: Union[vtkMRMLSegmentationNode, vtkMRMLLabelMapVolumeNode, None]  # None: the wrapper needs it
+    frame2: vtkMRMLScalarVolumeNode
+    frame2Index: Annotated[int, WithinRange(-1, 100000)] = -1
+    mask2: Union[vtkMRMLSegmentationNode, vtkMRMLLabelMapVolumeNode, None]
+    primaryAngle1: Annotated[float, WithinRange(-180.0, 180.0)] = 30.0
+    secondaryAngle1: Annotated[float, WithinRange(-90.0, 90.0)] = 0.0
+    sid1: Annotated[float, WithinRange(1.0, 5000.0)] = 1000.0
+    sod1: Annotated[float, WithinRange(1.0, 5000.0)] = 757.0
+    pixelSpacingRow1: Annotated[float, WithinRange(0.001, 10.0)] = 0.278
+    pixelSpacingCol1: Annotated[float, WithinRange(0.001, 10.0)] = 0.278
+    primaryAngle2: Annotated[float, WithinRange(-180.0, 180.0)] = -30.0
+    secondaryAngle2: Annotated[float, WithinRange(-90.0, 90.0)] = 0.0
+    sid2: Annotated[float, WithinRange(1.0, 5000.0)] = 1000.0
+    sod2: Annotated[float, WithinRange(1.0, 5000.0)] = 757.0
+    pixelSpacingRow2: Annotated[float, WithinRange(0.001, 10.0)] = 0.278
+    pixelSpacingCol2: Annotated[float, WithinRange(0.001, 10.0)] = 0.278
+    volumeSize: Annotated[int, WithinRange(8, 512)] = 128
+    voxelSpacing: Annotated[float, WithinRange(0.05, 10.0)] = 0.8
+    centerR: Annotated[float, WithinRange(-1000.0, 1000.0)] = 0.0
+    centerA: Annotated[float, WithinRange(-1000.0, 1000.0)] = 0.0
+    centerS: Annotated[float, WithinRange(-1000.0, 1000.0)] = 0.0
+    preset: Annotated[str, Choice(PRESETS)] = "fast"
+    mode: Annotated[str, Choice(MODES)] = "sdfcar"
+    device: Annotated[str, Choice(DEVICES)] = "auto"
+    steps: Annotated[int, WithinRange(0, 1000000)] = 0
+    seed: Annotated[int, WithinRange(0, 2147483647)] = 0
+    outputName: str = "Coronary tree"
+    outputDirectory: Path
+    includeOccupancy: bool = False
+    showCArm: bool = True
+
+
+class SDFCARWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
+    def __init__(self, parent=None):
+        ScriptedLoadableModuleWidget.__init__(self, parent)
+        VTKObservationMixin.__init__(self)
+        self.logic = None
+        self._parameterNode = None
+        self._parameterNodeGuiTag = None
+        self._job = None
+        self._jobContext = None
+        # Progress comes from the worker process; polling keeps the GUI responsive.
+        self._timer = qt.QTimer()
+        self._timer.setInterval(500)
+        self._timer.timeout.connect(self.onPollJob)
+
+    def setup(self):
+        ScriptedLoadableModuleWidget.setup(self)
+        uiWidget = slicer.util.loadUI(self.resourcePath("UI/SDFCAR.ui"))
+        self.layout.addWidget(uiWidget)
+        self.ui = slicer.util.childWidgetVariables(uiWidget)
+        uiWidget.setMRMLScene(slicer.mrmlScene)
+        self.logic = SDFCARLogic()
+
+        self.addObserver(slicer.mrmlScene, slicer.mrmlScene.StartCloseEvent, self.onSceneStartClose)
+        self.addObserver(slicer.mrmlScene, slicer.mrmlScene.EndCloseEvent, self.onSceneEndClose)
+        self.ui.editMask1Button.connect("clicked(bool)", lambda: self.onEditMask(1))
+        self.ui.editMask2Button.connect("clicked(bool)", lambda: self.onEditMask(2))
+        self.ui.vesselness1Button.connect("clicked(bool)", lambda: self.onVesselness(1))
+        self.ui.vesselness2Button.connect("clicked(bool)", lambda: self.onVesselness(2))
+        self.ui.readGeometryButton.connect("clicked(bool)", self.onReadGeometry)
+        self.ui.showCArmButton.connect("clicked(bool)", self.onShowCArm)
+        self.ui.applyButton.connect("clicked(bool)", self.onApplyButton)
+        self.ui.progressBar.setVisible(False)
+        self.initializeParameterNode()
+
+    def cleanup(self):
+        self.removeObservers()
+        self._timer.stop()
+        if self._job is not None and self._job.state == "running":
+            self._job.cancel()
+
+    def enter(self):
+        self.initializeParameterNode()
+
+    def exit(self):
+        if self._parameterNode:
+            self._parameterNode.disconnectGui(self._parameterNodeGuiTag)
+            self._parameterNodeGuiTag = None
+            self.removeObserver(self._parameterNode, vtk.vtkCommand.ModifiedEvent, self._checkCanApply)
+
+    def onSceneStartClose(self, caller, event):
+        self.setParameterNode(None)
+
+    def onSceneEndClose(self, caller, event):
+        if self.parent.isEntered:
+            self.initializeParameterNode()
+
+    def initializeParameterNode(self):
+        self.setParameterNode(self.logic.getParameterNode())
+
+    def setParameterNode(self, inputParameterNode):
+        if self._parameterNode:
+            self._parameterNode.disconnectGui(self._parameterNodeGuiTag)
+            self.removeObserver(self._parameterNode, vtk.vtkCommand.ModifiedEvent, self._checkCanApply)
+        self._parameterNode = inputParameterNode
+        if self._parameterNode:
+            self._parameterNodeGuiTag = self._parameterNode.connectGui(self.ui)
+            self.addObserver(self._parameterNode, vtk.vtkCommand.ModifiedEvent, self._checkCanApply)
+            self._checkCanApply()
+
+    def _checkCanApply(self, caller=None, event=None):
+        p = self._parameterNode
+        for n in (1, 2):
+            hasFrame = bool(p and getattr(p, f"frame{n}"))
+            getattr(self.ui, f"editMask{n}Button").enabled = hasFrame
+            getattr(self.ui, f"vesselness{n}Button").enabled = hasFrame
+        if self._job is not None:
+            self.ui.applyButton.enabled = True  # it is the Cancel button now
+            return
+        ready = bool(p and p.frame1 and p.mask1 and p.frame2 and p.mask2)
+        self.ui.applyButton.enabled = ready
+        self.ui.applyButton.toolTip = "Reconstruct the coronary tree" if ready else "Choose both frames and their masks"
+
+    # --- masks and geometry ---------------------------------------------------------------------
+    def onEditMask(self, n):
+        with slicer.util.tryWithErrorDisplay(f"Could not open the mask of frame {n} for editing.", waitCursor=True):
+            p = self._parameterNode
+            frame = getattr(p, f"frame{n}")
+            segmentation = self.logic.maskSegmentation(frame, getattr(p, f"mask{n}"))
+            setattr(p, f"mask{n}", segmentation)
+            self.logic.editInSegmentEditor(segmentation, frame, getattr(p, f"frame{n}Index"))
+
+    def onVesselness(self, n):
+        with slicer.util.tryWithErrorDisplay(f"Vesselness could not segment frame {n}.", waitCursor=True):
+            if not self.logic.ensureDependencies(["skimage"]):
+                return
+            p = self._parameterNode
+            segmentation, parameters = self.logic.vesselnessMask(
+                getattr(p, f"frame{n}"), getattr(p, f"frame{n}Index"), getattr(p, f"mask{n}"))
+            setattr(p, f"mask{n}", segmentation)
+            self.ui.statusLabel.text = (f"Vesselness marked {100 * parameters['vessel_fraction']:.1f} % of frame {n} "
+                                        "as vessel; refine the mask with Edit.")
+
+    def onReadGeometry(self):
+        with slicer.util.tryWithErrorDisplay("Could not read the C-arm geometry from the DICOM tags.", waitCursor=True):
+            if not self.logic.ensureDependencies(["pydicom"]):
+                return
+            notes = self.logic.readGeometryFromDicom(self._parameterNode)
+            self.ui.statusLabel.text = " ".join(["Geometry read from the DICOM tags."] + notes)
+
+    def onShowCArm(self):
+        with slicer.util.tryWithErrorDisplay("Could not show the C-arm set-up.", waitCursor=True):
+            self.logic.showCArm(self._parameterNode)
+
+    # --- reconstruction ---------------------------------------------------------------------------
+    def onApplyButton(self):
+        if self._job is not None:
+            self._job.cancel()
+            return
+        with slicer.util.tryWithErrorDisplay("Could not start the reconstruction.", waitCursor=True):
+            if not self.logic.ensureDependencies():
+                return
+            self._job, self._jobContext = self.logic.startReconstruction(self._parameterNode)
+            self.ui.applyButton.text = "Cancel"
+            self.ui.progressBar.setVisible(True)
+            self.ui.progressBar.value = 0
+            self.ui.statusLabel.text = "Starting…"
+            self._timer.start()
+
+    def onPollJob(self):
+        job = self._job
+        if job is None:
+            self._timer.stop()
+            return
+        info = job.poll()
+        if info:
+            self.ui.progressBar.maximum = max(1, int(info.get("total") or 1))
+            self.ui.progressBar.value = int(info.get("step") or 0)
+            self.ui.statusLabel.text = describeProgress(info)
+        state = job.state
+        if state == "running":
+            return
+        self._timer.stop()
+        self._job, context = None, self._jobContext
+        self.ui.applyButton.text = "Apply"
+        self.ui.progressBar.setVisible(False)
+        self._checkCanApply()
+        if state == "cancelled":
+            self.ui.statusLabel.text = "Cancelled: the scene is unchanged."
+            return
+        import SDFCARLib.jobs
+
+        try:
+            files = job.result()
+        except SDFCARLib.jobs.JobFailed as exc:
+            self.ui.statusLabel.text = "Failed: the scene is unchanged."
+            slicer.util.errorDisplay(f"The reconstruction failed: {exc.message}", detailedText=exc.traceback_text)
+            return
+        with slicer.util.tryWithErrorDisplay("The reconstruction finished but its results could not be loaded.", waitCursor=True):
+            self.logic.addResults(files, context)
+            self.ui.statusLabel.text = f"Done: '{context['name']}' is in the scene (files in {context['jobDir']})."
+
+
+def describeProgress(info):
+    """One status line from a job progress dict (step, total, loss, ETA, device)."""
+    phase = info.get("phase")
+    if phase == "setup":
+        return f"Preparing ({info.get('device', '')})…"
+    if phase == "output":
+        return "Writing the results…"
+    text = f"Step {info.get('step', 0)} / {info.get('total', '?')}"
+    if info.get("loss") is not None:
+        text += f" · loss {info['loss']:.4g} (occ {info.get('l_occ', 0):.3g}, geo {info.get('l_geo', 0):.3g})"
+    if info.get("eta_s") is not None:
+        text += f" · ETA {int(info['eta_s'] // 60)}:{int(info['eta_s'] % 60):02d}"
+    if info.get("device"):
+        text += f" · {info['device']}"
+    return text
+
+
+class SDFCARLogic(ScriptedLoadableModuleLogic):
+    """Everything the module does, usable from the Python console without the GUI (see README)."""
+
+    def getParameterNode(self):
+        return SDFCARParameterNode(super().getParameterNode())
+
+    # --- dependencies -----------------------------------------------------------------------------
+    @staticmethod
+    def missingDependencies(names=None):
+        import importlib.util
+
+        return [name for name in (names or list(REQUIREMENTS)) if importlib.util.find_spec(name) is None]
+
+    def ensureDependencies(self, names=None):
+        """Offer to install missing packages (after confirmation); True when all are importable."""
+        missing = self.missingDependencies(names)
+        if not missing:
+            return True
+        if "torch" in missing:
+            try:
+                import PyTorchUtils  # the PyTorch extension's installer picks the build for the GPU
+            except ImportError:
+                PyTorchUtils = None
+            if PyTorchUtils is not None:
+                if PyTorchUtils.PyTorchUtilsLogic().installTorch(askConfirmation=True) is None:
+                    return False
+                missing.remove("torch")
+        if missing:
+            requirements = [REQUIREMENTS[name] for name in missing]
+            if not slicer.util.confirmOkCancelDisplay(
+                    f"SDFCAR needs these Python packages: {', '.join(requirements)}. Download and install them now?",
+                    windowTitle="SDFCAR dependencies"):
+                return False
+            try:
+                from slicer import packaging  # not "import slicer.packaging": that would make slicer local here
+            except ImportError:  # Slicer before slicer.packaging
+                slicer.util.pip_install(requirements)
+            else:
+                packaging.pip_ensure(requirements, prompt_install=False, requester="SDFCAR")
+        return not self.missingDependencies(names)
+
+    # --- inputs -----------------------------------------------------------------------------------
+    @staticmethod
+    def frameNode(node, index=-1):
+        """The volume node holding the chosen frame: item ``index`` of the sequence a proxy node
+        shows (-1: the item on display), or the node itself."""
+        from SDFCARLib import mrml
+
+        if node is None:
+            raise ValueError("choose the frame's volume first")
+        browser, sequence = mrml.sequence_of_proxy_node(slicer.mrmlScene, node)
+        if sequence is None or index is None or index < 0:
+            return node
+        return mrml.sequence_frame_node(sequence, index)
+
+    @staticmethod
+    def sliceIndex(node, frame, index):
+        """Slice of a multi-frame volume to use: ``index`` unless it picked a sequence item."""
+        return index if frame is node and index is not None and index >= 0 else None
+
+    def frameArray(self, node, index=-1):
+        from SDFCARLib import mrml
+
+        frame = self.frameNode(node, index)
+        return mrml.frame_from_volume_node(frame, self.sliceIndex(node, frame, index))
+
+    def maskArray(self, maskNode, frameNode, index=-1):
+        from SDFCARLib import mrml
+
+        if maskNode is None:
+            raise ValueError(f"frame '{frameNode.GetName() if frameNode else ''}' has no mask: use Edit or Vesselness")
+        if maskNode.IsA("vtkMRMLSegmentationNode"):
+            # A segmentation painted on a cine run's proxy holds the frame on display.
+            sliceIndex = self.sliceIndex(frameNode, self.frameNode(frameNode, index), index)
+            return mrml.mask_from_segmentation_node(maskNode, frameNode, slice_index=sliceIndex)
+        frame = self.frameNode(maskNode, index)
+        return mrml.mask_from_volume_node(frame, slice_index=self.sliceIndex(maskNode, frame, index))
+
+    @staticmethod
+    def maskSegmentation(frameNode, maskNode=None):
+        """The segmentation to paint the vessels of a frame in (created, empty, when needed)."""
+        if frameNode is None:
+            raise ValueError("choose the frame first")
+        if maskNode is not None and maskNode.IsA("vtkMRMLSegmentationNode"):
+            return maskNode
+        segmentation = slicer.mrmlScene.AddNewNodeByClass("vtkMRMLSegmentationNode", f"{frameNode.GetName()} vessels")
+        segmentation.CreateDefaultDisplayNodes()
+        segmentation.SetReferenceImageGeometryParameterFromVolumeNode(frameNode)
+        segmentation.GetSegmentation().AddEmptySegment("Vessels", "Vessels", [1.0, 0.3, 0.3])
+        return segmentation
+
+    @staticmethod
+    def editInSegmentEditor(segmentation, frameNode, index=-1):
+        from SDFCARLib import mrml
+
+        browser, _ = mrml.sequence_of_proxy_node(slicer.mrmlScene, frameNode)
+        if browser is not None and index is not None and index >= 0:
+            browser.SetSelectedItemNumber(index)
+        slicer.util.setSliceViewerLayers(background=frameNode, fit=True)
+        slicer.util.selectModule("SegmentEditor")
+        editor = slicer.util.getModuleWidget("SegmentEditor").editor
+        editor.setSegmentationNode(segmentation)
+        editor.setSourceVolumeNode(frameNode)
+
+    def vesselnessMask(self, frameNode, index=-1, maskNode=None):
+        """Seed a frame's vessel segmentation with the vesselness mask; returns (segmentation, parameters)."""
+        from SDFCARLib import mrml
+        from SDFCARLib.masks import vesselness_mask
+
+        mask, parameters = vesselness_mask(self.frameArray(frameNode, index))
+        with mrml.scene_transaction(slicer.mrmlScene):
+            segmentation = self.maskSegmentation(frameNode, maskNode)
+            mrml.set_segment_mask(segmentation, mask, frameNode, "Vessels")
+        segmentation.SetAttribute("SDFCAR.vesselness", str(parameters))
+        return segmentation, parameters
+
+    # --- geometry ---------------------------------------------------------------------------------
+    @staticmethod
+    def geometryFromParameters(p, detectorShapes):
+        """The Geometry the parameters describe (volume centre entered in RAS, kept in LPS)."""
+        from SDFCARLib import mrml
+        from SDFCARLib.geometry import CArmView, Geometry, VolumeGrid
+
+        views = []
+        for n, shape in enumerate(detectorShapes, start=1):
+            views.append(CArmView(
+                getattr(p, f"primaryAngle{n}"), getattr(p, f"secondaryAngle{n}"), getattr(p, f"sid{n}"), getattr(p, f"sod{n}"),
+                (getattr(p, f"pixelSpacingRow{n}"), getattr(p, f"pixelSpacingCol{n}")), tuple(int(s) for s in shape)))
+        center = mrml.ras_to_lps([p.centerR, p.centerA, p.centerS])
+        grid = VolumeGrid((int(p.volumeSize),) * 3, (float(p.voxelSpacing),) * 3, tuple(float(c) for c in center))
+        return Geometry(grid, tuple(views))
+
+    @staticmethod
+    def setViewParameters(p, n, view):
+        setattr(p, f"primaryAngle{n}", float(view.primary_deg))
+        setattr(p, f"secondaryAngle{n}", float(view.secondary_deg))
+        setattr(p, f"sid{n}", float(view.sid_mm))
+        setattr(p, f"sod{n}", float(view.sod_mm))
+        setattr(p, f"pixelSpacingRow{n}", float(view.pixel_spacing_mm[0]))
+        setattr(p, f"pixelSpacingCol{n}", float(view.pixel_spacing_mm[1]))
+
+    def setGeometryParameters(self, p, geometry):
+        from SDFCARLib import mrml
+
+        for n, view in enumerate(geometry.views[:2], start=1):
+            self.setViewParameters(p, n, view)
+        p.volumeSize = int(max(geometry.volume.shape))
+        p.voxelSpacing = float(max(geometry.volume.spacing_mm))
+        p.centerR, p.centerA, p.centerS = (float(c) + 0.0 for c in mrml.lps_to_ras(geometry.volume.center_mm))  # no -0.0
+
+    def readGeometryFromDicom(self, p):
+        """Fill the view fields from the frames' DICOM tags; returns notes for the user."""
+        from SDFCARLib import mrml
+        from SDFCARLib.dicom import view_from_dicom
+
+        notes = []
+        for n in (1, 2):
+            uid, fileFrame = mrml.dicom_frame_reference(slicer.mrmlScene, getattr(p, f"frame{n}"), getattr(p, f"frame{n}Index"))
+            path = slicer.dicomDatabase.fileForInstance(uid) if uid and slicer.dicomDatabase else None
+            if not path:
+                raise ValueError(f"frame {n} was not loaded from the DICOM database, so there are no tags to read; "
+                                 "type the angles, distances and pixel spacing instead")
+            view, provenance = view_from_dicom(path, frame=fileFrame, view_number=n)
+            self.setViewParameters(p, n, view)
+            notes += [f"View {n}: {note}" for note in provenance.get("notes", [])]
+        return notes
+
+    def inputs(self, p):
+        """(geometry, masks, frames) of the parameter node's choices, as arrays (rows, cols)."""
+        frames = [self.frameArray(p.frame1, p.frame1Index), self.frameArray(p.frame2, p.frame2Index)]
+        masks = [self.maskArray(p.mask1, p.frame1, p.frame1Index), self.maskArray(p.mask2, p.frame2, p.frame2Index)]
+        return self.geometryFromParameters(p, [m.shape for m in masks]), masks, frames
+
+    def showCArm(self, p):
+        """Show the C-arm set-up of the current choices (replacing an earlier display of it)."""
+        from SDFCARLib import mrml
+
+        geometry, masks, frames = self.inputs(p)
+        name = f"{p.outputName} C-arm"
+        for node in list(slicer.util.getNodesByClass("vtkMRMLDisplayableNode")):
+            if node.GetName().startswith(name) and (node.GetAttribute("SDFCAR.role") or "").startswith("carm"):
+                slicer.mrmlScene.RemoveNode(node)
+        return mrml.add_carm_geometry_to_scene(slicer.mrmlScene, geometry, images=frames, name=name)
+
+    # --- reconstruction ---------------------------------------------------------------------------
+    @staticmethod
+    def settings(p):
+        values = {"preset": p.preset, "mode": p.mode, "device": p.device, "seed": int(p.seed)}
+        if p.steps > 0:
+            values["steps"] = int(p.steps)
+        return values
+
+    @staticmethod
+    def jobDirectory(p):
+        chosen = str(p.outputDirectory) if p.outputDirectory is not None else ""
+        base = Path(chosen) if chosen not in ("", ".") else Path(slicer.app.temporaryPath) / "SDFCAR"
+        safe = re.sub(r"[^A-Za-z0-9_.-]+", "_", p.outputName).strip("._") or "result"
+        return base / f"{safe}-{time.strftime('%Y%m%d-%H%M%S')}"
+
+    @staticmethod
+    def _startJob(jobDir, geometry, masks, settings, name):
+        import shutil
+
+        from SDFCARLib.jobs import ReconstructionJob
+
+        jobDir.parent.mkdir(parents=True, exist_ok=True)
+        # The worker runs in Slicer's own Python (PythonSlicer), outside the GUI process.
+        return ReconstructionJob.start(jobDir, geometry, masks, settings, name, python=shutil.which("PythonSlicer"))
+
+    def startReconstruction(self, p):
+        """Start a background job; returns (job, context for ``addResults``)."""
+        geometry, masks, frames = self.inputs(p)
+        jobDir = self.jobDirectory(p)
+        job = self._startJob(jobDir, geometry, masks, self.settings(p), p.outputName)
+        context = {"name": p.outputName, "geometry": geometry, "frames": frames, "jobDir": str(jobDir),
+                   "includeOccupancy": p.includeOccupancy, "showCArm": p.showCArm}
+        return job, context
+
+    def addResults(self, files, context):
+        """A job's result files into the scene (all or nothing) and into the 3D view."""
+        from SDFCARLib import mrml
+
+        scene = slicer.mrmlScene
+        with mrml.scene_transaction(scene):
+            nodes = mrml.add_reconstruction_to_scene(scene, files, context["name"], include_occupancy=context["includeOccupancy"],
+                                                     attributes={"jobFolder": context["jobDir"]})
+            if context["showCArm"]:
+                mrml.add_carm_geometry_to_scene(scene, context["geometry"], images=context["frames"], name=f"{context['name']} C-arm")
+        layoutManager = slicer.app.layoutManager()
+        if layoutManager is not None and layoutManager.threeDViewCount > 0:
+            layoutManager.threeDWidget(0).threeDView().resetFocalPoint()
+        return nodes
+
+    def reconstruct(self, frame1, mask1, frame2, mask2, geometry, settings=None, name="Coronary tree",
+                    frameIndices=(-1, -1), jobDir=None, showCArm=True, includeOccupancy=False, timeout=None):
+        """Console use: reconstruct and wait; returns SDFCARLib.mrml.ResultNodes.
+
+        ``geometry``: an SDFCARLib Geometry whose detectors match the frames (e.g.
+        ``Geometry.load("geometry.json")``); ``settings``: a dict (preset, mode, device, steps, seed).
+        """
+        frames = [self.frameArray(frame1, frameIndices[0]), self.frameArray(frame2, frameIndices[1])]
+        masks = [self.maskArray(mask1, frame1, frameIndices[0]), self.maskArray(mask2, frame2, frameIndices[1])]
+        jobDir = Path(jobDir) if jobDir else Path(slicer.app.temporaryPath) / "SDFCAR" / f"console-{time.strftime('%Y%m%d-%H%M%S')}"
+        job = self._startJob(jobDir, geometry, masks, settings or {"preset": "fast"}, name)
+        if job.wait(timeout) == "running":
+            job.cancel()
+        context = {"name": name, "geometry": geometry, "frames": frames, "jobDir": str(jobDir),
+                   "includeOccupancy": includeOccupancy, "showCArm": showCArm}
+        return self.addResults(job.result(), context)
+
+    # --- sample data and self-test ----------------------------------------------------------------
+    def loadSampleCase(self):
+        """Load the bundled two-view case: its masks (as frames and masks), geometry and ground truth."""
+        from SDFCARLib import mrml
+        from SDFCARLib.sample_data import load_sample_case
+
+        case = load_sample_case()
+        p = self.getParameterNode()
+        scene = slicer.mrmlScene
+        with mrml.scene_transaction(scene):
+            for n, (mask, view) in enumerate(zip(case.masks, case.geometry.views), start=1):
+                frame = mrml.add_frame_volume_node(scene, mask.astype("uint8") * 255, f"SDFCAR sample view {n}", view.pixel_spacing_mm)
+                label = mrml.add_frame_volume_node(scene, mask, f"SDFCAR sample view {n} mask", view.pixel_spacing_mm,
+                                                   class_name="vtkMRMLLabelMapVolumeNode")
+                setattr(p, f"frame{n}", frame)
+                setattr(p, f"mask{n}", label)
+            truth = mrml.add_segmentation_node(scene, case.label, case.geometry.volume, "SDFCAR sample ground truth",
+                                               segment_name="Ground truth", color=(0.2, 0.8, 0.2))
+            truth.GetDisplayNode().SetVisibility(False)
+        self.setGeometryParameters(p, case.geometry)
+        p.outputName = "SDFCAR sample"
+        return truth
+
+    @staticmethod
+    def runSelfTest(log=logging.info, **kwargs):
+        from SDFCARLib.selftest import run_selftest
+
+        return run_selftest(slicer.mrmlScene, log=log, **kwargs)
+
+
+class SDFCARTest(ScriptedLoadableModuleTest):
+    def setUp(self):
+        slicer.mrmlScene.Clear()
+
+    def runTest(self):
+        self.setUp()
+        self.test_SelfTestScenario()
+
+    def test_SelfTestScenario(self):
+        """The scenario the headless test runs (SDFCARLib.selftest), in Slicer's own scene."""
+        self.delayDisplay("Starting the SDFCAR self-test")
+        logic = SDFCARLogic()
+        missing = logic.missingDependencies()
+        if missing:
+            self.fail(f"missing Python packages: {', '.join(missing)}; press Apply in the module once to install them")
+        result = logic.runSelfTest(log=self.delayDisplay)
+        self.assertIsNotNone(slicer.mrmlScene.GetFirstNodeByName("SDFCAR self-test"))
+        self.delayDisplay(f"Self-test passed: {result.metrics}")

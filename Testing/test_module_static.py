@@ -1,0 +1,239 @@
+"""Static checks of the Slicer module and the extension packaging (no Slicer application needed).
+
+The GUI cannot run here, so what can break it without running is checked from the sources:
+Python 3.9 grammar, widget names against the .ui, parameter-node bindings against the wrapper
+class and against the widget kinds Slicer's GUI connectors accept, the CMake lists against the
+files, the icon, the Extensions Index entry and the import-time rules.
+"""
+
+from __future__ import annotations
+
+import ast
+import fnmatch
+import json
+import re
+import struct
+import xml.etree.ElementTree as ET
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+MODULE = ROOT / "SDFCAR"
+SCRIPT = MODULE / "SDFCAR.py"
+UI = MODULE / "Resources" / "UI" / "SDFCAR.ui"
+ICON = MODULE / "Resources" / "Icons" / "SDFCAR.png"
+LIBRARY = ROOT / "SDFCARLib"
+
+
+def source(path: Path) -> str:
+    return path.read_text(encoding="utf-8")
+
+
+def ui_widgets():
+    """{widget name: (class, SlicerParameterName or None, element)} of the .ui file."""
+    out = {}
+    for element in ET.parse(UI).getroot().iter("widget"):
+        parameter = None
+        for prop in element.findall("property"):
+            if prop.get("name") == "SlicerParameterName":
+                parameter = prop.find("string").text
+        out[element.get("name")] = (element.get("class"), parameter, element)
+    return out
+
+
+def wrapper_parameters():
+    """{name: annotation source} of the class decorated with @parameterNodeWrapper."""
+    tree = ast.parse(source(SCRIPT))
+    for node in tree.body:
+        if isinstance(node, ast.ClassDef) and any(
+                (isinstance(d, ast.Name) and d.id == "parameterNodeWrapper") for d in node.decorator_list):
+            return {item.target.id: ast.unparse(item.annotation) for item in node.body if isinstance(item, ast.AnnAssign)}
+    raise AssertionError("SDFCAR.py has no @parameterNodeWrapper class")
+
+
+# --- Python ------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("path", [SCRIPT, LIBRARY / "mrml.py", LIBRARY / "selftest.py"], ids=lambda p: p.name)
+def test_python_39_grammar(path):
+    tree = ast.parse(source(path), filename=str(path), feature_version=(3, 9))
+    future_annotations = any(isinstance(n, ast.ImportFrom) and n.module == "__future__" and
+                             any(a.name == "annotations" for a in n.names) for n in tree.body)
+    # "X | Y" in an annotation is evaluated at runtime unless annotations are postponed (3.10+ only).
+    if not future_annotations:
+        for node in ast.walk(tree):
+            annotation = getattr(node, "annotation", None) or getattr(node, "returns", None)
+            if annotation is not None:
+                assert not any(isinstance(n, ast.BinOp) and isinstance(n.op, ast.BitOr) for n in ast.walk(annotation)), \
+                    f"{path.name}:{node.lineno}: 'X | Y' annotation needs Python 3.10"
+
+
+def test_every_ui_widget_the_code_uses_exists():
+    text = source(SCRIPT)
+    used = set(re.findall(r"self\.ui\.(\w+)", text))
+    for template in re.findall(r'getattr\(self\.ui, f"([^"]+)"\)', text):
+        used |= {template.replace("{n}", str(n)) for n in (1, 2)}
+    assert used, "no self.ui.X found: the check would be empty"
+    missing = sorted(used - set(ui_widgets()))
+    assert not missing, f"widgets used in SDFCAR.py but absent from SDFCAR.ui: {missing}"
+
+
+def test_every_slicer_parameter_name_maps_to_a_parameter_and_back():
+    parameters = wrapper_parameters()
+    bound = {parameter: name for name, (_, parameter, _) in ui_widgets().items() if parameter}
+    assert set(bound) - set(parameters) == set(), "SlicerParameterName without a parameter"
+    assert set(parameters) - set(bound) == set(), "parameters without a widget (invisible to the user)"
+
+
+# Widget classes Slicer's GUI connectors accept for each parameter type
+# (slicer/parameterNodeWrapper/guiConnectors.py).
+CONNECTORS = {
+    "bool": {"QCheckBox", "ctkCheckBox", "QPushButton", "ctkCheckablePushButton"},
+    "int": {"QSpinBox", "QSlider", "QDoubleSpinBox", "ctkSliderWidget", "ctkDoubleSpinBox", "qMRMLSpinBox", "ctkDoubleSlider", "qMRMLSliderWidget"},
+    "float": {"QDoubleSpinBox", "ctkSliderWidget", "ctkDoubleSpinBox", "qMRMLSpinBox", "ctkDoubleSlider", "qMRMLSliderWidget"},
+    "str": {"QLineEdit", "QLabel", "QTextEdit"},
+    "choice": {"QComboBox", "ctkComboBox"},
+    "node": {"qMRMLNodeComboBox"},
+    "Path": {"ctkPathLineEdit", "ctkDirectoryButton"},
+}
+
+
+def kind_of(annotation: str) -> str:
+    if "Choice(" in annotation:
+        return "choice"
+    if "vtkMRML" in annotation:
+        return "node"
+    base = re.sub(r"^Annotated\[(\w+),.*\]$", r"\1", annotation)
+    return base
+
+
+def test_widget_kinds_match_parameter_types():
+    parameters = wrapper_parameters()
+    for name, (cls, parameter, element) in ui_widgets().items():
+        if not parameter:
+            continue
+        kind = kind_of(parameters[parameter])
+        assert cls in CONNECTORS[kind], f"{name} ({cls}) cannot show parameter {parameter} of type {parameters[parameter]}"
+        if kind == "node":
+            types = [s.text for p in element.findall("property") if p.get("name") == "nodeTypes" for s in p.iter("string")]
+            assert types and all(t in parameters[parameter] for t in types), f"{name} offers {types}, {parameter} takes {parameters[parameter]}"
+
+
+def test_node_selectors_get_the_scene():
+    root = ET.parse(UI).getroot()
+    receivers = {c.find("receiver").text for c in root.iter("connection")
+                 if c.find("signal").text == "mrmlSceneChanged(vtkMRMLScene*)"}
+    selectors = {name for name, (cls, _, _) in ui_widgets().items() if cls == "qMRMLNodeComboBox"}
+    assert selectors and selectors <= receivers, f"node selectors without the scene: {sorted(selectors - receivers)}"
+
+
+def test_widget_names_are_unique_and_custom_widgets_declared():
+    root = ET.parse(UI).getroot()
+    names = [w.get("name") for w in root.iter("widget")]
+    assert len(names) == len(set(names))
+    declared = {c.find("class").text for c in root.iter("customwidget")}
+    used = {w.get("class") for w in root.iter("widget")}
+    custom = {c for c in used if c.startswith(("qMRML", "ctk", "qSlicer"))}
+    assert custom <= declared, f"undeclared custom widgets: {sorted(custom - declared)}"
+
+
+def test_import_time_rules():
+    # The module must load without the heavy packages: they are offered for install on first Apply.
+    heavy = {"torch", "kornia", "skimage", "pydicom", "scipy"}
+    for node in ast.parse(source(SCRIPT)).body:
+        if isinstance(node, (ast.Import, ast.ImportFrom)):
+            names = [a.name for a in node.names] if isinstance(node, ast.Import) else [node.module or ""]
+            assert not any(n.split(".")[0] in heavy | {"SDFCARLib"} for n in names), ast.unparse(node)
+    # "import slicer.x" inside a function makes "slicer" local to it: earlier uses then fail.
+    for node in ast.walk(ast.parse(source(SCRIPT))):
+        if isinstance(node, (ast.FunctionDef, ast.Lambda)):
+            for inner in ast.walk(node):
+                if isinstance(inner, ast.Import):
+                    assert not any(a.name.startswith("slicer.") and not a.asname for a in inner.names), ast.unparse(inner)
+    # SDFCARLib never imports Qt or the Slicer application; slicer (slicer-core) only inside functions.
+    for path in sorted(LIBRARY.glob("*.py")):
+        for node in ast.parse(source(path)).body:
+            if isinstance(node, (ast.Import, ast.ImportFrom)):
+                names = [a.name for a in node.names] if isinstance(node, ast.Import) else [node.module or ""]
+                assert not any(n.split(".")[0] in {"slicer", "qt", "ctk", "vtk"} for n in names), f"{path.name}: {ast.unparse(node)}"
+        assert not re.search(r"^\s*(import|from)\s+(qt|ctk)\b", source(path), re.M), f"{path.name} imports Qt"
+        assert "slicer.app" not in source(path), f"{path.name} uses the Slicer application"
+
+
+# --- packaging ---------------------------------------------------------------------------------------
+def cmake_words(path: Path) -> str:
+    return re.sub(r"#[^\n]*", "", source(path))
+
+
+def test_module_cmake_lists_every_file_of_the_module():
+    text = cmake_words(MODULE / "CMakeLists.txt").replace("${MODULE_NAME}", "SDFCAR")
+    files = [p.relative_to(MODULE).as_posix() for p in MODULE.rglob("*")
+             if p.is_file() and "__pycache__" not in p.parts and p.name != "CMakeLists.txt"]
+    assert files
+    missing = [f for f in files if not re.search(r"(^|\s)" + re.escape(f) + r"(\s|$)", text)]
+    assert not missing, f"files of SDFCAR/ not in SDFCAR/CMakeLists.txt: {missing}"
+    assert re.search(r"slicerMacroBuildScriptedModule\(\s*NAME SDFCAR\s+SCRIPTS \$\{MODULE_PYTHON_SCRIPTS\}\s+RESOURCES \$\{MODULE_PYTHON_RESOURCES\}", text)
+
+
+def test_module_cmake_installs_the_whole_library():
+    text = cmake_words(MODULE / "CMakeLists.txt")
+    script_globs = re.search(r"file\(GLOB SDFCARLIB_PYTHON_SCRIPTS\s+RELATIVE \$\{SDFCARLIB_SOURCE_DIR\}\s+CONFIGURE_DEPENDS\s+([^)]*)\)", text)
+    data_globs = re.search(r"file\(GLOB_RECURSE SDFCARLIB_PYTHON_RESOURCES\s+RELATIVE \$\{SDFCARLIB_SOURCE_DIR\}\s+CONFIGURE_DEPENDS\s+([^)]*)\)", text)
+    assert script_globs and data_globs
+    assert re.search(r"set\(SDFCARLIB_SOURCE_DIR \$\{CMAKE_CURRENT_SOURCE_DIR\}/\.\.\)", text)
+    assert re.search(r"ctkMacroCompilePythonScript\(\s*TARGET_NAME SDFCARLib\s+SCRIPTS \"\$\{SDFCARLIB_PYTHON_SCRIPTS\}\"\s+"
+                     r"RESOURCES \"\$\{SDFCARLIB_PYTHON_RESOURCES\}\"\s+SOURCE_DIR \$\{SDFCARLIB_SOURCE_DIR\}\s+"
+                     r"DESTINATION_DIR \$\{CMAKE_BINARY_DIR\}/\$\{Slicer_QTSCRIPTEDMODULES_LIB_DIR\}\s+"
+                     r"INSTALL_DIR \$\{Slicer_INSTALL_QTSCRIPTEDMODULES_LIB_DIR\}\s+NO_INSTALL_SUBDIR", text)
+    patterns = [g.replace("${SDFCARLIB_SOURCE_DIR}/", "") for g in script_globs.group(1).split()]
+    data_patterns = [g.replace("${SDFCARLIB_SOURCE_DIR}/", "") for g in data_globs.group(1).split()]
+    files = [p.relative_to(ROOT).as_posix() for p in LIBRARY.rglob("*") if p.is_file() and "__pycache__" not in p.parts]
+    for f in files:
+        if f.startswith("SDFCARLib/data/"):
+            assert any(fnmatch.fnmatch(f, d) for d in data_patterns), f
+        else:
+            # file(GLOB) "*" stays within one folder: a sub-package would need its own pattern.
+            matched = [p for p in patterns if fnmatch.fnmatch(f, p) and Path(f).parent == Path(p).parent]
+            assert matched, f"{f} would not be installed with the extension"
+
+
+def test_top_level_cmake_follows_the_extension_template():
+    text = cmake_words(ROOT / "CMakeLists.txt")
+    assert re.search(r"^project\(SDFCAR\)", text, re.M)
+    for key in ("HOMEPAGE", "CATEGORY", "CONTRIBUTORS", "DESCRIPTION", "ICONURL", "SCREENSHOTURLS", "DEPENDS"):
+        assert re.search(rf"set\(EXTENSION_{key}\s+\S", text), key
+    assert re.search(r'set\(EXTENSION_ICONURL\s*"https://[^"]+\.png"\s*\)', text)
+    assert re.search(r'set\(EXTENSION_SCREENSHOTURLS\s*"https://[^"]+"\)', text)
+    order = ["find_package(Slicer REQUIRED)", "include(${Slicer_USE_FILE})", "add_subdirectory(SDFCAR)",
+             "include(${Slicer_EXTENSION_GENERATE_CONFIG})", "include(${Slicer_EXTENSION_CPACK})"]
+    positions = [text.find(s) for s in order]
+    assert all(p >= 0 for p in positions) and positions == sorted(positions), dict(zip(order, positions))
+
+
+def test_icon_is_a_128_pixel_png():
+    data = ICON.read_bytes()
+    assert data[:8] == b"\x89PNG\r\n\x1a\n"
+    length, chunk, width, height = struct.unpack(">I4sII", data[8:24])
+    assert chunk == b"IHDR" and (width, height) == (128, 128)
+
+
+def test_extensions_index_entry():
+    entry = json.loads(source(ROOT / "SDFCAR.json"))
+    for key in ("$schema", "category", "scm_url"):
+        assert entry.get(key), key
+    assert "slicer-extension-catalog-entry-schema-v1.0.2.json" in entry["$schema"]
+    allowed = {"$schema", "category", "scm_url", "scm_revision", "scm_type", "build_dependencies", "dicom_support_rule",
+               "build_subdirectory", "enabled", "tier"}
+    assert set(entry) <= allowed, set(entry) - allowed
+    assert entry["scm_type"] in ("git", "local") and 1 <= entry["tier"] <= 5
+    assert entry["scm_url"].rstrip("/").split("/")[-1].startswith("Slicer"), "the Extensions Index wants 'Slicer…' repositories"
+    cmake = cmake_words(ROOT / "CMakeLists.txt")
+    assert re.search(rf'set\(EXTENSION_CATEGORY\s+"{re.escape(entry["category"])}"\)', cmake)
+    depends = re.search(r"set\(EXTENSION_DEPENDS\s+([^)]*)\)", cmake).group(1).replace('"', "").split()
+    assert sorted(entry["build_dependencies"]) == sorted(d for d in depends if d != "NA")
+    assert "\r" not in source(ROOT / "SDFCAR.json")
+
+
+def test_license_is_apache_2():
+    text = source(ROOT / "LICENSE")
+    assert "Apache License" in text and "Version 2.0, January 2004" in text
+    assert "Copyright 2026 the SDFCAR authors" in text
