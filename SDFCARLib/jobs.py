@@ -1,0 +1,361 @@
+"""Background reconstruction jobs: one OS process per reconstruction, driven through a folder.
+
+The GUI module, console scripts and tests all use this runner. A job is a folder:
+
+    job.json         what to run: name, target kind, settings (preset, mode, device, seed, …)
+    geometry.json    the GEOM.json of the views and the volume
+    view1.npy …      one float32 image per view (mask or line integrals), detector-shaped
+    progress.jsonl   written by the worker: one JSON object per line (phase, step, total,
+                     loss, l_occ, l_geo, elapsed_s, eta_s, device)
+    status.json      written last: state finished | failed | cancelled, message, traceback,
+                     output file paths
+    worker.log       the worker's stdout and stderr
+    output/          the engine's output files (``outputs.write_reconstruction``)
+    INCOMPLETE       present until the job has finished successfully
+    cancel           created to ask the worker to stop
+
+Inputs travel as files, never as pickled objects, so the worker can be any Python with SDFCARLib
+(inside Slicer: Slicer's own Python). The worker runs in its own process group (session), so
+``cancel()`` ends it and every process it started.
+
+    job = ReconstructionJob.start("/tmp/job1", geometry, [mask1, mask2], {"preset": "fast"})
+    while job.state == "running":
+        info = job.poll()          # latest progress dict or None; never blocks
+        ...
+    paths = job.result()           # or raises JobFailed with the worker's message and traceback
+
+``run_job(job_dir)`` runs a prepared folder synchronously in this process (tests, small cases).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+import traceback
+from pathlib import Path
+from typing import Any, Callable, Dict, List, Optional, Sequence, Union
+
+import numpy as np
+
+from .geometry import Geometry, GeometryError
+
+PathLike = Union[str, Path]
+JOB_STATES = ("running", "finished", "failed", "cancelled")
+
+
+class JobFailed(RuntimeError):
+    """The worker failed; ``message`` is its error, ``traceback_text`` its traceback (may be empty)."""
+
+    def __init__(self, message: str, traceback_text: str = "") -> None:
+        super().__init__(message)
+        self.message = message
+        self.traceback_text = traceback_text
+
+
+class JobFolderError(ValueError):
+    """A job folder is missing inputs or holds invalid ones; nothing was started."""
+
+
+# --- job folder ---------------------------------------------------------------------------------------
+def _write_json(path: Path, data: Dict[str, Any]) -> None:
+    tmp = path.with_suffix(path.suffix + ".tmp")
+    tmp.write_text(json.dumps(data, indent=2) + "\n", encoding="utf-8")
+    os.replace(tmp, path)  # readers never see half a file
+
+
+def prepare_job(job_dir: PathLike, geometry: Geometry, targets: Sequence[np.ndarray], settings: Optional[Dict[str, Any]] = None,
+                name: str = "reconstruction", target_kind: str = "mask") -> Path:
+    """Write a job folder (refusing a folder that already holds a job) and validate it."""
+    job_dir = Path(job_dir)
+    if (job_dir / "job.json").exists():
+        raise JobFolderError(f"{job_dir} already holds a job; choose a new folder for a new job")
+    _check_inputs(geometry, targets, dict(settings or {}), target_kind)  # before anything is written
+    job_dir.mkdir(parents=True, exist_ok=True)
+    geometry.save(job_dir / "geometry.json")
+    for n, target in enumerate(targets, start=1):
+        np.save(job_dir / f"view{n}.npy", np.asarray(target, dtype=np.float32))
+    _write_json(job_dir / "job.json", {"name": name, "target_kind": target_kind, "settings": dict(settings or {}),
+                                       "views": len(targets)})
+    validate_job_folder(job_dir)
+    return job_dir
+
+
+def _check_inputs(geometry: Geometry, targets: Sequence[np.ndarray], settings: Dict[str, Any], target_kind: str):
+    from .optimiser import ReconstructionError, make_settings, validate_targets
+
+    values = dict(settings)
+    preset = values.pop("preset", "fast")
+    try:
+        checked = make_settings(preset, **values)
+        validate_targets(targets, geometry, target_kind)
+    except ReconstructionError as exc:
+        raise JobFolderError(str(exc)) from exc
+    return checked
+
+
+def _load_job(job_dir: Path):
+
+    manifest_path = job_dir / "job.json"
+    if not manifest_path.is_file():
+        raise JobFolderError(f"{job_dir} has no job.json; create the folder with prepare_job()")
+    try:
+        manifest = json.loads(manifest_path.read_text(encoding="utf-8"))
+    except json.JSONDecodeError as exc:
+        raise JobFolderError(f"{manifest_path} is not valid JSON: {exc.msg}") from exc
+    if not isinstance(manifest, dict) or not isinstance(manifest.get("settings", {}), dict):
+        raise JobFolderError(f"{manifest_path} must be an object with a 'settings' object")
+    try:
+        geometry = Geometry.load(job_dir / "geometry.json")
+    except GeometryError as exc:
+        raise JobFolderError(str(exc)) from exc
+    targets = []
+    for n in range(1, len(geometry.views) + 1):
+        path = job_dir / f"view{n}.npy"
+        if not path.is_file():
+            raise JobFolderError(f"{job_dir} lacks {path.name}: one image per view of geometry.json is needed")
+        try:
+            targets.append(np.load(path, allow_pickle=False))
+        except (ValueError, OSError) as exc:
+            raise JobFolderError(f"{path} is not a readable .npy image: {exc}") from exc
+    kind = manifest.get("target_kind", "mask")
+    settings = _check_inputs(geometry, targets, manifest.get("settings", {}), kind)
+    return manifest, geometry, targets, settings, kind
+
+
+def validate_job_folder(job_dir: PathLike) -> None:
+    """Raise JobFolderError unless the folder holds a complete, valid job."""
+    _load_job(Path(job_dir))
+
+
+# --- worker side ------------------------------------------------------------------------------------
+def run_job(job_dir: PathLike, progress: Optional[Callable[[Dict[str, Any]], None]] = None) -> Dict[str, str]:
+    """Run a prepared job folder in this process; returns the output paths.
+
+    Progress lines go to progress.jsonl (and to ``progress``), status.json is written at the
+    end whatever happens, and the folder keeps its INCOMPLETE marker unless the job finished.
+    """
+    from .optimiser import ReconstructionCancelled, reconstruct
+    from .outputs import write_reconstruction
+
+    job_dir = Path(job_dir)
+    (job_dir / "INCOMPLETE").touch()
+    cancel_flag = job_dir / "cancel"
+    progress_file = open(job_dir / "progress.jsonl", "a", encoding="utf-8")
+
+    def on_progress(info: Dict[str, Any]) -> None:
+        progress_file.write(json.dumps(info) + "\n")
+        progress_file.flush()
+        if progress is not None:
+            progress(info)
+
+    try:
+        manifest, geometry, targets, settings, kind = _load_job(job_dir)
+        result = reconstruct(geometry, targets, settings, target_kind=kind, progress=on_progress,
+                             cancel=cancel_flag.exists)
+        on_progress({"phase": "writing", "step": settings.steps, "total": settings.steps})
+        paths = write_reconstruction(result, job_dir / "output", name=manifest.get("name"))
+        paths = {k: str(v) for k, v in paths.items()}
+        _write_json(job_dir / "status.json", {"state": "finished", "message": "", "outputs": paths})
+        (job_dir / "INCOMPLETE").unlink()
+        on_progress({"phase": "done", "step": settings.steps, "total": settings.steps})
+        return paths
+    except ReconstructionCancelled as exc:
+        _write_json(job_dir / "status.json", {"state": "cancelled", "message": str(exc)})
+        raise
+    except BaseException as exc:  # noqa: BLE001 - the status file must say why, whatever it was
+        _write_json(job_dir / "status.json", {"state": "failed", "message": f"{type(exc).__name__}: {exc}",
+                                              "traceback": traceback.format_exc()})
+        raise
+    finally:
+        progress_file.close()
+
+
+def _worker_main(job_dir: str) -> int:
+    from .optimiser import ReconstructionCancelled
+
+    # A polite SIGTERM becomes a cancellation so the worker can record it.
+    def on_term(signum, frame):  # pragma: no cover - exercised through the parent
+        Path(job_dir, "cancel").touch()
+
+    if hasattr(signal, "SIGTERM"):
+        signal.signal(signal.SIGTERM, on_term)
+    try:
+        run_job(job_dir)
+    except ReconstructionCancelled:
+        return 3
+    except BaseException:  # noqa: BLE001 - status.json already holds the error
+        return 1
+    return 0
+
+
+# --- parent side --------------------------------------------------------------------------------------
+class ReconstructionJob:
+    """Handle on a worker process running one job folder (see module docstring)."""
+
+    def __init__(self, job_dir: Path, process: subprocess.Popen) -> None:
+        self.job_dir = job_dir
+        self.process = process
+        self._offset = 0
+        self._latest: Optional[Dict[str, Any]] = None
+        self._state_override: Optional[str] = None
+        self._log = None
+
+    @classmethod
+    def start(cls, job_dir: PathLike, geometry: Geometry, targets: Sequence[np.ndarray], settings: Optional[Dict[str, Any]] = None,
+              name: str = "reconstruction", target_kind: str = "mask", python: Optional[str] = None) -> "ReconstructionJob":
+        """Write the job folder, validate it, and start the worker. Bad inputs raise before any start."""
+        prepare_job(job_dir, geometry, targets, settings, name, target_kind)
+        return cls.launch(job_dir, python)
+
+    @classmethod
+    def launch(cls, job_dir: PathLike, python: Optional[str] = None) -> "ReconstructionJob":
+        """Start the worker on a prepared folder (validated first). ``python``: interpreter to use."""
+        job_dir = Path(job_dir).resolve()
+        validate_job_folder(job_dir)
+        if (job_dir / "status.json").exists() or (job_dir / "progress.jsonl").exists():
+            raise JobFolderError(f"{job_dir} has already been run; prepare a new job folder")
+        (job_dir / "INCOMPLETE").touch()
+        env = dict(os.environ)
+        package_root = str(Path(__file__).resolve().parent.parent)
+        env["PYTHONPATH"] = package_root + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
+        env["PYTHONUNBUFFERED"] = "1"
+        log = open(job_dir / "worker.log", "ab")
+        kwargs: Dict[str, Any] = {"stdout": log, "stderr": subprocess.STDOUT, "stdin": subprocess.DEVNULL, "env": env}
+        if os.name == "posix":
+            kwargs["start_new_session"] = True  # own process group: cancel reaches every child
+        else:  # pragma: no cover - Windows
+            kwargs["creationflags"] = subprocess.CREATE_NEW_PROCESS_GROUP  # type: ignore[attr-defined]
+        process = subprocess.Popen([python or sys.executable, "-m", "SDFCARLib.jobs", "worker", str(job_dir)], **kwargs)
+        job = cls(job_dir, process)
+        job._log = log
+        return job
+
+    @property
+    def pid(self) -> int:
+        return self.process.pid
+
+    def _status(self) -> Optional[Dict[str, Any]]:
+        path = self.job_dir / "status.json"
+        if not path.is_file():
+            return None
+        try:
+            return json.loads(path.read_text(encoding="utf-8"))
+        except (json.JSONDecodeError, OSError):
+            return None
+
+    def events(self) -> List[Dict[str, Any]]:
+        """Progress events written since the last call (in order); never blocks."""
+        path = self.job_dir / "progress.jsonl"
+        if not path.is_file():
+            return []
+        with open(path, "r", encoding="utf-8") as handle:
+            handle.seek(self._offset)
+            chunk = handle.read()
+        # Keep a partly written last line for the next call.
+        complete, _, _ = chunk.rpartition("\n")
+        if not complete:
+            return []
+        self._offset += len(complete.encode("utf-8")) + 1
+        out = []
+        for line in complete.split("\n"):
+            if line.strip():
+                try:
+                    out.append(json.loads(line))
+                except json.JSONDecodeError:
+                    continue
+        if out:
+            self._latest = out[-1]
+        return out
+
+    def poll(self) -> Optional[Dict[str, Any]]:
+        """The latest progress dict (or None before the first); never blocks."""
+        self.events()
+        return self._latest
+
+    @property
+    def state(self) -> str:
+        if self._state_override:
+            return self._state_override
+        if self.process.poll() is None:
+            return "running"
+        self._close_log()
+        status = self._status()
+        if status and status.get("state") in JOB_STATES:
+            return status["state"]
+        return "failed"
+
+    def wait(self, timeout: Optional[float] = None) -> str:
+        """Wait for the worker to end (or ``timeout`` seconds); returns the state."""
+        try:
+            self.process.wait(timeout=timeout)
+        except subprocess.TimeoutExpired:
+            pass
+        return self.state
+
+    def cancel(self, grace_s: float = 1.0) -> None:
+        """Stop the worker and every process it started; returns within about grace_s + 0.5 s."""
+        if self.process.poll() is not None:
+            return
+        (self.job_dir / "cancel").touch()
+        self._signal_group(signal.SIGTERM if os.name == "posix" else None)
+        try:
+            self.process.wait(timeout=grace_s)
+        except subprocess.TimeoutExpired:
+            self._signal_group(signal.SIGKILL if os.name == "posix" else None)
+            self.process.wait(timeout=5)
+        if os.name == "posix":  # children that outlived the leader
+            self._signal_group(signal.SIGKILL)
+        status = self._status()
+        if not status or status.get("state") != "cancelled":
+            _write_json(self.job_dir / "status.json", {"state": "cancelled", "message": "cancelled by the user"})
+        self._close_log()
+
+    def _signal_group(self, sig) -> None:
+        if os.name == "posix":
+            try:
+                os.killpg(self.process.pid, sig)
+            except (ProcessLookupError, PermissionError):
+                pass
+        else:  # pragma: no cover - Windows: end the whole tree
+            subprocess.run(["taskkill", "/F", "/T", "/PID", str(self.process.pid)], capture_output=True)
+
+    def _close_log(self) -> None:
+        if self._log is not None:
+            self._log.close()
+            self._log = None
+
+    def result(self) -> Dict[str, str]:
+        """Output paths of a finished job; raises JobFailed (with the worker's message) otherwise."""
+        state = self.state
+        if state == "running":
+            raise JobFailed("the job is still running; wait() for it first")
+        status = self._status() or {}
+        if state == "finished":
+            return dict(status.get("outputs", {}))
+        if state == "cancelled":
+            raise JobFailed(status.get("message") or "the job was cancelled")
+        message = status.get("message")
+        if not message:
+            code = self.process.returncode
+            if code is not None and code < 0:
+                message = (f"the worker process was killed by signal {-code}"
+                           + (" (out of memory?)" if -code == getattr(signal, "SIGKILL", 9) else ""))
+            else:
+                message = f"the worker process exited with status {code} without writing a result; see {self.job_dir / 'worker.log'}"
+        raise JobFailed(message, status.get("traceback", ""))
+
+
+def main(argv: Optional[List[str]] = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if len(argv) == 2 and argv[0] == "worker":
+        return _worker_main(argv[1])
+    sys.stderr.write("usage: python -m SDFCARLib.jobs worker JOB_DIR\n")
+    return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

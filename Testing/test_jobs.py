@@ -1,0 +1,161 @@
+"""Background jobs: real worker processes on a tiny case (issue 4)."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import stat
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from SDFCARLib.geometry import CArmView, Geometry, VolumeGrid
+from SDFCARLib.jobs import JobFailed, JobFolderError, ReconstructionJob, prepare_job, run_job
+from SDFCARLib.phantoms import Branch, CenterlineTree, make_case
+
+pytestmark = pytest.mark.skipif(os.name != "posix", reason="process-group tests use POSIX signals")
+
+
+@pytest.fixture(scope="module")
+def tiny_case():
+    grid = VolumeGrid((24, 24, 24), (2.0, 2.0, 2.0))
+    views = [CArmView(a, 0.0, 1000.0, 750.0, (1.0, 1.0), (64, 64)) for a in (30.0, -30.0)]
+    tube = CenterlineTree([Branch(np.array([[-12.0, 0, -10], [10.0, 4, 12]]), np.array([3.0, 2.5]))])
+    return make_case(tube, Geometry(grid, views))
+
+
+SMALL = {"preset": "fast", "steps": 400, "levels": 4, "log2_table_size": 12, "width": 16, "depth": 2, "threads": 1}
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    # A zombie still answers kill(0); it has ended all the same.
+    try:
+        with open(f"/proc/{pid}/stat") as handle:
+            return handle.read().split(")")[-1].split()[0] != "Z"
+    except OSError:
+        return False
+
+
+def _wait_for(predicate, timeout: float, interval: float = 0.05) -> bool:
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        if predicate():
+            return True
+        time.sleep(interval)
+    return predicate()
+
+
+def test_progress_in_order_to_the_end_and_results(tiny_case, tmp_path):
+    settings = dict(SMALL, steps=15)
+    job = ReconstructionJob.start(tmp_path / "job", tiny_case.geometry, tiny_case.masks, settings, name="tiny")
+    assert job.state == "running"
+    seen = []
+    deadline = time.monotonic() + 120
+    while job.state == "running" and time.monotonic() < deadline:
+        seen.extend(job.events())
+        time.sleep(0.1)
+    seen.extend(job.events())
+    assert job.state == "finished", (tmp_path / "job" / "worker.log").read_text()
+    steps = [e["step"] for e in seen if e.get("phase") == "optimise"]
+    assert steps and steps == sorted(steps) and steps[-1] == 15
+    assert seen[-1]["phase"] == "done"
+    assert all(e["total"] == 15 for e in seen if "total" in e)
+    paths = job.result()
+    for key in ("occupancy", "segmentation", "surface", "report"):
+        assert Path(paths[key]).is_file(), key
+    report = json.loads(Path(paths["report"]).read_text())
+    assert report["settings"]["steps"] == 15
+    assert not (tmp_path / "job" / "INCOMPLETE").exists()
+    assert json.loads((tmp_path / "job" / "status.json").read_text())["state"] == "finished"
+
+
+def test_cancel_ends_the_whole_process_tree_within_two_seconds(tiny_case, tmp_path):
+    # The worker is started through a shell that first starts a long-lived child: cancel must end both.
+    wrapper = tmp_path / "python-with-child.sh"
+    wrapper.write_text(f'#!/bin/sh\nsleep 600 &\necho $! > "{tmp_path}/child.pid"\nexec "{sys.executable}" "$@"\n')
+    wrapper.chmod(wrapper.stat().st_mode | stat.S_IEXEC)
+    job_dir = tmp_path / "job"
+    prepare_job(job_dir, tiny_case.geometry, tiny_case.masks, dict(SMALL, steps=100000))
+    inputs_before = {p.name: p.read_bytes() for p in job_dir.iterdir()}
+    job = ReconstructionJob.launch(job_dir, python=str(wrapper))
+    assert _wait_for(lambda: (job.poll() or {}).get("phase") == "optimise", 90), (job_dir / "worker.log").read_text()
+    child = int((tmp_path / "child.pid").read_text())
+    assert _alive(child) and _alive(job.pid)
+    start = time.monotonic()
+    job.cancel()
+    elapsed = time.monotonic() - start
+    assert elapsed < 2.0
+    assert _wait_for(lambda: not _alive(job.pid) and not _alive(child), 0.5)
+    assert job.state == "cancelled"
+    with pytest.raises(JobFailed, match="cancel"):
+        job.result()
+    # The inputs are untouched and the folder says it is incomplete.
+    for name, data in inputs_before.items():
+        assert (job_dir / name).read_bytes() == data
+    assert (job_dir / "INCOMPLETE").exists()
+
+
+def test_worker_error_is_reported_with_message_and_traceback(tiny_case, tmp_path):
+    if __import__("torch").cuda.is_available():
+        pytest.skip("needs a machine without CUDA to provoke the device error")
+    job = ReconstructionJob.start(tmp_path / "job", tiny_case.geometry, tiny_case.masks, dict(SMALL, device="cuda"))
+    assert job.wait(timeout=90) == "failed"
+    with pytest.raises(JobFailed) as info:
+        job.result()
+    assert "no CUDA GPU" in info.value.message
+    assert "Traceback" in info.value.traceback_text
+    assert (tmp_path / "job" / "INCOMPLETE").exists()
+
+
+def test_killed_worker_is_detected_and_a_second_job_runs(tiny_case, tmp_path):
+    job = ReconstructionJob.start(tmp_path / "job1", tiny_case.geometry, tiny_case.masks, dict(SMALL, steps=100000))
+    assert _wait_for(lambda: job.poll() is not None, 90)
+    os.kill(job.pid, signal.SIGKILL)  # as the kernel's OOM killer would
+    assert job.wait(timeout=10) == "failed"
+    with pytest.raises(JobFailed, match="signal 9"):
+        job.result()
+    # The next job starts and finishes normally.
+    second = ReconstructionJob.start(tmp_path / "job2", tiny_case.geometry, tiny_case.masks, dict(SMALL, steps=3))
+    assert second.wait(timeout=120) == "finished", (tmp_path / "job2" / "worker.log").read_text()
+
+
+def test_two_jobs_in_sequence_and_in_process_run(tiny_case, tmp_path):
+    for n in (1, 2):
+        job = ReconstructionJob.start(tmp_path / f"job{n}", tiny_case.geometry, tiny_case.masks, dict(SMALL, steps=3, seed=n))
+        assert job.wait(timeout=120) == "finished"
+    prepare_job(tmp_path / "inproc", tiny_case.geometry, tiny_case.masks, dict(SMALL, steps=3))
+    events = []
+    paths = run_job(tmp_path / "inproc", progress=events.append)
+    assert Path(paths["segmentation"]).is_file() and events[-1]["phase"] == "done"
+
+
+def test_bad_job_folders_are_rejected_before_start(tiny_case, tmp_path):
+    with pytest.raises(JobFolderError, match="job.json"):
+        ReconstructionJob.launch(tmp_path / "empty")
+    folder = prepare_job(tmp_path / "job", tiny_case.geometry, tiny_case.masks, SMALL)
+    (folder / "view2.npy").unlink()
+    with pytest.raises(JobFolderError, match="view2.npy"):
+        ReconstructionJob.launch(folder)
+    np.save(folder / "view2.npy", np.zeros((10, 10), np.float32))
+    with pytest.raises(JobFolderError, match="detector shape"):
+        ReconstructionJob.launch(folder)
+    (folder / "geometry.json").write_text("{not json")
+    with pytest.raises(JobFolderError, match="not valid JSON"):
+        ReconstructionJob.launch(folder)
+    with pytest.raises(JobFolderError, match="already holds a job"):
+        prepare_job(folder, tiny_case.geometry, tiny_case.masks, SMALL)
+    bad = [np.ones(v.detector_shape, np.float32) for v in tiny_case.geometry.views]
+    with pytest.raises(JobFolderError, match="covers the whole image"):
+        ReconstructionJob.start(tmp_path / "ones", tiny_case.geometry, bad, SMALL)
+    with pytest.raises(JobFolderError, match="unknown mode"):
+        ReconstructionJob.start(tmp_path / "mode", tiny_case.geometry, tiny_case.masks, dict(SMALL, mode="nope"))
+    # Nothing was started: no progress or status files anywhere.
+    assert not list(tmp_path.glob("*/progress.jsonl")) and not list(tmp_path.glob("*/status.json"))
