@@ -1,0 +1,528 @@
+"""Command line: ``python -m SDFCARLib <command>`` (also installed as ``sdfcar``).
+
+Commands
+    reconstruct        two views' masks (or line integrals) + GEOM.json → result folder
+    simulate           a label volume or centreline + GEOM.json → masks and line integrals
+    evaluate           a prediction against a label: every metric, and the visual-hull baseline
+    demo               reconstruct the bundled sample case and compare with its ground truth
+    geometry-template  write a GEOM.json for a standard view pair, as a starting point
+    geometry           two XA DICOM runs → GEOM.json, every value with its source tag
+    benchmark          many simulated cases × modes → results.csv, summary.md (the paper's tables)
+
+Exit status: 0 success; 2 bad input (one line ``error: …`` on stderr, no traceback unless
+``--verbose``); 130 cancelled with Ctrl-C (nothing written); 1 an unexpected failure.
+This interface is a contract other tools drive: add options, do not change existing ones.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import signal
+import sys
+import tempfile
+import threading
+import time
+import traceback
+from pathlib import Path
+from typing import Any, Dict, List, Optional, Sequence, Tuple
+
+import numpy as np
+
+from . import __version__
+from .dicom import add_dicom_arguments, cli_geometry_from_args, write_geometry_json
+from .geometry import VIEW_PAIRS
+
+EXIT_OK, EXIT_FAILURE, EXIT_BAD_INPUT, EXIT_CANCELLED = 0, 1, 2, 130
+
+METRIC_ROWS = [
+    ("cldice", "clDice"), ("skeleton_dice", "skeleton Dice"), ("dice", "Dice"), ("iou", "IoU"),
+    ("chamfer_l2_mm", "Chamfer-L2 (mm)"), ("re_error", "reError"), ("re_mse", "reMSE"),
+]
+
+
+# --- progress and cancellation ------------------------------------------------------------------
+class ProgressBar:
+    """Turns ``reconstruct(progress=…)`` reports into a tqdm bar on stderr (step, loss, ETA)."""
+
+    def __init__(self, enabled: bool = True, stream=None) -> None:
+        self.enabled = enabled
+        self.stream = stream if stream is not None else sys.stderr
+        self.bar = None
+
+    def __call__(self, info: Dict[str, Any]) -> None:
+        if not self.enabled:
+            return
+        phase = info.get("phase")
+        if phase == "setup":
+            print("preparing the reconstruction (visual hull, projectors)…", file=self.stream)
+        elif phase == "optimise":
+            if self.bar is None:
+                from tqdm import tqdm
+
+                self.bar = tqdm(total=int(info["total"]), desc="optimising", unit="step", file=self.stream,
+                                dynamic_ncols=True, mininterval=0.5)
+            self.bar.set_postfix(loss=f"{info.get('loss', float('nan')):.4f}", refresh=False)
+            self.bar.update(int(info["step"]) - self.bar.n)
+        elif phase == "output":
+            self.close()
+            print("evaluating the field on the grid…", file=self.stream)
+
+    def close(self) -> None:
+        if self.bar is not None:
+            self.bar.close()
+            self.bar = None
+
+
+class CancelOnInterrupt:
+    """While active, Ctrl-C asks the reconstruction to stop at its next step (a second one aborts)."""
+
+    def __init__(self) -> None:
+        self.requested = False
+        self._previous: Any = None
+
+    def __call__(self) -> bool:
+        return self.requested
+
+    def _handle(self, signum, frame) -> None:
+        if self.requested:
+            raise KeyboardInterrupt
+        self.requested = True
+        print("\ncancelling… (press Ctrl-C again to abort at once)", file=sys.stderr)
+
+    def __enter__(self) -> "CancelOnInterrupt":
+        if threading.current_thread() is threading.main_thread():
+            self._previous = signal.signal(signal.SIGINT, self._handle)
+        return self
+
+    def __exit__(self, *exc_info) -> None:
+        if self._previous is not None:
+            signal.signal(signal.SIGINT, self._previous)
+            self._previous = None
+
+
+def _run_reconstruction(geometry, targets, settings, target_kind: str, show_progress: bool):
+    from .optimiser import reconstruct
+
+    bar = ProgressBar(show_progress)
+    try:
+        with CancelOnInterrupt() as cancel:
+            return reconstruct(geometry, targets, settings, target_kind=target_kind, progress=bar, cancel=cancel)
+    finally:
+        bar.close()
+
+
+# --- printing -----------------------------------------------------------------------------------
+def _fmt(value: Any) -> str:
+    if value is None or (isinstance(value, float) and not np.isfinite(value)):
+        return "n/a"
+    if isinstance(value, (list, tuple)):
+        return " / ".join(_fmt(v) for v in value)
+    if isinstance(value, (int, np.integer)):
+        return str(int(value))
+    return f"{float(value):.3f}"
+
+
+def metrics_table(columns: Dict[str, Dict[str, Any]]) -> str:
+    """A plain-text table: one row per metric, one column per method."""
+    names = list(columns)
+    rows = [("metric", *names)]
+    for key, title in METRIC_ROWS + [("reprojection_dice", "reprojection Dice"), ("voxels_predicted", "voxels")]:
+        if any(key in columns[n] for n in names):
+            rows.append((title, *(_fmt(columns[n].get(key)) for n in names)))
+    widths = [max(len(r[i]) for r in rows) for i in range(len(rows[0]))]
+    return "\n".join("  ".join(cell.ljust(w) if i == 0 else cell.rjust(w) for i, (cell, w) in enumerate(zip(r, widths)))
+                     for r in rows)
+
+
+def _print_metrics(metrics: Dict[str, Dict[str, Any]], stream=None) -> None:
+    columns = {"reconstruction" if "visual_hull" in metrics else "prediction": metrics["prediction"]}
+    if "visual_hull" in metrics:
+        columns["visual hull (baseline)"] = metrics["visual_hull"]
+    print(metrics_table(columns), file=stream or sys.stdout)
+
+
+# --- commands -----------------------------------------------------------------------------------
+def _settings(args: argparse.Namespace):
+    from .optimiser import make_settings
+
+    return make_settings(args.preset, mode=args.mode, device=args.device, seed=args.seed, steps=args.steps,
+                         threads=args.threads)
+
+
+def _read_targets(args: argparse.Namespace, geometry) -> Tuple[List[np.ndarray], str, List[np.ndarray]]:
+    """The per-view targets, their kind, and the views' masks (for the visual-hull baseline)."""
+    from .io import read_line_integral, read_mask
+    from .phantoms import DEFAULT_MASK_THRESHOLD_MM
+
+    masks_given = [args.mask1, args.mask2]
+    lineints_given = [args.lineint1, args.lineint2]
+    kind = args.target_kind
+    if kind is None:
+        kind = "line_integral" if any(lineints_given) and not any(masks_given) else "mask"
+    chosen, flag = (masks_given, "--mask") if kind == "mask" else (lineints_given, "--lineint")
+    other, other_flag = (lineints_given, "--lineint") if kind == "mask" else (masks_given, "--mask")
+    if any(other):
+        raise ValueError(f"--target-kind {kind} uses {flag}1/{flag}2; remove {other_flag}1/{other_flag}2 "
+                         "(give either masks or line integrals)")
+    missing = [f"{flag}{n}" for n, path in enumerate(chosen, start=1) if not path]
+    if missing:
+        raise ValueError(f"missing {' and '.join(missing)}: give one {'mask' if kind == 'mask' else 'line-integral image'} per view")
+    if len(geometry.views) != 2:
+        raise ValueError(f"{args.geometry or 'the geometry'} describes {len(geometry.views)} view(s) but reconstruct takes two "
+                         f"({flag}1 and {flag}2); list exactly two views in GEOM.json")
+    if kind == "mask":
+        targets = [read_mask(path, view.detector_shape, what=f"view {n} mask")
+                   for n, (path, view) in enumerate(zip(chosen, geometry.views), start=1)]
+        return targets, kind, targets
+    targets = [read_line_integral(path, view.detector_shape) for path, view in zip(chosen, geometry.views)]
+    return targets, kind, [t > DEFAULT_MASK_THRESHOLD_MM for t in targets]
+
+
+def _absolute(path: Optional[str]) -> Optional[str]:
+    return str(Path(path).absolute()) if path else None
+
+
+def _load_geometry(path: str):
+    from .geometry import Geometry
+
+    return Geometry.load(path)
+
+
+def _geometry_for_reconstruct(args: argparse.Namespace):
+    """GEOM.json, or the geometry read from the two DICOM files' tags (with its provenance)."""
+    if args.dicom1 or args.dicom2:
+        if args.geometry:
+            raise ValueError("give either --geometry or --dicom1/--dicom2, not both")
+        geometry, provenance = cli_geometry_from_args(args)
+        _print_provenance(provenance)
+        return geometry, provenance
+    if not args.geometry:
+        raise ValueError("missing --geometry: give a GEOM.json, or the two XA DICOM files with --dicom1 and --dicom2")
+    return _load_geometry(args.geometry), None
+
+
+def _print_provenance(provenance: Dict[str, Any]) -> None:
+    """Every geometry value read from DICOM and where it came from, so a clinician can check it."""
+    for n, view in enumerate(provenance.get("views", []), start=1):
+        frame = view.get("frame", {})
+        print(f"view {n}: {view.get('file')} frame {frame.get('index')} ({frame.get('reason', '')})", file=sys.stderr)
+        for name, entry in view.get("fields", {}).items():
+            print(f"  {name} = {_fmt(entry.get('value'))}  [{entry.get('source', '?')}]", file=sys.stderr)
+        for note in view.get("notes", []):
+            print(f"  note: {note}", file=sys.stderr)
+    volume = provenance.get("volume")
+    if volume:
+        print(f"volume: {volume.get('value')}  [{volume.get('source')}]", file=sys.stderr)
+
+
+def cmd_geometry(args: argparse.Namespace) -> int:
+    out = Path(args.out)
+    if out.exists() and not args.overwrite:
+        raise ValueError(f"{out} exists; choose another --out or add --overwrite")
+    geometry, provenance = cli_geometry_from_args(args)
+    _print_provenance(provenance)
+    write_geometry_json(out, geometry, provenance)
+    print(f"wrote {out}")
+    return EXIT_OK
+
+
+def cmd_reconstruct(args: argparse.Namespace) -> int:
+    from .io import align_to_grid, read_label
+    from .outputs import RESULT_FILES, check_destination, write_reconstruction
+
+    geometry, provenance = _geometry_for_reconstruct(args)
+    targets, kind, masks = _read_targets(args, geometry)
+    label = None
+    if args.label:
+        label, label_grid = read_label(args.label, grid=geometry.volume, what="ground-truth label")
+        label = align_to_grid(label, label_grid, geometry.volume, what="ground-truth label")
+    settings = _settings(args)
+    check_destination(args.out, list(RESULT_FILES.values()), args.overwrite)  # before minutes of work
+    result = _run_reconstruction(geometry, targets, settings, kind, not args.no_progress)
+    inputs = {"geometry": _absolute(args.geometry), "label": _absolute(args.label),
+              "dicom": [_absolute(args.dicom1), _absolute(args.dicom2)] if args.dicom1 else None,
+              "geometry_provenance": provenance,
+              "targets": [_absolute(p) for p in ([args.mask1, args.mask2] if kind == "mask" else [args.lineint1, args.lineint2])]}
+    files = write_reconstruction(result, args.out, name=args.name, label=label, masks=masks, overwrite=args.overwrite,
+                                 extra={"inputs": inputs})
+    _summarise(files)
+    return EXIT_OK
+
+
+def _summarise(files: Dict[str, Path]) -> None:
+    report = json.loads(files["report"].read_text(encoding="utf-8"))
+    timings = report.get("timings_s", {})
+    total = timings.get("total")
+    print(f"{report.get('method', 'reconstruction')}: {report.get('segmented_voxels', 0)} voxels segmented in "
+          f"{total if total is None else round(float(total), 1)} s on {report.get('device', '?')}")
+    print(f"reprojection Dice per view: {_fmt(report.get('reprojection_dice'))}")
+    if "metrics" in report:
+        _print_metrics(report["metrics"])
+    for message in report.get("warnings", []):
+        print(f"warning: {message}", file=sys.stderr)
+    print(f"results in {files['report'].parent}: {', '.join(sorted(p.name for p in files.values()))}")
+
+
+def cmd_simulate(args: argparse.Namespace) -> int:
+    from .io import read_label, write_image_nrrd, write_mask_png
+    from .outputs import check_destination, staged_directory
+    from .phantoms import simulate_views
+
+    geometry = _load_geometry(args.geometry)
+    if not args.mask_threshold_mm > 0:
+        raise ValueError(f"--mask-threshold-mm must be positive, got {args.mask_threshold_mm}")
+    names = [f"view{n}_{kind}" for n in range(1, len(geometry.views) + 1) for kind in ("mask.png", "lineint.nrrd")]
+    check_destination(args.out, names, args.overwrite)
+    label, label_grid = read_label(args.label, grid=geometry.volume, what="label")
+    if not label.any():
+        raise ValueError(f"{args.label}: the label is empty (no vessel voxel); nothing to project")
+    _warn_outside(label, label_grid, geometry.volume)
+    line_integrals, masks = simulate_views(label, label_grid, geometry.views, args.mask_threshold_mm)
+    for n, (mask, view) in enumerate(zip(masks, geometry.views), start=1):
+        if not mask.any():
+            raise ValueError(f"view {n} ({view.describe()}): the label leaves no shadow above {args.mask_threshold_mm} mm "
+                             "on the detector; check the label's position and the view's angles")
+        if mask.all():
+            raise ValueError(f"view {n} ({view.describe()}): the label's shadow covers the whole detector; "
+                             "check the label (is it inverted?) and the detector size")
+    with staged_directory(args.out, names, args.overwrite) as staging:
+        for n, (li, mask, view) in enumerate(zip(line_integrals, masks, geometry.views), start=1):
+            write_mask_png(staging / f"view{n}_mask.png", mask)
+            write_image_nrrd(staging / f"view{n}_lineint.nrrd", li, view.pixel_spacing_mm,
+                             content=f"SDFCAR line integral (mm), view {n} {view.describe()}")
+    for n, (li, mask) in enumerate(zip(line_integrals, masks), start=1):
+        print(f"view {n}: {int(mask.sum())} vessel pixels, longest path {float(li.max()):.2f} mm")
+    print(f"wrote {', '.join(names)} in {args.out}")
+    return EXIT_OK
+
+
+def _warn_outside(label: np.ndarray, label_grid, grid) -> None:
+    ijk = np.argwhere(label)
+    lo, hi = grid.bounds()
+    if np.any(label_grid.index_to_world(ijk.min(axis=0)) < lo) or np.any(label_grid.index_to_world(ijk.max(axis=0)) > hi):
+        print("warning: part of the label lies outside the geometry's volume; a reconstruction on that volume "
+              "cannot recover it (check volume.center_mm and volume.shape)", file=sys.stderr)
+
+
+def cmd_evaluate(args: argparse.Namespace) -> int:
+    from .io import align_to_grid, read_label
+    from .outputs import check_destination, ground_truth_metrics, json_compatible
+
+    geometry = _load_geometry(args.geometry) if args.geometry else None
+    if args.json:
+        check_destination(Path(args.json).parent, [Path(args.json).name], args.overwrite)
+    prediction, prediction_grid = read_label(args.prediction, grid=geometry.volume if geometry else None,
+                                             threshold=args.threshold, what="prediction")
+    label, label_grid = read_label(args.label, grid=geometry.volume if geometry else prediction_grid, what="label")
+    prediction = align_to_grid(prediction, prediction_grid, label_grid, what="prediction")
+    metrics = ground_truth_metrics(prediction, label, label_grid, geometry.views if geometry else None)
+    _print_metrics(metrics)
+    if args.json:
+        out = {"prediction_file": _absolute(args.prediction), "label_file": _absolute(args.label),
+               "geometry_file": _absolute(args.geometry),
+               "grid": label_grid.to_dict(), "metrics": metrics}
+        _write_text_atomically(Path(args.json), json.dumps(json_compatible(out), indent=2, allow_nan=False) + "\n")
+        print(f"wrote {args.json}")
+    return EXIT_OK
+
+
+def _write_text_atomically(path: Path, text: str) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    handle, temporary = tempfile.mkstemp(prefix=f".{path.name}.", dir=str(path.parent))
+    try:
+        with os.fdopen(handle, "w", encoding="utf-8") as stream:
+            stream.write(text)
+        os.replace(temporary, path)
+    except BaseException:
+        os.unlink(temporary)
+        raise
+
+
+def cmd_demo(args: argparse.Namespace) -> int:
+    from .outputs import RESULT_FILES, check_destination, write_reconstruction
+    from .sample_data import load_sample_case
+
+    check_destination(args.out, list(RESULT_FILES.values()), args.overwrite)
+    case = load_sample_case()
+    settings = _settings(args)
+    print(f"SDFCAR demo: bundled sample case ({case.directory}), {settings.preset} preset, mode {settings.mode}, "
+          f"{settings.steps} steps", file=sys.stderr)
+    started = time.perf_counter()
+    result = _run_reconstruction(case.geometry, case.masks, settings, "mask", not args.no_progress)
+    files = write_reconstruction(result, args.out, name=args.name or "SDFCAR demo", label=case.label, masks=case.masks,
+                                 overwrite=args.overwrite, extra={"inputs": {"sample_case": str(case.directory)}})
+    _summarise(files)
+    print(f"demo finished in {time.perf_counter() - started:.0f} s")
+    return EXIT_OK
+
+
+def cmd_geometry_template(args: argparse.Namespace) -> int:
+    from .geometry import standard_geometry
+
+    geometry = standard_geometry(args.view_pair, volume_shape=args.shape, spacing_mm=args.spacing_mm,
+                                 center_mm=args.center_mm, detector_shape=args.detector_shape,
+                                 detector_spacing_mm=args.detector_spacing_mm)
+    data = {"description": f"SDFCAR geometry template for the view pair {args.view_pair}; replace the angles, "
+                           "distances and detector with those of your acquisition (DICOM tags PositionerPrimaryAngle, "
+                           "PositionerSecondaryAngle, DistanceSourceToDetector, DistanceSourceToPatient, ImagerPixelSpacing)",
+            **geometry.to_dict()}
+    text = json.dumps(data, indent=2) + "\n"
+    if not args.out:
+        sys.stdout.write(text)
+        return EXIT_OK
+    out = Path(args.out)
+    if out.exists() and not args.overwrite:
+        raise ValueError(f"{out} already exists; choose another file or pass --overwrite")
+    _write_text_atomically(out, text)
+    print(f"wrote {out} ({', '.join(v.describe() for v in geometry.views)})", file=sys.stderr)
+    return EXIT_OK
+
+
+# --- parser -------------------------------------------------------------------------------------
+def _positive_int(text: str) -> int:
+    value = int(text)
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be a positive integer, got {text}")
+    return value
+
+
+def _add_optimiser_options(p: argparse.ArgumentParser, preset_default: str = "fast") -> None:
+    # Presets and modes are validated by optimiser.make_settings, so that this parser stays
+    # importable without torch (fast --help) and follows the optimiser's list.
+    p.add_argument("--preset", default=preset_default,
+                   help="fast: sized for a CPU (default); paper: the published recipe (5000 steps, needs a GPU)")
+    p.add_argument("--mode", default=None,
+                   help="sdfcar (default): SDF + combined loss; neca: occupancy + L_occ; occ-combined; sdf-occ")
+    p.add_argument("--device", default="auto", choices=("auto", "cpu", "cuda"), help="auto: CUDA when available")
+    p.add_argument("--seed", type=int, default=None, help="random seed (repeatable on the same device)")
+    p.add_argument("--steps", type=_positive_int, default=None, help="optimisation steps (default: the preset's)")
+    p.add_argument("--threads", type=_positive_int, default=None, help="CPU threads for torch")
+    p.add_argument("--name", default=None, help="name of the result in Slicer (default: the output folder's name)")
+    p.add_argument("--overwrite", action="store_true", help="replace result files the output folder already holds")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="python -m SDFCARLib",
+        description="SDF-CAR: 3D coronary artery reconstruction from two X-ray angiography views.",
+        epilog="Exit status: 0 success, 2 bad input, 130 cancelled, 1 unexpected failure.")
+    parser.add_argument("--version", action="version", version=f"SDFCARLib {__version__}")
+    parser.add_argument("--verbose", action="store_true", help="show tracebacks of errors")
+    # --verbose is accepted after the command too; SUPPRESS keeps the sub-parser from resetting it.
+    common = argparse.ArgumentParser(add_help=False)
+    common.add_argument("--verbose", action="store_true", default=argparse.SUPPRESS, help="show tracebacks of errors")
+    commands = parser.add_subparsers(dest="command", metavar="command")
+    commands.required = True
+
+    p = commands.add_parser("reconstruct", parents=[common], help="reconstruct the vessel tree from two views",
+                            description="Reconstruct the 3D vessel tree seen in two views and write occupancy.nrrd, "
+                                        "field.nrrd, segmentation.seg.nrrd, surface.vtk, report.json and scene.mrml.")
+    p.add_argument("--geometry", help="GEOM.json with the volume grid and the two views (or give --dicom1/--dicom2)")
+    add_dicom_arguments(p, required=False)
+    p.add_argument("--mask1", help="vessel mask of view 1 (PNG/TIFF/NRRD, non-zero = vessel)")
+    p.add_argument("--mask2", help="vessel mask of view 2")
+    p.add_argument("--lineint1", help="line-integral image of view 1 (mm; NRRD/TIFF), instead of --mask1")
+    p.add_argument("--lineint2", help="line-integral image of view 2, instead of --mask2")
+    p.add_argument("--target-kind", choices=("mask", "line_integral"), default=None,
+                   help="what the view images are (default: from which options are given)")
+    p.add_argument("--label", help="optional ground truth (volume, .seg.nrrd or centreline) for metrics in report.json")
+    p.add_argument("--out", required=True, help="output folder (created; existing results are kept unless --overwrite)")
+    _add_optimiser_options(p)
+    p.set_defaults(func=cmd_reconstruct)
+
+    p = commands.add_parser("geometry", parents=[common], help="write GEOM.json from two XA DICOM files",
+                            description="Read the C-arm geometry of two X-ray angiography DICOM runs from their tags and "
+                                        "write GEOM.json, listing every value used and where it came from. Missing tags "
+                                        "are errors that say which option supplies the value (e.g. --sod1).")
+    add_dicom_arguments(p)
+    p.add_argument("--out", required=True, help="GEOM.json to write")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing file")
+    p.set_defaults(func=cmd_geometry)
+
+    p = commands.add_parser("simulate", parents=[common], help="simulate the views of a label volume or centreline",
+                            description="Project a label (NRRD/NIfTI volume with its own spacing and origin, or a "
+                                        "centreline .vtk/.vtp with radii, voxelised on the geometry's grid) into every "
+                                        "view of GEOM.json: viewN_mask.png (0/255) and viewN_lineint.nrrd (mm).")
+    p.add_argument("--label", required=True, help="label volume or centreline")
+    p.add_argument("--geometry", required=True, help="GEOM.json")
+    p.add_argument("--out", required=True, help="output folder")
+    p.add_argument("--mask-threshold-mm", type=float, default=0.2, help="mask = line integral > this (default 0.2 mm)")
+    p.add_argument("--overwrite", action="store_true", help="replace files the output folder already holds")
+    p.set_defaults(func=cmd_simulate)
+
+    p = commands.add_parser("evaluate", parents=[common], help="metrics of a prediction against a label",
+                            description="clDice, skeleton Dice, Dice, IoU and Chamfer distance of a prediction against a "
+                                        "label on the same grid; with --geometry also reError, reMSE, reprojection Dice and "
+                                        "the visual-hull baseline of the label's simulated masks.")
+    p.add_argument("--prediction", required=True, help=".seg.nrrd, labelmap or volume (NRRD/NIfTI)")
+    p.add_argument("--label", required=True, help="ground truth: .seg.nrrd, labelmap (NRRD/NIfTI) or centreline (.vtk/.vtp)")
+    p.add_argument("--geometry", help="GEOM.json, for the projection metrics and the visual-hull baseline")
+    p.add_argument("--threshold", type=float, default=None,
+                   help="vessel = value >= threshold, for a continuous prediction (e.g. 0.5 for occupancy.nrrd)")
+    p.add_argument("--json", help="also write the metrics to this JSON file")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing --json file")
+    p.set_defaults(func=cmd_evaluate)
+
+    p = commands.add_parser("demo", parents=[common], help="reconstruct the bundled sample case",
+                            description="Reconstruct the bundled sample case (LAO 30 / RAO 30, 128³ at 0.8 mm) and print "
+                                        "the metrics against its ground truth and the visual-hull baseline.")
+    p.add_argument("--out", required=True, help="output folder")
+    _add_optimiser_options(p)
+    p.set_defaults(func=cmd_demo)
+
+    p = commands.add_parser("geometry-template", parents=[common], help="write a GEOM.json for a standard view pair",
+                            description="Write a GEOM.json for a standard view pair as a starting point.")
+    p.add_argument("--view-pair", default="lao30-rao30", choices=sorted(VIEW_PAIRS),
+                   help="paper: the SDF-CAR/NeCA simulation views; the others are clinical pairs (default lao30-rao30)")
+    p.add_argument("--out", help="file to write (default: print to stdout)")
+    p.add_argument("--shape", type=_positive_int, nargs=3, default=[128, 128, 128], metavar=("NI", "NJ", "NK"))
+    p.add_argument("--spacing-mm", type=float, default=0.8)
+    p.add_argument("--center-mm", type=float, nargs=3, default=[0.0, 0.0, 0.0], metavar=("X", "Y", "Z"),
+                   help="volume centre in LPS mm (isocenter = 0 0 0)")
+    p.add_argument("--detector-shape", type=_positive_int, nargs=2, default=[512, 512], metavar=("ROWS", "COLS"))
+    p.add_argument("--detector-spacing-mm", type=float, default=0.278)
+    p.add_argument("--overwrite", action="store_true", help="replace an existing file")
+    p.set_defaults(func=cmd_geometry_template)
+
+    from .benchmark import add_benchmark_command
+
+    add_benchmark_command(commands, common)
+    return parser
+
+
+def main(argv: Optional[Sequence[str]] = None) -> int:
+    parser = build_parser()
+    try:
+        args = parser.parse_args(argv)
+    except SystemExit as exc:  # --help, --version and usage errors
+        return int(exc.code or 0)
+    verbose = bool(args.verbose)
+    try:
+        from .optimiser import ReconstructionCancelled
+
+        return args.func(args)
+    except (KeyboardInterrupt, ReconstructionCancelled):
+        print("cancelled: nothing was written", file=sys.stderr)
+        return EXIT_CANCELLED
+    except (ValueError, OSError) as exc:  # GeometryError, ReconstructionError, InputError, OutputError, files
+        if verbose:
+            traceback.print_exc()
+        print(f"error: {_one_line(exc)}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    except Exception as exc:
+        if verbose:
+            traceback.print_exc()
+        print(f"error: unexpected {type(exc).__name__}: {_one_line(exc)} (run with --verbose for the traceback)",
+              file=sys.stderr)
+        return EXIT_FAILURE
+
+
+def _one_line(exc: BaseException) -> str:
+    return " ".join(str(exc).split()) or type(exc).__name__
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,375 @@
+"""The command line (python -m SDFCARLib): bad input, an end-to-end run, evaluate, demo, templates."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from conftest import TINY_DETECTOR, tiny_geometry_dict, write_json
+from SDFCARLib.cli import main
+from SDFCARLib.geometry import VIEW_PAIRS, Geometry
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def run(capsys, *argv):
+    code = main([str(a) for a in argv])
+    captured = capsys.readouterr()
+    return code, captured.out, captured.err
+
+
+def _png(path: Path, array: np.ndarray) -> Path:
+    import imageio.v3 as iio
+
+    iio.imwrite(path, np.asarray(array, np.uint8), extension=".png")
+    return path
+
+
+def _assert_bad_input(code: int, err: str, message: str) -> None:
+    assert code == 2, err
+    lines = [line for line in err.splitlines() if line.strip()]
+    assert len(lines) == 1 and lines[0].startswith("error: "), err
+    assert "Traceback" not in err
+    assert message.lower() in lines[0].lower(), lines[0]
+
+
+# --- bad input ----------------------------------------------------------------------------------
+def _bad_mask(kind: str, tmp_path: Path) -> Path:
+    rows, cols = TINY_DETECTOR
+    if kind == "empty":
+        return _png(tmp_path / "bad.png", np.zeros((rows, cols)))
+    if kind == "all-ones":
+        return _png(tmp_path / "bad.png", np.full((rows, cols), 255))
+    if kind == "shape":
+        return _png(tmp_path / "bad.png", np.pad(np.full((10, 10), 255), ((0, rows - 30), (0, cols - 10))))
+    if kind == "non-binary":
+        return _png(tmp_path / "bad.png", np.indices((rows, cols))[1] % 3)  # values 0, 1, 2
+    if kind == "nan":
+        import nrrd
+
+        data = np.zeros((rows, cols), np.float32)
+        data[5:9, 5:9] = 1.0
+        data[0, 0] = np.nan
+        nrrd.write(str(tmp_path / "bad.nrrd"), data, index_order="C")
+        return tmp_path / "bad.nrrd"
+    if kind == "unreadable":
+        (tmp_path / "bad.png").write_bytes(b"\x89PNG but not really")
+        return tmp_path / "bad.png"
+    if kind == "missing":
+        return tmp_path / "does-not-exist.png"
+    raise AssertionError(kind)
+
+
+BAD_MASKS = {
+    "empty": "mask is empty",
+    "all-ones": "marks every pixel as vessel",
+    "shape": "differs from the detector shape (96, 96)",
+    "non-binary": "not binary (values 0, 1, 2)",
+    "nan": "NaN",
+    "unreadable": "cannot read",
+    "missing": "not found",
+}
+
+
+@pytest.mark.parametrize("kind", sorted(BAD_MASKS))
+def test_bad_masks_are_refused_and_nothing_is_written(kind, tmp_path, capsys, geometry_file, mask_files):
+    bad = _bad_mask(kind, tmp_path)
+    out = tmp_path / "out"
+    code, _, err = run(capsys, "reconstruct", "--geometry", geometry_file, "--mask1", mask_files[0], "--mask2", bad,
+                       "--out", out, "--steps", 1, "--no-progress")
+    _assert_bad_input(code, err, BAD_MASKS[kind])
+    assert bad.name in err
+    assert not out.exists()
+
+
+def _set(data, path, value):
+    target = data
+    for key in path[:-1]:
+        target = target[key]
+    if value is KeyError:
+        del target[path[-1]]
+    else:
+        target[path[-1]] = value
+
+
+BAD_GEOMETRIES = {
+    "primary angle": (("views", 0, "primary_deg"), 200.0, "views[0].primary_deg = 200.0 is out of range"),
+    "secondary angle": (("views", 1, "secondary_deg"), -95.0, "views[1].secondary_deg = -95.0 is out of range"),
+    "sod >= sid": (("views", 0, "sod_mm"), 1000.0, "views[0].sod_mm = 1000.0 must be smaller than"),
+    "off the detectors": (("volume", "center_mm"), [300.0, 0.0, 0.0], "does not project onto the detector"),
+    "missing field": (("views", 1, "sid_mm"), KeyError, "views[1] is missing required field(s): sid_mm"),
+    "wrong type": (("views", 0, "detector_shape"), "512", "views[0].detector_shape must be a list"),
+    "unknown field": (("volume", "spacing"), 1.0, "volume has unknown field(s): spacing"),
+}
+
+
+@pytest.mark.parametrize("case", sorted(BAD_GEOMETRIES))
+def test_bad_geometry_is_refused_naming_the_field(case, tmp_path, capsys, mask_files):
+    path, value, message = BAD_GEOMETRIES[case]
+    data = tiny_geometry_dict()
+    _set(data, path, value)
+    geometry = write_json(tmp_path / "bad-geometry.json", data)
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "keep.txt").write_text("earlier work")
+    code, _, err = run(capsys, "reconstruct", "--geometry", geometry, "--mask1", mask_files[0], "--mask2", mask_files[1],
+                       "--out", out, "--no-progress")
+    _assert_bad_input(code, err, message)
+    assert [p.name for p in out.iterdir()] == ["keep.txt"] and (out / "keep.txt").read_text() == "earlier work"
+
+
+def test_invalid_json_and_wrong_view_count_are_refused(tmp_path, capsys, mask_files):
+    (tmp_path / "g.json").write_text('{"volume": {"shape": [32, 32, 32],}')
+    code, _, err = run(capsys, "reconstruct", "--geometry", tmp_path / "g.json", "--mask1", mask_files[0],
+                       "--mask2", mask_files[1], "--out", tmp_path / "out")
+    _assert_bad_input(code, err, "is not valid JSON")
+    data = tiny_geometry_dict()
+    data["views"].append(dict(data["views"][0]))
+    code, _, err = run(capsys, "reconstruct", "--geometry", write_json(tmp_path / "three.json", data),
+                       "--mask1", mask_files[0], "--mask2", mask_files[1], "--out", tmp_path / "out")
+    _assert_bad_input(code, err, "describes 3 view(s) but reconstruct takes two")
+    assert not (tmp_path / "out").exists()
+
+
+def test_existing_results_are_not_overwritten_without_the_flag(tmp_path, capsys, geometry_file, mask_files):
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "report.json").write_text("{}")
+    code, _, err = run(capsys, "reconstruct", "--geometry", geometry_file, "--mask1", mask_files[0], "--mask2", mask_files[1],
+                       "--out", out, "--no-progress")
+    _assert_bad_input(code, err, "already holds report.json")
+    assert (out / "report.json").read_text() == "{}"
+
+
+def test_unknown_mode_and_preset_are_refused(tmp_path, capsys, geometry_file, mask_files):
+    base = ["reconstruct", "--geometry", geometry_file, "--mask1", mask_files[0], "--mask2", mask_files[1], "--out", tmp_path / "out"]
+    code, _, err = run(capsys, *base, "--mode", "sdf")
+    _assert_bad_input(code, err, "unknown mode 'sdf'")
+    code, _, err = run(capsys, *base, "--preset", "slow")
+    _assert_bad_input(code, err, "unknown preset 'slow'")
+    assert not (tmp_path / "out").exists()
+
+
+def test_verbose_shows_the_traceback(tmp_path, capsys, geometry_file, mask_files):
+    code, _, err = run(capsys, "reconstruct", "--geometry", geometry_file, "--mask1", tmp_path / "nope.png",
+                       "--mask2", mask_files[1], "--out", tmp_path / "out", "--verbose")
+    assert code == 2 and "Traceback" in err and err.strip().splitlines()[-1].startswith("error: ")
+
+
+def test_entry_point_version_and_error_status():
+    env = dict(os.environ, PYTHONPATH=str(REPO))
+    done = subprocess.run([sys.executable, "-m", "SDFCARLib", "--version"], capture_output=True, text=True, env=env, cwd=REPO)
+    from SDFCARLib import __version__
+
+    assert done.returncode == 0 and done.stdout.strip() == f"SDFCARLib {__version__}"
+    done = subprocess.run([sys.executable, "-m", "SDFCARLib", "evaluate", "--prediction", "missing.nrrd", "--label", "x.nrrd"],
+                          capture_output=True, text=True, env=env, cwd=REPO)
+    assert done.returncode == 2 and done.stderr.startswith("error: ") and "Traceback" not in done.stderr
+
+
+# --- end to end ---------------------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def simulated(tmp_path_factory, tiny_case):
+    """The tiny case's label as NRRD and its views simulated by the CLI."""
+    from SDFCARLib.io import write_volume_nrrd
+
+    folder = tmp_path_factory.mktemp("simulated")
+    geometry = write_json(folder / "geometry.json", tiny_geometry_dict())
+    label = write_volume_nrrd(folder / "label.nrrd", tiny_case.label, tiny_case.geometry.volume)
+    assert main(["simulate", "--label", str(label), "--geometry", str(geometry), "--out", str(folder / "views")]) == 0
+    return folder
+
+
+def test_simulate_writes_masks_and_line_integrals_of_every_view(simulated, tiny_case):
+    import imageio.v3 as iio
+
+    from SDFCARLib.io import read_line_integral
+
+    views = simulated / "views"
+    assert sorted(p.name for p in views.iterdir()) == ["view1_lineint.nrrd", "view1_mask.png", "view2_lineint.nrrd", "view2_mask.png"]
+    for n in (1, 2):
+        png = iio.imread(views / f"view{n}_mask.png")
+        assert png.dtype == np.uint8 and set(np.unique(png)) == {0, 255}
+        np.testing.assert_array_equal(png > 0, tiny_case.masks[n - 1])
+        np.testing.assert_allclose(read_line_integral(views / f"view{n}_lineint.nrrd"), tiny_case.line_integrals[n - 1], atol=1e-6)
+
+
+def test_simulate_refuses_a_label_outside_the_views(tmp_path, capsys, geometry_file):
+    from SDFCARLib.geometry import VolumeGrid
+    from SDFCARLib.io import write_volume_nrrd
+
+    far = VolumeGrid((4, 4, 4), (2.0, 2.0, 2.0), (0.0, 0.0, 400.0))  # 400 mm above the isocenter
+    label = write_volume_nrrd(tmp_path / "far.nrrd", np.ones(far.shape, bool), far)
+    code, _, err = run(capsys, "simulate", "--label", label, "--geometry", geometry_file, "--out", tmp_path / "out")
+    assert code == 2 and "leaves no shadow" in err and not (tmp_path / "out").exists()
+
+
+def test_reconstruct_end_to_end_writes_every_output(simulated, tmp_path, capsys, tiny_geometry):
+    import nrrd
+
+    from SDFCARLib.io import read_surface_vtk
+
+    out = tmp_path / "result"
+    code, stdout, err = run(capsys, "reconstruct", "--geometry", simulated / "geometry.json",
+                            "--mask1", simulated / "views" / "view1_mask.png", "--mask2", simulated / "views" / "view2_mask.png",
+                            "--label", simulated / "label.nrrd", "--out", out, "--steps", 3, "--seed", 3, "--no-progress")
+    assert code == 0, err
+    report = json.loads((out / "report.json").read_text())
+    names = {"occupancy.nrrd", "field.nrrd", "segmentation.seg.nrrd", "surface.vtk", "report.json"}
+    assert names <= {p.name for p in out.iterdir()}
+    assert (out / "scene.mrml").exists() == report["scene"]["written"]
+    assert set(report["files"].values()) == {p.name for p in out.iterdir()}
+
+    assert report["settings"]["steps"] == 3 and report["seed"] == 3 and report["target_kind"] == "mask"
+    assert report["settings"]["preset"] == "fast" and report["settings"]["mode"] == "sdfcar"
+    for key in ("device", "versions", "timings_s", "final_losses", "geometry"):
+        assert key in report
+    assert len(report["reprojection_dice"]) == 2
+    assert Geometry.from_dict(report["geometry"]) == tiny_geometry
+    assert report["inputs"]["targets"][0].endswith("view1_mask.png")
+    for method in ("prediction", "visual_hull"):
+        assert set(report["metrics"][method]) >= {"cldice", "dice", "iou", "chamfer_l2_mm", "re_error", "reprojection_dice"}
+    assert report["metrics"]["visual_hull"]["tsens"] == 1.0  # the hull of the label's own masks contains its skeleton
+    assert "visual hull" in stdout
+
+    grid = tiny_geometry.volume
+    header = nrrd.read_header(str(out / "segmentation.seg.nrrd"))
+    assert header["space"] == "left-posterior-superior" and list(header["sizes"]) == list(grid.shape)
+    np.testing.assert_allclose(header["space origin"], grid.origin)
+    np.testing.assert_allclose(header["space directions"], np.diag(grid.spacing_mm))
+    assert header["Segment0_LabelValue"] == "1"
+    segmentation = nrrd.read(str(out / "segmentation.seg.nrrd"))[0]
+    occupancy = nrrd.read(str(out / "occupancy.nrrd"))[0]
+    np.testing.assert_array_equal(segmentation.astype(bool), occupancy >= 0.5)
+    assert int(segmentation.sum()) == report["segmented_voxels"]
+
+    vertices, faces = read_surface_vtk(out / "surface.vtk")
+    assert len(vertices) == report["surface"]["vertices"] and len(faces) == report["surface"]["triangles"]
+    lo, hi = grid.bounds()
+    assert np.all(vertices >= lo - 1e-4) and np.all(vertices <= hi + 1e-4)
+    assert (len(faces) == 0) == (report["segmented_voxels"] == 0)
+
+
+def test_reconstruct_from_line_integrals(simulated, tmp_path, capsys):
+    out = tmp_path / "result"
+    views = simulated / "views"
+    code, _, err = run(capsys, "reconstruct", "--geometry", simulated / "geometry.json", "--lineint1", views / "view1_lineint.nrrd",
+                       "--lineint2", views / "view2_lineint.nrrd", "--out", out, "--steps", 2, "--no-progress")
+    assert code == 0, err
+    assert json.loads((out / "report.json").read_text())["target_kind"] == "line_integral"
+    code, _, err = run(capsys, "reconstruct", "--geometry", simulated / "geometry.json", "--lineint1", views / "view1_lineint.nrrd",
+                       "--mask2", views / "view2_mask.png", "--out", tmp_path / "mixed")
+    _assert_bad_input(code, err, "give either masks or line integrals")
+
+
+def test_ctrl_c_cancels_with_status_130_and_writes_nothing(tmp_path, capsys, geometry_file, mask_files, monkeypatch):
+    import SDFCARLib.optimiser as optimiser
+
+    real_reconstruct = optimiser.reconstruct
+
+    def reconstruct_interrupted_at_step_2(*args, progress=None, **kwargs):
+        def report(info):
+            progress(info)
+            if info.get("phase") == "optimise" and info["step"] >= 2:
+                os.kill(os.getpid(), signal.SIGINT)  # what Ctrl-C in the terminal sends
+
+        return real_reconstruct(*args, progress=report, progress_interval_s=0.0, **kwargs)
+
+    monkeypatch.setattr(optimiser, "reconstruct", reconstruct_interrupted_at_step_2)
+    out = tmp_path / "out"
+    code, _, err = run(capsys, "reconstruct", "--geometry", geometry_file, "--mask1", mask_files[0], "--mask2", mask_files[1],
+                       "--out", out, "--steps", 1000)
+    assert code == 130 and "cancelled" in err and "nothing was written" in err
+    assert "optimising" in err  # the progress bar was shown
+    assert not out.exists()
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # Ctrl-C behaves normally again
+
+
+# --- evaluate, demo, geometry-template ----------------------------------------------------------
+def test_evaluate_a_perfect_prediction(simulated, tmp_path, capsys):
+    label = simulated / "label.nrrd"
+    code, stdout, err = run(capsys, "evaluate", "--prediction", label, "--label", label, "--geometry", simulated / "geometry.json",
+                            "--json", tmp_path / "metrics.json")
+    assert code == 0, err
+    metrics = json.loads((tmp_path / "metrics.json").read_text())["metrics"]
+    assert metrics["prediction"]["dice"] == 1.0 and metrics["prediction"]["chamfer_l2_mm"] == 0.0
+    assert metrics["prediction"]["re_error"] == 0.0 and metrics["prediction"]["reprojection_dice"] == [1.0, 1.0]
+    assert metrics["visual_hull"]["dice"] < 1.0  # ghosts: the hull is larger than the tree
+    assert "clDice" in stdout
+    code, _, err = run(capsys, "evaluate", "--prediction", label, "--label", label, "--json", tmp_path / "metrics.json")
+    _assert_bad_input(code, err, "already holds metrics.json")
+
+
+def test_evaluate_refuses_other_grids_and_unthresholded_volumes(simulated, tmp_path, capsys, tiny_case):
+    from SDFCARLib.geometry import VolumeGrid
+    from SDFCARLib.io import write_volume_nrrd
+
+    grid = tiny_case.geometry.volume
+    other = VolumeGrid(grid.shape, (1.0, 1.0, 1.0), grid.center_mm)
+    write_volume_nrrd(tmp_path / "other.nrrd", tiny_case.label, other)
+    code, _, err = run(capsys, "evaluate", "--prediction", tmp_path / "other.nrrd", "--label", simulated / "label.nrrd")
+    _assert_bad_input(code, err, "different grids")
+    write_volume_nrrd(tmp_path / "occupancy.nrrd", tiny_case.label * np.float32(0.7) + np.float32(0.1), grid)
+    code, _, err = run(capsys, "evaluate", "--prediction", tmp_path / "occupancy.nrrd", "--label", simulated / "label.nrrd")
+    _assert_bad_input(code, err, "--threshold")
+    code, _, err = run(capsys, "evaluate", "--prediction", tmp_path / "occupancy.nrrd", "--label", simulated / "label.nrrd",
+                       "--threshold", 0.5)
+    assert code == 0, err
+
+
+def test_demo_reconstructs_the_sample_case_and_compares_with_the_hull(tmp_path, capsys, monkeypatch, tiny_case):
+    import SDFCARLib.sample_data as sample_data
+
+    # The bundled case takes minutes; the demo's wiring is the same on the tiny case.
+    tiny = sample_data.SampleCase(tiny_case.geometry, tiny_case.masks, tiny_case.label, tmp_path)
+    monkeypatch.setattr(sample_data, "load_sample_case", lambda directory=None: tiny)
+    code, stdout, err = run(capsys, "demo", "--out", tmp_path / "demo", "--steps", 2, "--no-progress")
+    assert code == 0, err
+    assert "reconstruction" in stdout and "visual hull (baseline)" in stdout and "clDice" in stdout
+    report = json.loads((tmp_path / "demo" / "report.json").read_text())
+    assert report["settings"]["preset"] == "fast" and "visual_hull" in report["metrics"]
+
+
+def test_bundled_sample_case_equals_a_fresh_regeneration(tmp_path):
+    import nrrd
+
+    from SDFCARLib.io import read_mask
+    from SDFCARLib.sample_data import FILES, SAMPLE_DIR, load_sample_case, write_sample_case
+
+    write_sample_case(tmp_path / "fresh")
+    for key, name in FILES.items():
+        bundled, fresh = SAMPLE_DIR / name, tmp_path / "fresh" / name
+        if name.endswith(".png"):
+            np.testing.assert_array_equal(read_mask(bundled), read_mask(fresh), err_msg=name)
+        elif name.endswith(".nrrd"):
+            (a, header_a), (b, header_b) = nrrd.read(str(bundled)), nrrd.read(str(fresh))
+            np.testing.assert_array_equal(a, b)
+            assert {k: str(v) for k, v in header_a.items()} == {k: str(v) for k, v in header_b.items()}
+        elif name.endswith(".json"):
+            assert json.loads(bundled.read_text()) == json.loads(fresh.read_text())
+        else:
+            assert bundled.read_text() == fresh.read_text(), name
+    case = load_sample_case()
+    assert case.label.shape == (128, 128, 128) and case.label.any()
+    assert [m.shape for m in case.masks] == [(512, 512), (512, 512)]
+    assert sum(p.stat().st_size for p in SAMPLE_DIR.iterdir()) < 100_000  # small enough to ship in the package
+
+
+def test_geometry_template_writes_a_valid_geometry(tmp_path, capsys):
+    path = tmp_path / "geom.json"
+    code, _, err = run(capsys, "geometry-template", "--view-pair", "paper", "--out", path, "--shape", 64, 64, 64)
+    assert code == 0, err
+    geometry = Geometry.load(path)
+    assert geometry.volume.shape == (64, 64, 64)
+    assert [(v.primary_deg, v.secondary_deg, v.sid_mm, v.sod_mm) for v in geometry.views] == [tuple(p) for p in VIEW_PAIRS["paper"]]
+    code, _, err = run(capsys, "geometry-template", "--out", path)
+    _assert_bad_input(code, err, "already exists")
+    code, stdout, _ = run(capsys, "geometry-template", "--view-pair", "lao30-rao30")
+    assert code == 0 and Geometry.from_dict(json.loads(stdout)).views[1].primary_deg == -30.0
