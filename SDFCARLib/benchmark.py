@@ -52,7 +52,6 @@ import platform
 import re
 import shlex
 import sys
-import tempfile
 import time
 import traceback
 from dataclasses import dataclass, field
@@ -62,6 +61,7 @@ from typing import Any, Callable, Dict, Iterable, List, Optional, Sequence, Tupl
 import numpy as np
 
 from .geometry import Geometry, VolumeGrid, standard_geometry
+from .io import json_compatible, write_text_atomically
 
 PathLike = Union[str, Path]
 
@@ -838,7 +838,7 @@ def write_summary(out: Path, config: BenchmarkConfig, rows: Sequence[Dict[str, s
         "",
     ]
     path = out / "summary.md"
-    _write_text_atomically(path, "\n".join(lines))
+    write_text_atomically(path, "\n".join(lines))
     return path
 
 
@@ -900,22 +900,8 @@ def _safe_name(text: str) -> str:
     return re.sub(r"[^A-Za-z0-9._-]+", "_", str(text)).strip("_") or "case"
 
 
-def _write_text_atomically(path: Path, text: str) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    handle, temporary = tempfile.mkstemp(prefix=f".{path.name}.", dir=str(path.parent))
-    try:
-        with os.fdopen(handle, "w", encoding="utf-8") as stream:
-            stream.write(text)
-        os.replace(temporary, path)
-    except BaseException:
-        os.unlink(temporary)
-        raise
-
-
 def _json_safe(value: Any) -> Any:
-    from .metrics import json_safe
-
-    return json_safe(json.loads(json.dumps(value, default=str)))
+    return json_compatible(json.loads(json.dumps(value, default=str)))
 
 
 def _update_run_record(out: Path, record: Dict[str, Any]) -> None:
@@ -930,7 +916,7 @@ def _update_run_record(out: Path, record: Dict[str, Any]) -> None:
             os.replace(path, path.with_name(f"run.json.unreadable-{int(time.time())}"))
             runs = []
     runs = [r for r in runs if r.get("run_id") != record["run_id"]] + [record]
-    _write_text_atomically(path, json.dumps(_json_safe({"runs": runs}), indent=2, allow_nan=False) + "\n")
+    write_text_atomically(path, json.dumps(_json_safe({"runs": runs}), indent=2, allow_nan=False) + "\n")
 
 
 # --- the run --------------------------------------------------------------------------------------
@@ -1126,7 +1112,7 @@ def _execute(config: BenchmarkConfig, todo: List[Tuple[CaseSpec, List[str]]], re
             if row["status"] != "ok":
                 failed += 1
                 path = errors_dir / f"{_safe_name(spec.name)}__{_safe_name(mode)}.txt"
-                _write_text_atomically(path, f"case {spec.name}, mode {mode}\n{row.get('error', '')}\n\n{outcome.get('traceback', '')}")
+                write_text_atomically(path, f"case {spec.name}, mode {mode}\n{row.get('error', '')}\n\n{outcome.get('traceback', '')}")
                 row["traceback_file"] = str(path.relative_to(config.out))
                 bar.write(f"failed: {spec.name} × {mode}: {row.get('error', '')}", file=sys.stderr)
             results.append(row)

@@ -18,10 +18,8 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import signal
 import sys
-import tempfile
 import threading
 import time
 import traceback
@@ -33,6 +31,7 @@ import numpy as np
 from . import __version__
 from .dicom import add_dicom_arguments, cli_geometry_from_args, write_geometry_json
 from .geometry import VIEW_PAIRS
+from .io import write_text_atomically
 
 EXIT_OK, EXIT_FAILURE, EXIT_BAD_INPUT, EXIT_CANCELLED = 0, 1, 2, 130
 
@@ -308,7 +307,8 @@ def _warn_outside(label: np.ndarray, label_grid, grid) -> None:
 
 def cmd_evaluate(args: argparse.Namespace) -> int:
     from .io import align_to_grid, read_label
-    from .outputs import check_destination, ground_truth_metrics, json_compatible
+    from .io import json_compatible
+    from .outputs import check_destination, ground_truth_metrics
 
     geometry = _load_geometry(args.geometry) if args.geometry else None
     if args.json:
@@ -323,21 +323,9 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
         out = {"prediction_file": _absolute(args.prediction), "label_file": _absolute(args.label),
                "geometry_file": _absolute(args.geometry),
                "grid": label_grid.to_dict(), "metrics": metrics}
-        _write_text_atomically(Path(args.json), json.dumps(json_compatible(out), indent=2, allow_nan=False) + "\n")
+        write_text_atomically(Path(args.json), json.dumps(json_compatible(out), indent=2, allow_nan=False) + "\n")
         print(f"wrote {args.json}")
     return EXIT_OK
-
-
-def _write_text_atomically(path: Path, text: str) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    handle, temporary = tempfile.mkstemp(prefix=f".{path.name}.", dir=str(path.parent))
-    try:
-        with os.fdopen(handle, "w", encoding="utf-8") as stream:
-            stream.write(text)
-        os.replace(temporary, path)
-    except BaseException:
-        os.unlink(temporary)
-        raise
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
@@ -375,7 +363,7 @@ def cmd_geometry_template(args: argparse.Namespace) -> int:
     out = Path(args.out)
     if out.exists() and not args.overwrite:
         raise ValueError(f"{out} already exists; choose another file or pass --overwrite")
-    _write_text_atomically(out, text)
+    write_text_atomically(out, text)
     print(f"wrote {out} ({', '.join(v.describe() for v in geometry.views)})", file=sys.stderr)
     return EXIT_OK
 

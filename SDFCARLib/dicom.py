@@ -88,8 +88,6 @@ from __future__ import annotations
 
 import json
 import math
-import os
-import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Dict, List, Optional, Sequence, Tuple, Union
@@ -97,6 +95,7 @@ from typing import Any, Dict, List, Optional, Sequence, Tuple, Union
 import numpy as np
 
 from .geometry import CArmView, Geometry, GeometryError, VolumeGrid
+from .io import atomic_write, json_compatible, write_text_atomically
 
 PathLike = Union[str, Path]
 
@@ -905,43 +904,14 @@ def geometry_from_dicom(
     return geometry, provenance
 
 
-def _json_ready(value: Any) -> Any:
-    if isinstance(value, dict):
-        return {str(k): _json_ready(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_json_ready(v) for v in value]
-    if isinstance(value, np.generic):
-        return value.item()
-    if isinstance(value, float) and not math.isfinite(value):
-        return None
-    if isinstance(value, (str, int, float, bool)) or value is None:
-        return value
-    return str(value)
-
-
-def _atomic_write(path: Path, write: Any) -> None:
-    """Write through a temporary file in the same folder so a failure leaves ``path`` untouched."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    handle, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=str(path.parent))
-    os.close(handle)
-    try:
-        write(Path(tmp))
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
-
-
 def write_geometry_json(path: PathLike, geometry: Geometry, provenance: Optional[Dict[str, Any]] = None) -> Path:
     """Write GEOM.json (the geometry plus a top-level ``provenance``); returns the path."""
     path = Path(path)
     data = geometry.to_dict()
     if provenance is not None:
-        data["provenance"] = _json_ready(provenance)
+        data["provenance"] = json_compatible(provenance)
     Geometry.from_dict(data)  # what is written must load
-    text = json.dumps(data, indent=2, ensure_ascii=False) + "\n"
-    _atomic_write(path, lambda tmp: tmp.write_text(text, encoding="utf-8"))
+    write_text_atomically(path, json.dumps(data, indent=2, ensure_ascii=False) + "\n")
     return path
 
 
@@ -1160,5 +1130,5 @@ def write_xa(
         except TypeError:  # pydicom 2
             ds.save_as(str(tmp), write_like_original=False)
 
-    _atomic_write(path, save)
+    atomic_write(path, save)
     return path

@@ -23,10 +23,13 @@ file, what is wrong and how to fix it.
 
 from __future__ import annotations
 
+import json
 import math
+import os
+import tempfile
 from collections import OrderedDict
 from pathlib import Path
-from typing import Optional, Sequence, Tuple, Union
+from typing import Any, Callable, Optional, Sequence, Tuple, Union
 
 import numpy as np
 
@@ -523,3 +526,47 @@ def read_surface_vtk(path: PathLike) -> Tuple[np.ndarray, np.ndarray]:
     vertices = vtk_to_numpy(poly.GetPoints().GetData()).astype(float) if poly.GetPoints() else np.zeros((0, 3))
     connectivity = vtk_to_numpy(poly.GetPolys().GetConnectivityArray()) if poly.GetNumberOfPolys() else np.zeros(0, int)
     return vertices, connectivity.reshape(-1, 3).astype(np.int64)
+
+
+# --- JSON and atomic files ---------------------------------------------------------------------------------
+def json_compatible(value: Any) -> Any:
+    """Strict-JSON version of ``value``: numpy types to Python, NaN/inf to None, paths and other
+    objects (e.g. DICOM values) to str."""
+    if isinstance(value, dict):
+        return {str(k): json_compatible(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [json_compatible(v) for v in value]
+    if isinstance(value, np.ndarray):
+        return json_compatible(value.tolist())
+    if isinstance(value, np.generic):
+        return json_compatible(value.item())
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if isinstance(value, (str, int, bool)) or value is None:
+        return value
+    return str(value)
+
+
+def atomic_write(path: PathLike, write: Callable[[Path], Any]) -> Path:
+    """Call ``write(temporary_path)`` and move the file into place: a failure leaves ``path`` as it was."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    handle, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=str(path.parent))
+    os.close(handle)
+    try:
+        write(Path(tmp))
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+    return path
+
+
+def write_text_atomically(path: PathLike, text: str) -> Path:
+    return atomic_write(path, lambda tmp: tmp.write_text(text, encoding="utf-8"))
+
+
+def write_json(path: PathLike, data: Any) -> Path:
+    """Strict JSON (``json_compatible``), indented, written atomically."""
+    return write_text_atomically(path, json.dumps(json_compatible(data), indent=2, allow_nan=False) + "\n")

@@ -34,7 +34,6 @@ import os
 import signal
 import subprocess
 import sys
-import time
 import traceback
 from pathlib import Path
 from typing import Any, Callable, Dict, List, Optional, Sequence, Union
@@ -42,6 +41,7 @@ from typing import Any, Callable, Dict, List, Optional, Sequence, Union
 import numpy as np
 
 from .geometry import Geometry, GeometryError
+from .io import write_json
 
 PathLike = Union[str, Path]
 JOB_STATES = ("running", "finished", "failed", "cancelled")
@@ -61,12 +61,6 @@ class JobFolderError(ValueError):
 
 
 # --- job folder ---------------------------------------------------------------------------------------
-def _write_json(path: Path, data: Dict[str, Any]) -> None:
-    tmp = path.with_suffix(path.suffix + ".tmp")
-    tmp.write_text(json.dumps(data, indent=2) + "\n", encoding="utf-8")
-    os.replace(tmp, path)  # readers never see half a file
-
-
 def prepare_job(job_dir: PathLike, geometry: Geometry, targets: Sequence[np.ndarray], settings: Optional[Dict[str, Any]] = None,
                 name: str = "reconstruction", target_kind: str = "mask") -> Path:
     """Write a job folder (refusing a folder that already holds a job) and validate it."""
@@ -78,7 +72,7 @@ def prepare_job(job_dir: PathLike, geometry: Geometry, targets: Sequence[np.ndar
     geometry.save(job_dir / "geometry.json")
     for n, target in enumerate(targets, start=1):
         np.save(job_dir / f"view{n}.npy", np.asarray(target, dtype=np.float32))
-    _write_json(job_dir / "job.json", {"name": name, "target_kind": target_kind, "settings": dict(settings or {}),
+    write_json(job_dir / "job.json", {"name": name, "target_kind": target_kind, "settings": dict(settings or {}),
                                        "views": len(targets)})
     validate_job_folder(job_dir)
     return job_dir
@@ -159,15 +153,15 @@ def run_job(job_dir: PathLike, progress: Optional[Callable[[Dict[str, Any]], Non
         on_progress({"phase": "writing", "step": settings.steps, "total": settings.steps})
         paths = write_reconstruction(result, job_dir / "output", name=manifest.get("name"))
         paths = {k: str(v) for k, v in paths.items()}
-        _write_json(job_dir / "status.json", {"state": "finished", "message": "", "outputs": paths})
+        write_json(job_dir / "status.json", {"state": "finished", "message": "", "outputs": paths})
         (job_dir / "INCOMPLETE").unlink()
         on_progress({"phase": "done", "step": settings.steps, "total": settings.steps})
         return paths
     except ReconstructionCancelled as exc:
-        _write_json(job_dir / "status.json", {"state": "cancelled", "message": str(exc)})
+        write_json(job_dir / "status.json", {"state": "cancelled", "message": str(exc)})
         raise
     except BaseException as exc:  # noqa: BLE001 - the status file must say why, whatever it was
-        _write_json(job_dir / "status.json", {"state": "failed", "message": f"{type(exc).__name__}: {exc}",
+        write_json(job_dir / "status.json", {"state": "failed", "message": f"{type(exc).__name__}: {exc}",
                                               "traceback": traceback.format_exc()})
         raise
     finally:
@@ -311,7 +305,7 @@ class ReconstructionJob:
             self._signal_group(signal.SIGKILL)
         status = self._status()
         if not status or status.get("state") != "cancelled":
-            _write_json(self.job_dir / "status.json", {"state": "cancelled", "message": "cancelled by the user"})
+            write_json(self.job_dir / "status.json", {"state": "cancelled", "message": "cancelled by the user"})
         self._close_log()
 
     def _signal_group(self, sig) -> None:

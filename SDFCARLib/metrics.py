@@ -25,7 +25,6 @@ Undefined values (for example Chamfer distance of an empty prediction) are NaN, 
 
 from __future__ import annotations
 
-import math
 from typing import Dict, List, Optional, Sequence
 
 import numpy as np
@@ -157,20 +156,6 @@ def reprojection_metrics(
     if masks is not None:
         out["reprojection_dice"] = [mask_dice(p > mask_threshold_mm, m) for p, m in zip(pred_proj, masks)]
     return out
-
-
-def json_safe(value):
-    """Replace NaN/inf by None recursively so the result is strict JSON."""
-    if isinstance(value, dict):
-        return {k: json_safe(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [json_safe(v) for v in value]
-    if isinstance(value, (float, np.floating)):
-        v = float(value)
-        return v if math.isfinite(v) else None
-    if isinstance(value, np.integer):
-        return int(value)
-    return value
 
 
 def evaluate(

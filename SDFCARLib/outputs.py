@@ -22,8 +22,6 @@ Atomicity
 from __future__ import annotations
 
 import datetime
-import json
-import math
 import os
 import shutil
 import tempfile
@@ -34,7 +32,7 @@ from typing import Any, Dict, Iterator, List, Optional, Sequence, Tuple, Union
 import numpy as np
 
 from .geometry import VolumeGrid
-from .io import write_segmentation_nrrd, write_surface_vtk, write_volume_nrrd
+from .io import write_json, write_segmentation_nrrd, write_surface_vtk, write_volume_nrrd
 
 PathLike = Union[str, Path]
 
@@ -157,28 +155,6 @@ def surface_mesh(volume: np.ndarray, grid: VolumeGrid, level: float = 0.5) -> Tu
     vertices, faces, _, _ = marching_cubes(padded, level=level, spacing=tuple(spacing))
     # Padded index p is grid index p - 1.
     return vertices + grid.origin - spacing, faces.astype(np.int64)
-
-
-def json_compatible(value: Any) -> Any:
-    """Strict-JSON version of ``value``: numpy types to Python, NaN/inf to None, paths to str."""
-    if isinstance(value, dict):
-        return {str(k): json_compatible(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [json_compatible(v) for v in value]
-    if isinstance(value, np.ndarray):
-        return json_compatible(value.tolist())
-    if isinstance(value, np.generic):
-        return json_compatible(value.item())
-    if isinstance(value, float):
-        return value if math.isfinite(value) else None
-    if isinstance(value, Path):
-        return str(value)
-    return value
-
-
-def write_json(path: PathLike, data: Any) -> Path:
-    Path(path).write_text(json.dumps(json_compatible(data), indent=2, allow_nan=False) + "\n", encoding="utf-8")
-    return Path(path)
 
 
 def ground_truth_metrics(prediction: np.ndarray, label: np.ndarray, grid: VolumeGrid, views=None,

@@ -97,7 +97,8 @@ def make_sample_case() -> SampleCase:
 def write_sample_case(out_dir: PathLike, overwrite: bool = False, case: Optional[SampleCase] = None) -> Dict[str, Path]:
     """Write the sample case's files into ``out_dir`` (all or nothing); return their paths."""
     from .io import write_mask_png, write_segmentation_nrrd
-    from .outputs import staged_directory, write_json
+    from .io import write_json
+    from .outputs import staged_directory
 
     case = case or make_sample_case()
     out_dir = Path(out_dir)

@@ -7,6 +7,8 @@ import math
 
 import numpy as np
 import pytest
+
+from SDFCARLib.io import json_compatible
 from scipy.spatial import cKDTree
 
 from SDFCARLib.geometry import CArmView, VolumeGrid
@@ -17,7 +19,6 @@ from SDFCARLib.metrics import (
     dice,
     evaluate,
     iou,
-    json_safe,
     reprojection_metrics,
     skeleton,
     skeleton_dice,
@@ -224,9 +225,9 @@ def test_evaluate_reports_every_metric_as_strict_json(projection_case):
     grid, views, label = projection_case
     result = evaluate(np.zeros_like(label), label, grid, views)
     assert set(METRIC_NAMES) <= set(result)
-    text = json.dumps(json_safe(result), allow_nan=False)  # NaN (empty Chamfer) → null
+    text = json.dumps(json_compatible(result), allow_nan=False)  # NaN (empty Chamfer) → null
     assert json.loads(text)["chamfer_l2_mm"] is None
-    assert json_safe({"a": [np.float32(1.5), float("inf")], "b": np.int64(3)}) == {"a": [1.5, None], "b": 3}
+    assert json_compatible({"a": [np.float32(1.5), float("inf")], "b": np.int64(3)}) == {"a": [1.5, None], "b": 3}
 
 
 # --- bad input ---------------------------------------------------------------------------------------------------------

@@ -168,7 +168,6 @@ def test_failing_add_leaves_scene_exactly_as_before(scene, monkeypatch):
 
 def write_result_files(tmp_path: Path, geometry: Geometry, result: Reconstruction):
     """A result folder as outputs.write_reconstruction writes it (seg.nrrd, LPS surface .vtk, report)."""
-    import vtk
     from vtk.util.numpy_support import vtk_to_numpy
 
     work = mrml.new_scene()

@@ -74,7 +74,6 @@ def make_case(name: str, protocol: str):
 
 
 def worker(spec: dict) -> dict:
-    import numpy as np
     import torch
 
     from SDFCARLib import metrics
