@@ -46,6 +46,7 @@ from .field import FieldConfig, ImplicitField
 from .geometry import Geometry
 from .hull import support_mask
 from .losses import DistanceSettings, GeometricLoss, ViewTarget, make_target, occupancy_loss
+from .phantoms import DEFAULT_MASK_THRESHOLD_MM
 from .projector import ConeBeamProjector
 
 MODES: Dict[str, Dict[str, Any]] = {
@@ -308,7 +309,10 @@ def reconstruct(
 
     # Support: where the field is evaluated.
     if settings.support == "hull":
-        support = support_mask([a > 0 for a in arrays], geometry.views, grid, settings.support_margin_mm)
+        # Line integrals have faint interpolation tails; a vessel pixel is one above the mask
+        # threshold, and the voxel footprint plus the margin cover the tails.
+        floor = 0.0 if target_kind == "mask" else DEFAULT_MASK_THRESHOLD_MM
+        support = support_mask([a > floor for a in arrays], geometry.views, grid, settings.support_margin_mm)
         voxels = np.flatnonzero(support.reshape(-1))
         if voxels.size == 0:
             raise ReconstructionError(
