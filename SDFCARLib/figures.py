@@ -37,3 +37,48 @@ def save_overlay(path: PathLike, pred: np.ndarray, label: np.ndarray, titles: Se
     height = max(p.shape[0] for p in panels)
     padded = [np.pad(p, ((0, height - p.shape[0]), (0, 4), (0, 0)), constant_values=255) for p in panels]
     iio.imwrite(str(path), np.concatenate(padded, axis=1))
+
+
+def save_result_figure(path: PathLike, masks: Sequence[np.ndarray], vertices_lps: np.ndarray, faces: np.ndarray,
+                       pred: np.ndarray, label: np.ndarray, titles: Sequence[str] = ()) -> None:
+    """A one-picture summary of a reconstruction: the two masks, the surface in 3D (RAS view from
+    the front, head up) and the overlay with the ground truth (green both, red extra, blue missed)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from mpl_toolkits.mplot3d.art3d import Poly3DCollection
+
+    titles = list(titles) + [""] * 4
+    fig = plt.figure(figsize=(16, 4.2), dpi=110)
+    for n, mask in enumerate(masks[:2]):
+        ax = fig.add_subplot(1, 4, n + 1)
+        ax.imshow(np.asarray(mask, bool), cmap="gray", interpolation="nearest")
+        ax.set_title(titles[n] or f"mask, view {n + 1}")
+        ax.axis("off")
+    ax = fig.add_subplot(1, 4, 3, projection="3d")
+    if len(faces):
+        # Display in RAS (x and y negated), seen from the patient's front.
+        ras = np.asarray(vertices_lps, float) * np.array([-1.0, -1.0, 1.0])
+        triangles = ras[np.asarray(faces)]
+        normals = np.cross(triangles[:, 1] - triangles[:, 0], triangles[:, 2] - triangles[:, 0])
+        normals /= np.linalg.norm(normals, axis=1, keepdims=True) + 1e-12
+        light = np.array([0.3, 1.0, 0.6]) / np.linalg.norm([0.3, 1.0, 0.6])  # from the front, above
+        shade = 0.35 + 0.65 * np.abs(normals @ light)
+        colours = np.clip(np.outer(shade, (0.9, 0.3, 0.25)), 0, 1)
+        ax.add_collection3d(Poly3DCollection(triangles, facecolors=colours, edgecolor="none"))
+        lo, hi = ras.min(axis=0), ras.max(axis=0)
+        centre, half = (lo + hi) / 2, float((hi - lo).max()) / 2
+        ax.set_xlim(centre[0] - half, centre[0] + half)
+        ax.set_ylim(centre[1] - half, centre[1] + half)
+        ax.set_zlim(centre[2] - half, centre[2] + half)
+        ax.view_init(elev=10, azim=90)  # from anterior: the patient's left on the right, as in AP
+    ax.set_title(titles[2] or "reconstructed surface")
+    ax.set_axis_off()
+    ax = fig.add_subplot(1, 4, 4)
+    ax.imshow(overlay_mip(pred, label, axis=1), interpolation="nearest")
+    ax.set_title(titles[3] or "vs ground truth (MIP, front)")
+    ax.axis("off")
+    fig.tight_layout()
+    fig.savefig(str(path))
+    plt.close(fig)
