@@ -217,3 +217,14 @@ def test_real_scene_still_finds_its_files_after_the_move_into_place(tmp_path, ti
     assert segmentation.GetSegmentation().GetNumberOfSegments() == 1
     report = json.loads(files["report"].read_text())
     assert model.GetPolyData().GetNumberOfPoints() == report["surface"]["vertices"]
+    # Both nodes at the right place: the segment holds exactly the result's voxels (read back at
+    # the voxel centres' RAS positions) and the model's points are the LPS surface with x, y negated.
+    from vtk.util.numpy_support import vtk_to_numpy
+
+    from SDFCARLib import mrml
+    from SDFCARLib.io import read_surface_vtk
+
+    np.testing.assert_array_equal(mrml.segmentation_mask_lps(segmentation, tiny_geometry.volume), result.segmentation)
+    vertices_lps, _ = read_surface_vtk(files["surface"])
+    model_ras = vtk_to_numpy(model.GetPolyData().GetPoints().GetData())
+    np.testing.assert_allclose(model_ras, vertices_lps * np.array([-1.0, -1.0, 1.0]), atol=1e-4)
