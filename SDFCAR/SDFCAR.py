@@ -299,6 +299,8 @@ def describeProgress(info):
         return f"Preparing ({info.get('device', '')})…"
     if phase == "output":
         return "Writing the results…"
+    if phase == "prune":
+        return "Pruning the branches that no mask pixel needs…"
     text = f"Step {info.get('step', 0)} / {info.get('total', '?')}"
     if info.get("loss") is not None:
         text += f" · loss {info['loss']:.4g} (occ {info.get('l_occ', 0):.3g}, geo {info.get('l_geo', 0):.3g})"

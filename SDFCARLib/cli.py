@@ -67,6 +67,8 @@ class ProgressBar:
         elif phase == "output":
             self.close()
             print("evaluating the field on the grid…", file=self.stream)
+        elif phase == "prune":
+            print("pruning the branches that no mask pixel needs…", file=self.stream)
 
     def close(self) -> None:
         if self.bar is not None:

@@ -14,7 +14,9 @@ Presets
                on the visual hull of the masks widened by 0.5 mm (elsewhere the occupancy is 0,
                which any mask already demands), an 8 × 64 MLP and an 8-level 2^17 hash table, 400
                steps with the hash table at lr 1e-2 and the MLP at 1e-3 after a 20-step warm-up,
-               L_geo on an 8× max-pooled image. ``bench/`` compares it with ``paper``.
+               L_geo on an 8× max-pooled image, and the skeleton pieces that no mask pixel
+               needs pruned afterwards (``pruning.py``: ghost branches that two views cannot
+               rule out). ``bench/`` compares it with ``paper``.
 
 Learning rates
     Adam moves every weight by about lr per step. The SDF's occupancy logit is −α·s, so a step of
@@ -48,6 +50,7 @@ from .hull import support_mask
 from .losses import DistanceSettings, GeometricLoss, ViewTarget, make_target, occupancy_loss
 from .phantoms import DEFAULT_MASK_THRESHOLD_MM
 from .projector import ConeBeamProjector
+from .pruning import PruneSettings, prune_redundant_branches, removal_zone
 
 MODES: Dict[str, Dict[str, Any]] = {
     "sdfcar": {"field": "sdf", "geometric": True, "title": "SDF-CAR (SDF rep. + combined loss)"},
@@ -97,6 +100,9 @@ class Settings:
     mask_model: str = "silhouette"  # "silhouette" | "width" (losses.py)
     checkpoint_points: int = 0  # >0: MLP in checkpointed chunks of this many points (memory)
     threshold: float = 0.5
+    prune: bool = False  # remove skeleton pieces no mask pixel needs (pruning.py)
+    prune_piece_mm: float = 6.0
+    prune_tolerance: float = 0.02
     seed: int = 0
     device: str = "auto"
     threads: Optional[int] = None
@@ -117,6 +123,8 @@ class Settings:
             raise ReconstructionError(f"mask_model must be one of {', '.join(MASK_MODELS)}, got {self.mask_model!r}")
         if self.warmup_steps < 0 or self.checkpoint_points < 0:
             raise ReconstructionError("warmup_steps and checkpoint_points must not be negative")
+        if not self.prune_piece_mm > 0 or not 0 <= self.prune_tolerance < 1:
+            raise ReconstructionError("prune_piece_mm must be positive and prune_tolerance in [0, 1)")
         if self.device not in ("auto", "cpu", "cuda") and not str(self.device).startswith("cuda:"):
             raise ReconstructionError(f"device must be auto, cpu or cuda, got {self.device!r}")
 
@@ -140,7 +148,7 @@ PRESETS: Dict[str, Dict[str, Any]] = {
     "fast": dict(
         steps=400, learning_rate=1e-3, table_learning_rate=1e-2, warmup_steps=20, support="hull",
         support_margin_mm=0.5, dt_downsample=8, levels=8, log2_table_size=17, features_per_level=2,
-        base_resolution=16, max_resolution=256, width=64, depth=8,
+        base_resolution=16, max_resolution=256, width=64, depth=8, prune=True,
     ),
 }
 
@@ -392,6 +400,20 @@ def reconstruct(
     t_out = time.perf_counter()
     occupancy_volume, field_volume = _evaluate_volume(model, geometry, voxels, support is None, device)
     segmentation = occupancy_volume >= settings.threshold
+    pruning: Optional[Dict[str, Any]] = None
+    if settings.prune and segmentation.any():
+        if _is_cancelled(cancel):
+            raise ReconstructionCancelled("cancelled before pruning")
+        report_progress(phase="prune", step=settings.steps, total=settings.steps,
+                        elapsed_s=time.perf_counter() - t_loop, eta_s=None, device=str(device))
+        floor = 0.0 if target_kind == "mask" else DEFAULT_MASK_THRESHOLD_MM
+        kept, pruning = prune_redundant_branches(
+            segmentation, [a > floor for a in arrays], geometry,
+            PruneSettings(max_piece_mm=settings.prune_piece_mm, tolerance=settings.prune_tolerance))
+        zone = removal_zone(segmentation, kept, grid.spacing_mm)
+        occupancy_volume[zone] = 0.0
+        field_volume[zone] = float(field_volume.max()) if MODES[settings.mode]["field"] == "sdf" else float(field_volume.min())
+        segmentation = occupancy_volume >= settings.threshold
     reprojection = _reprojection_dice(segmentation, geometry, arrays, target_kind)
     output_s = time.perf_counter() - t_out
 
@@ -408,6 +430,7 @@ def reconstruct(
         "geometry_digest": geometry.digest(),
         "support_voxels": int(voxels.size),
         "segmented_voxels": int(segmentation.sum()),
+        "pruning": pruning,
         "projector_nonzeros": [p.nnz for p in projectors],
         "final_losses": losses,
         "reprojection_dice": reprojection,

@@ -5,6 +5,8 @@
 #
 # Environment (all optional):
 #   PRESET=fast         optimiser preset (fast | paper)
+#   PROTOCOL=paper      simulation protocol of the rca and lad targets (paper | clinical-lao30-rao30 |
+#                       clinical-lao50cra25-rao50cra25)
 #   CASES=10            cases per procedural suite
 #   SEED=0              first case seed
 #   SCHEDULER=tcp://…   run on an existing Dask cluster instead of a local one
@@ -20,6 +22,7 @@ cd "$(dirname "${BASH_SOURCE[0]}")/.."
 
 PY=${PY:-.venv/bin/python}
 PRESET=${PRESET:-fast}
+PROTOCOL=${PROTOCOL:-paper}
 CASES=${CASES:-10}
 SEED=${SEED:-0}
 OUT=${OUT:-bench/runs}
@@ -42,10 +45,10 @@ run_target() {
             bench --suite rca --cases 2 --modes sdfcar,neca --preset fast --steps 20 \
                 --volume-shape 48 48 48 --spacing-mm 2 --detector-shape 128 128 --detector-spacing-mm 1 \
                 --out "$OUT/quick" ;;
-        rca)    # Tables 1 and 3: procedural RCA-like trees, the paper's protocol
-            bench --suite rca --cases "$CASES" --protocol paper "${common[@]}" --out "$OUT/rca-$PRESET-paper" ;;
-        lad)    # Tables 2 and 4: procedural LAD-like trees, the paper's protocol
-            bench --suite lad --cases "$CASES" --protocol paper "${common[@]}" --out "$OUT/lad-$PRESET-paper" ;;
+        rca)    # Tables 1 and 3: procedural RCA-like trees (the paper's protocol unless PROTOCOL says)
+            bench --suite rca --cases "$CASES" --protocol "$PROTOCOL" "${common[@]}" --out "$OUT/rca-$PRESET-$PROTOCOL" ;;
+        lad)    # Tables 2 and 4: procedural LAD-like trees (the paper's protocol unless PROTOCOL says)
+            bench --suite lad --cases "$CASES" --protocol "$PROTOCOL" "${common[@]}" --out "$OUT/lad-$PRESET-$PROTOCOL" ;;
         721a)   # the 721A centreline (real anatomy), 3 optimiser seeds
             bench --suite 721a --cases 3 --protocol paper "${common[@]}" --out "$OUT/721a-$PRESET-paper" ;;
         clinical)  # binary masks from clinical view pairs instead of line integrals

@@ -1,0 +1,206 @@
+"""Redundant-branch pruning: remove pieces of a reconstruction that no mask pixel needs.
+
+Why
+    Two views leave the reconstruction ambiguous: where vessels overlap in one view, the optimiser
+    can explain the same mask pixels with "ghost" segments that lie in the visual hull but not in
+    the patient. A ghost shows as extra skeleton branches (low topology precision) while the
+    reprojection stays perfect, because every pixel it covers is also covered by a true vessel.
+
+Method (a greedy minimal set cover at the level of skeleton pieces)
+    1. Skeletonise the segmentation, split the skeleton at its junctions into branches and each
+       branch into pieces of at most ``max_piece_mm`` (geodesic length); every segmented voxel
+       belongs to the piece of its nearest skeleton voxel.
+    2. Project each piece into both views: it covers the mask pixels its line integral crosses by
+       more than ``threshold_mm``.
+    3. Repeatedly remove the piece whose uniquely covered pixels (pixels no other remaining piece
+       covers) are the smallest fraction of its coverage, as long as that fraction is at most
+       ``tolerance``; ties go to the piece whose pixels are covered most often by the others.
+
+    Every removed piece therefore explained at most ``tolerance`` of its own pixels alone, so the
+    reprojection of what is kept matches the masks almost exactly as before.
+
+Measured (fast preset, 400 steps, binary masks LAO 30 / RAO 30, 128³ at 0.8 mm): on the 721A
+centreline clDice 0.730 → 0.842, Dice 0.625 → 0.729, Chamfer 1.62 → 0.55 mm, reprojection Dice
+0.99 before and after; on the procedural LAD-3 tree clDice 0.488 → 0.659. Pieces of 6 mm worked
+better than whole branches (100 mm: pieces too coarse to separate a ghost from its true vessel)
+or 3 mm (pieces too short to be told apart). Optimising again on the pruned support was worse.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from typing import Any, Dict, Optional, Sequence, Tuple
+
+import numpy as np
+import torch
+
+from .geometry import Geometry
+from .projector import ConeBeamProjector
+
+
+@dataclass
+class PruneSettings:
+    max_piece_mm: float = 6.0
+    threshold_mm: float = 0.1  # a piece covers a pixel when its line integral there exceeds this
+    tolerance: float = 0.02  # largest fraction of its pixels a removed piece may cover alone
+
+
+def skeleton_pieces(segmentation: np.ndarray, spacing_mm: Sequence[float], max_piece_mm: float) -> Tuple[np.ndarray, int]:
+    """Label volume (0 = background, 1..n) of the pieces of ``segmentation`` and their number n."""
+    from scipy import ndimage
+    from skimage.morphology import skeletonize
+
+    segmentation = np.asarray(segmentation, dtype=bool)
+    spacing = np.asarray(spacing_mm, dtype=float)
+    labelled = np.zeros(segmentation.shape, np.int64)
+    if not segmentation.any():
+        return labelled, 0
+    points = np.argwhere(skeletonize(segmentation).astype(bool))
+    next_label = 1
+    if len(points):
+        piece, next_label = _pieces_of_skeleton(points, segmentation.shape, spacing, max_piece_mm)
+        labelled[tuple(points[piece > 0].T)] = piece[piece > 0]
+
+    # skimage's thinning deletes objects two voxels thick entirely (a 2 × 2 bar has no skeleton),
+    # so a thin component can come back without one: cut it along its principal axis instead.
+    components, n_components = ndimage.label(segmentation, structure=np.ones((3, 3, 3)))
+    has_piece = np.zeros(n_components + 1, bool)
+    has_piece[components[labelled > 0]] = True
+    for component in np.flatnonzero(~has_piece[1:]) + 1:
+        members = np.argwhere(components == component)
+        centred = (members - members.mean(axis=0)) * spacing
+        axis = np.linalg.svd(centred, full_matrices=False)[2][0] if len(members) > 1 else np.zeros(3)
+        along = centred @ axis
+        along -= along.min()
+        n_pieces = max(1, int(np.ceil((along.max() + 1e-6) / max_piece_mm)))
+        chunk = np.minimum((along / (along.max() + 1e-6) * n_pieces).astype(np.int64), n_pieces - 1)
+        labelled[tuple(members.T)] = next_label + chunk
+        next_label += n_pieces
+
+    # Every segmented voxel (junctions included) goes to its nearest labelled voxel.
+    nearest = ndimage.distance_transform_edt(labelled == 0, sampling=spacing, return_distances=False, return_indices=True)
+    owner = np.where(segmentation, labelled[tuple(nearest)], 0)
+    used, contiguous = np.unique(owner, return_inverse=True)  # label 0 (background) stays first
+    return contiguous.reshape(owner.shape).astype(np.int64), int(used.size - 1)
+
+
+def _pieces_of_skeleton(points: np.ndarray, shape: Tuple[int, ...], spacing: np.ndarray, max_piece_mm: float) -> Tuple[np.ndarray, int]:
+    """Piece label (1..; 0 for junction voxels) of each skeleton voxel, and the next free label."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components, dijkstra
+
+    # 26-neighbour graph of skeleton voxels, edge weights in mm.
+    index = -np.ones(shape, np.int64)
+    index[tuple(points.T)] = np.arange(len(points))
+    rows, cols, weights = [], [], []
+    for offset in np.argwhere(np.ones((3, 3, 3))) - 1:
+        if not offset.any():
+            continue
+        neighbour = points + offset
+        inside = np.all((neighbour >= 0) & (neighbour < shape), axis=1)
+        target = np.full(len(points), -1)
+        target[inside] = index[tuple(neighbour[inside].T)]
+        linked = target >= 0
+        rows.append(np.flatnonzero(linked))
+        cols.append(target[linked])
+        weights.append(np.full(int(linked.sum()), float(np.linalg.norm(offset * spacing))))
+    graph = coo_matrix((np.concatenate(weights), (np.concatenate(rows), np.concatenate(cols))),
+                       shape=(len(points), len(points))).tocsr()
+
+    # Branches: what stays connected once the junction voxels (degree >= 3) are taken out; each
+    # is cut into pieces of at most max_piece_mm by geodesic distance from one of its ends.
+    branch_voxels = np.flatnonzero(np.diff(graph.indptr) < 3)
+    branch_graph = graph[branch_voxels][:, branch_voxels]
+    branch_count, branch_of = connected_components(branch_graph, directed=False)
+    piece = np.zeros(len(points), np.int64)
+    next_label = 1
+    for branch in range(branch_count):
+        members = np.flatnonzero(branch_of == branch)
+        local = branch_graph[members][:, members]
+        from_any = dijkstra(local, indices=0)
+        end = int(np.argmax(np.where(np.isfinite(from_any), from_any, -1.0)))
+        along = dijkstra(local, indices=end)
+        along = np.where(np.isfinite(along), along, 0.0)
+        length = float(along.max())
+        n_pieces = max(1, int(np.ceil((length + 1e-6) / max_piece_mm)))
+        chunk = np.minimum((along / (length + 1e-6) * n_pieces).astype(np.int64), n_pieces - 1)
+        piece[branch_voxels[members]] = next_label + chunk
+        next_label += n_pieces
+    return piece, next_label
+
+
+def prune_redundant_branches(
+    segmentation: np.ndarray,
+    masks: Sequence[np.ndarray],
+    geometry: Geometry,
+    settings: Optional[PruneSettings] = None,
+) -> Tuple[np.ndarray, Dict[str, Any]]:
+    """The segmentation without the pieces that no mask pixel needs (see module docstring).
+
+    ``masks``: one boolean image per view of ``geometry`` (vessel pixels). Returns the pruned
+    segmentation and a report (pieces, pieces removed, voxels removed, seconds).
+    """
+    t0 = time.perf_counter()
+    settings = settings or PruneSettings()
+    segmentation = np.asarray(segmentation, dtype=bool)
+    if len(masks) != len(geometry.views):
+        raise ValueError(f"prune: {len(masks)} mask(s) for {len(geometry.views)} view(s)")
+    for n, (mask, view) in enumerate(zip(masks, geometry.views), start=1):
+        if tuple(np.shape(mask)) != tuple(view.detector_shape):
+            raise ValueError(f"prune: mask {n} has shape {np.shape(mask)}, view {n} has detector {tuple(view.detector_shape)}")
+    pieces, count = skeleton_pieces(segmentation, geometry.volume.spacing_mm, settings.max_piece_mm)
+    info: Dict[str, Any] = {"pieces": int(count), "removed_pieces": 0, "removed_voxels": 0,
+                            "max_piece_mm": settings.max_piece_mm, "tolerance": settings.tolerance}
+    if count < 2:
+        info["seconds"] = time.perf_counter() - t0
+        return segmentation.copy(), info
+
+    voxels = np.flatnonzero(segmentation.reshape(-1))
+    piece_of_voxel = torch.as_tensor(pieces.reshape(-1)[voxels] - 1)
+    indicator = torch.zeros(voxels.size, count)
+    indicator[torch.arange(voxels.size), piece_of_voxel] = 1.0
+    covered_parts = []
+    for mask, view in zip(masks, geometry.views):
+        projector = ConeBeamProjector(view, geometry.volume, voxels=voxels)
+        piece_integrals = torch.mm(projector.operator.matrix, indicator).numpy()
+        in_mask = np.asarray(mask, dtype=bool).reshape(-1)[projector.pixels]
+        covered_parts.append((piece_integrals > settings.threshold_mm) & in_mask[:, None])
+    cover = np.concatenate(covered_parts, axis=0)
+    cover = cover[cover.any(axis=1)]  # mask pixels that some piece covers
+    times_covered = cover.sum(axis=1)
+    alive = np.ones(count, dtype=bool)
+    while True:
+        unique = (cover & (times_covered == 1)[:, None]).sum(axis=0)
+        total = cover.sum(axis=0)
+        ratio = np.where(total > 0, unique / np.maximum(total, 1), 0.0)
+        candidates = np.flatnonzero(alive & (ratio <= settings.tolerance))
+        if candidates.size == 0 or alive.sum() <= 1:
+            break
+        redundancy = np.array([times_covered[cover[:, k]].mean() if total[k] else np.inf for k in candidates])
+        chosen = candidates[np.lexsort((-redundancy, ratio[candidates]))[0]]
+        alive[chosen] = False
+        times_covered -= cover[:, chosen]
+        cover[:, chosen] = False
+    kept = np.isin(pieces, np.flatnonzero(alive) + 1)
+    info.update(removed_pieces=int(count - alive.sum()), removed_voxels=int(segmentation.sum() - kept.sum()),
+                seconds=time.perf_counter() - t0)
+    return kept, info
+
+
+def removal_zone(segmentation: np.ndarray, kept: np.ndarray, spacing_mm: Sequence[float]) -> np.ndarray:
+    """Voxels to clear in the occupancy and field so that they agree with the pruned segmentation.
+
+    The removed voxels plus the one-voxel shell around them that is nearer to them than to what is
+    kept: the partial occupancy there would otherwise put a thin skin of the ghost into the surface.
+    """
+    from scipy import ndimage
+
+    removed = np.asarray(segmentation, bool) & ~np.asarray(kept, bool)
+    if not removed.any():
+        return removed
+    spacing = np.asarray(spacing_mm, dtype=float)
+    to_removed = ndimage.distance_transform_edt(~removed, sampling=spacing)
+    to_kept = ndimage.distance_transform_edt(~kept, sampling=spacing) if kept.any() else np.full(kept.shape, np.inf)
+    shell = (to_removed <= float(np.linalg.norm(spacing)) + 1e-6) & (to_removed < to_kept) & ~kept
+    return removed | shell

@@ -1,0 +1,117 @@
+"""Redundant-branch pruning: a ghost that two views cannot rule out is removed, true vessels stay."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from SDFCARLib.geometry import CArmView, Geometry, VolumeGrid
+from SDFCARLib.metrics import mask_dice
+from SDFCARLib.optimiser import make_settings
+from SDFCARLib.phantoms import Branch, CenterlineTree, simulate_views, voxelize
+from SDFCARLib.projector import project_volume
+from SDFCARLib.pruning import PruneSettings, prune_redundant_branches, removal_zone, skeleton_pieces
+
+GRID = VolumeGrid((40, 40, 40), (1.0, 1.0, 1.0))
+# AP sees (x, z), LAO 90 sees (y, z): two vertical vessels make two lines in each view.
+VIEWS = [CArmView(0.0, 0.0, 1000.0, 750.0, (0.5, 0.5), (128, 128)),
+         CArmView(90.0, 0.0, 1000.0, 750.0, (0.5, 0.5), (128, 128))]
+
+
+def _tube(x, y, z0, z1, radius):
+    return voxelize(CenterlineTree([Branch(np.array([[x, y, z0], [x, y, z1]], float), np.array([radius, radius]))]), GRID)
+
+
+@pytest.fixture(scope="module")
+def ghost_case():
+    vessel_a = _tube(0.0, -8.0, -15.0, 15.0, 1.5)
+    vessel_b = _tube(8.0, 0.0, -15.0, 15.0, 1.5)
+    truth = vessel_a | vessel_b
+    _, masks = simulate_views(truth, GRID, VIEWS)
+    # At (0, 0) a shorter, thinner tube hides behind vessel A in AP and behind vessel B in LAO 90:
+    # both masks are explained without it, so it is exactly the ghost two views cannot exclude.
+    ghost = _tube(0.0, 0.0, -6.0, 6.0, 1.0) & ~truth
+    return Geometry(GRID, VIEWS), truth, ghost, masks
+
+
+def test_ghost_really_is_invisible(ghost_case):
+    geometry, truth, ghost, masks = ghost_case
+    for view, mask in zip(VIEWS, masks):
+        ghost_shadow = project_volume(ghost.astype(np.float32), view, GRID) > 0.2
+        assert ghost_shadow.any() and not np.any(ghost_shadow & ~mask)
+
+
+def test_prune_removes_the_ghost_and_keeps_the_vessels(ghost_case):
+    geometry, truth, ghost, masks = ghost_case
+    segmentation = truth | ghost
+    kept, info = prune_redundant_branches(segmentation, masks, geometry)
+    assert kept.shape == segmentation.shape and kept.dtype == bool
+    assert not np.any(kept & ghost)
+    np.testing.assert_array_equal(kept, truth)
+    assert info["removed_voxels"] == int(ghost.sum()) and info["removed_pieces"] >= 1
+    assert info["pieces"] >= 3 and info["seconds"] >= 0
+    for view, mask in zip(VIEWS, masks):  # the reprojection is as good as before
+        before = mask_dice(project_volume(segmentation.astype(np.float32), view, GRID) > 0.2, mask)
+        after = mask_dice(project_volume(kept.astype(np.float32), view, GRID) > 0.2, mask)
+        assert after >= before - 0.01 and after > 0.9
+
+
+def test_prune_keeps_a_true_tree_whole():
+    tree = CenterlineTree([
+        Branch(np.array([[-14.0, -4.0, -13.0], [0.0, 3.0, 0.0], [13.0, -2.0, 14.0]]), np.array([2.0, 1.6, 1.2])),
+        Branch(np.array([[0.0, 3.0, 0.0], [9.0, 9.0, -11.0]]), np.array([1.4, 1.0])),
+    ])
+    label = voxelize(tree, GRID)
+    views = [CArmView(30.0, 0.0, 1000.0, 750.0, (0.5, 0.5), (128, 128)),
+             CArmView(-30.0, 20.0, 1000.0, 750.0, (0.5, 0.5), (128, 128))]
+    _, masks = simulate_views(label, GRID, views)
+    kept, info = prune_redundant_branches(label, masks, Geometry(GRID, views))
+    assert info["removed_pieces"] == 0
+    np.testing.assert_array_equal(kept, label)
+
+
+@pytest.mark.parametrize("centre", [0.5, 0.0], ids=["3-voxels-thick", "2-voxels-thick"])
+def test_pieces_partition_the_segmentation_and_respect_the_length(centre):
+    # A tube on voxel centres is 3 voxels thick; between them 2 voxels thick, which skimage's
+    # thinning deletes entirely, so that case exercises the principal-axis fallback.
+    tube = _tube(centre, centre, -12.0, 12.0, 1.5)
+    pieces, count = skeleton_pieces(tube, GRID.spacing_mm, max_piece_mm=6.0)
+    assert np.array_equal(pieces > 0, tube)
+    assert set(np.unique(pieces[tube])) == set(range(1, count + 1))
+    assert count in (4, 5)  # a 24–27 mm tube (with its rounded ends) in pieces of at most 6 mm
+    z = GRID.voxel_centers(np.flatnonzero(tube))[:, 2]
+    for label in range(1, count + 1):  # each piece is one stretch along the tube
+        assert np.ptp(z[pieces[tube] == label]) <= 6.0 + 1.0
+    _, one = skeleton_pieces(tube, GRID.spacing_mm, max_piece_mm=100.0)
+    assert one == 1
+
+
+def test_empty_and_single_piece_segmentations_are_returned_unchanged(ghost_case):
+    geometry, truth, _, masks = ghost_case
+    empty = np.zeros(GRID.shape, bool)
+    kept, info = prune_redundant_branches(empty, masks, geometry)
+    assert not kept.any() and info["pieces"] == 0 and info["removed_voxels"] == 0
+    single = _tube(0.0, -8.0, -3.0, 3.0, 1.5)
+    kept, info = prune_redundant_branches(single, masks, geometry, PruneSettings(max_piece_mm=50.0))
+    np.testing.assert_array_equal(kept, single)
+
+
+def test_prune_rejects_masks_that_do_not_match_the_views(ghost_case):
+    geometry, truth, _, masks = ghost_case
+    with pytest.raises(ValueError, match="1 mask"):
+        prune_redundant_branches(truth, masks[:1], geometry)
+    with pytest.raises(ValueError, match="mask 2 has shape"):
+        prune_redundant_branches(truth, [masks[0], masks[1][:64]], geometry)
+
+
+def test_removal_zone_covers_the_removed_voxels_and_spares_the_kept(ghost_case):
+    _, truth, ghost, _ = ghost_case
+    zone = removal_zone(truth | ghost, truth, GRID.spacing_mm)
+    assert np.all(zone[ghost]) and not np.any(zone & truth)
+    assert zone.sum() > ghost.sum()  # with the shell of partial occupancy around the ghost
+    assert not removal_zone(truth, truth, GRID.spacing_mm).any()
+
+
+def test_presets_prune_only_in_fast():
+    assert make_settings("fast").prune is True
+    assert make_settings("paper").prune is False  # the published recipe has no post-processing
