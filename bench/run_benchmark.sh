@@ -8,6 +8,7 @@
 #   PROTOCOL=paper      simulation protocol of the rca and lad targets (paper | clinical-lao30-rao30 |
 #                       clinical-lao50cra25-rao50cra25)
 #   CASES=10            cases per procedural suite
+#   CASES_721A=3        optimiser seeds on the 721A centreline
 #   SEED=0              first case seed
 #   SCHEDULER=tcp://…   run on an existing Dask cluster instead of a local one
 #   WORKERS=N           local cluster workers (default: cores / THREADS)
@@ -49,8 +50,8 @@ run_target() {
             bench --suite rca --cases "$CASES" --protocol "$PROTOCOL" "${common[@]}" --out "$OUT/rca-$PRESET-$PROTOCOL" ;;
         lad)    # Tables 2 and 4: procedural LAD-like trees (the paper's protocol unless PROTOCOL says)
             bench --suite lad --cases "$CASES" --protocol "$PROTOCOL" "${common[@]}" --out "$OUT/lad-$PRESET-$PROTOCOL" ;;
-        721a)   # the 721A centreline (real anatomy), 3 optimiser seeds
-            bench --suite 721a --cases 3 --protocol paper "${common[@]}" --out "$OUT/721a-$PRESET-paper" ;;
+        721a)   # the 721A centreline (real anatomy), CASES_721A optimiser seeds (default 3)
+            bench --suite 721a --cases "${CASES_721A:-3}" --protocol "$PROTOCOL" "${common[@]}" --out "$OUT/721a-$PRESET-$PROTOCOL" ;;
         clinical)  # binary masks from clinical view pairs instead of line integrals
             for protocol in clinical-lao30-rao30 clinical-lao50cra25-rao50cra25; do
                 bench --suite rca --cases "$CASES" --protocol "$protocol" "${common[@]}" --out "$OUT/rca-$PRESET-$protocol"
