@@ -50,7 +50,7 @@ from .hull import support_mask
 from .losses import DistanceSettings, GeometricLoss, ViewTarget, make_target, occupancy_loss
 from .phantoms import DEFAULT_MASK_THRESHOLD_MM
 from .projector import ConeBeamProjector
-from .pruning import PruneSettings, prune_redundant_branches, removal_zone
+from .pruning import PruneSettings, drop_small_components, prune_redundant_branches, removal_zone
 
 MODES: Dict[str, Dict[str, Any]] = {
     "sdfcar": {"field": "sdf", "geometric": True, "title": "SDF-CAR (SDF rep. + combined loss)"},
@@ -103,6 +103,9 @@ class Settings:
     prune: bool = False  # remove skeleton pieces no mask pixel needs (pruning.py)
     prune_piece_mm: float = 6.0
     prune_tolerance: float = 0.02
+    # after pruning, drop components smaller than this fraction of the largest (0: keep all); off by
+    # default until the benchmark suites are re-run with it (see pruning.drop_small_components)
+    prune_min_component_fraction: float = 0.0
     seed: int = 0
     device: str = "auto"
     threads: Optional[int] = None
@@ -123,8 +126,9 @@ class Settings:
             raise ReconstructionError(f"mask_model must be one of {', '.join(MASK_MODELS)}, got {self.mask_model!r}")
         if self.warmup_steps < 0 or self.checkpoint_points < 0:
             raise ReconstructionError("warmup_steps and checkpoint_points must not be negative")
-        if not self.prune_piece_mm > 0 or not 0 <= self.prune_tolerance < 1:
-            raise ReconstructionError("prune_piece_mm must be positive and prune_tolerance in [0, 1)")
+        if not self.prune_piece_mm > 0 or not 0 <= self.prune_tolerance < 1 or not 0 <= self.prune_min_component_fraction <= 1:
+            raise ReconstructionError("prune_piece_mm must be positive, prune_tolerance in [0, 1) and "
+                                      "prune_min_component_fraction in [0, 1]")
         if self.device not in ("auto", "cpu", "cuda") and not str(self.device).startswith("cuda:"):
             raise ReconstructionError(f"device must be auto, cpu or cuda, got {self.device!r}")
 
@@ -410,6 +414,10 @@ def reconstruct(
         kept, pruning = prune_redundant_branches(
             segmentation, [a > floor for a in arrays], geometry,
             PruneSettings(max_piece_mm=settings.prune_piece_mm, tolerance=settings.prune_tolerance))
+        if settings.prune_min_component_fraction > 0:
+            before = int(kept.sum())
+            kept = drop_small_components(kept, settings.prune_min_component_fraction)
+            pruning["small_component_voxels"] = before - int(kept.sum())
         zone = removal_zone(segmentation, kept, grid.spacing_mm)
         occupancy_volume[zone] = 0.0
         field_volume[zone] = float(field_volume.max()) if MODES[settings.mode]["field"] == "sdf" else float(field_volume.min())

@@ -204,3 +204,22 @@ def removal_zone(segmentation: np.ndarray, kept: np.ndarray, spacing_mm: Sequenc
     to_kept = ndimage.distance_transform_edt(~kept, sampling=spacing) if kept.any() else np.full(kept.shape, np.inf)
     shell = (to_removed <= float(np.linalg.norm(spacing)) + 1e-6) & (to_removed < to_kept) & ~kept
     return removed | shell
+
+
+def drop_small_components(segmentation: np.ndarray, min_fraction: float) -> np.ndarray:
+    """The segmentation without the 26-connected components smaller than ``min_fraction`` of the largest.
+
+    Specks left after pruning are mostly ghosts. Measured after pruning (fast preset, 400 steps):
+    ``min_fraction=0.02`` gave 721A clDice 0.842 → 0.860 and LAD-3 0.659 → 0.692; keeping only the
+    largest component instead cut LAD-3 to 0.228 (the reconstruction of a true tree can be broken).
+    """
+    from scipy import ndimage
+
+    segmentation = np.asarray(segmentation, dtype=bool)
+    if min_fraction <= 0 or not segmentation.any():
+        return segmentation.copy()
+    components, count = ndimage.label(segmentation, structure=np.ones((3, 3, 3)))
+    sizes = np.bincount(components.ravel())[1:]
+    keep = np.flatnonzero(sizes >= min_fraction * sizes.max()) + 1
+    return np.isin(components, keep)
+
