@@ -42,7 +42,7 @@ def _addLibraryPath():
 _addLibraryPath()
 
 #: Python packages the reconstruction needs: import name -> pip requirement.
-REQUIREMENTS = {"torch": "torch", "kornia": "kornia>=0.7", "skimage": "scikit-image", "pydicom": "pydicom"}
+REQUIREMENTS = {"torch": "torch", "skimage": "scikit-image", "pydicom": "pydicom"}
 PRESETS = ["fast", "paper"]
 MODES = ["sdfcar", "neca", "occ-combined", "sdf-occ"]
 DEVICES = ["auto", "cpu", "cuda"]

@@ -1,6 +1,6 @@
 """SDFCARLib — 3D coronary artery reconstruction from two X-ray angiography views (SDF-CAR).
 
-Pure Python (torch, kornia, scikit-image, scipy): no Qt and no Slicer application, so the same
+Pure Python (torch, scikit-image, scipy): no Qt and no Slicer application, so the same
 code runs in Slicer's Python, in scripts, on the command line and in tests.
 """
 

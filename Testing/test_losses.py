@@ -14,6 +14,7 @@ from SDFCARLib.geometry import CArmView, VolumeGrid
 from SDFCARLib.losses import (
     DistanceSettings,
     GeometricLoss,
+    cascaded_distance,
     make_target,
     occupancy_loss,
     signed_distance,
@@ -78,6 +79,78 @@ def test_make_target():
 
 
 # --- signed distance ---------------------------------------------------------------------------------------
+def soft_vessel_images(seed: int, size=(2, 1, 48, 56)) -> torch.Tensor:
+    """Blurred random blobs in [0, 1]: sources of every strength, like a rendered silhouette."""
+    rng = np.random.default_rng(seed)
+    noise = ndimage.gaussian_filter(rng.random(size), sigma=(0, 0, 3, 3))
+    images = np.clip((noise - np.quantile(noise, 0.92)) * 60, 0, 1)  # sparse, soft-edged blobs
+    return torch.as_tensor(images, dtype=torch.float32)
+
+
+@pytest.mark.parametrize("kernel_size", [3, 5])
+def test_cascaded_distance_equals_kornia_values_and_gradients(kernel_size):
+    from kornia.contrib import distance_transform
+
+    images = soft_vessel_images(0)
+    assert 0.02 < float((images > 0).float().mean()) < 0.2 and float(((images > 0) & (images < 1)).float().mean()) > 0.01
+    # The full cascade is kornia's transform.
+    ours = cascaded_distance(images, kernel_size)
+    torch.testing.assert_close(ours, distance_transform(images, kernel_size=kernel_size), rtol=1e-5, atol=1e-5)
+    # Stopped early: the same below the limit, +inf (never a wrong finite value) beyond it, and the
+    # same gradient of anything computed from the clipped distances.
+    limit = 7.0
+    x_ours = images.clone().requires_grad_(True)
+    x_ref = images.clone().requires_grad_(True)
+    truncated = cascaded_distance(x_ours, kernel_size, max_distance_px=limit)
+    reference = distance_transform(x_ref, kernel_size=kernel_size)
+    below = reference < limit
+    assert float((reference >= limit).float().mean()) > 0.05  # the limit matters in this image
+    torch.testing.assert_close(truncated[below], reference[below], rtol=1e-5, atol=1e-5)
+    assert torch.all(truncated[~below] >= limit)
+    weights = torch.rand(images.shape, generator=torch.Generator().manual_seed(1))
+    (weights * truncated.clamp(max=limit)).sum().backward()
+    (weights * reference.clamp(max=limit)).sum().backward()
+    assert float(x_ref.grad.abs().sum()) > 0
+    torch.testing.assert_close(x_ours.grad, x_ref.grad, rtol=1e-4, atol=1e-5)
+
+
+def test_cascaded_distance_on_simple_cases_and_bad_shapes():
+    image = torch.zeros(1, 1, 9, 9)
+    image[0, 0, 4, 4] = 1.0
+    d = cascaded_distance(image, 3)
+    assert float(d[0, 0, 4, 4]) == 0.0
+    assert float(d[0, 0, 4, 7]) == pytest.approx(3.0, abs=0.2)  # the soft minimum is ~0.17 px short
+    assert torch.all(cascaded_distance(torch.zeros(1, 1, 5, 5)).isinf())  # no source anywhere: far
+    assert torch.all(cascaded_distance(image, 3, max_distance_px=1.5)[0, 0, 4, 8:].isinf())
+    with pytest.raises(ValueError, match="shape"):
+        cascaded_distance(torch.zeros(9, 9))
+    with pytest.raises(ValueError, match="odd"):
+        cascaded_distance(image, 4)
+
+
+def test_signed_distance_memory_does_not_grow_with_the_image_beyond_the_truncation():
+    # kornia's own cascade runs max(H, W) rounds and keeps all of them for the gradient (22 GB for
+    # four 512² images); the truncated cascade runs truncation / pixel + 1 rounds at any size.
+    from SDFCARLib import losses
+
+    rounds = []
+    original = losses.F.conv2d
+
+    def counting_conv2d(*args, **kwargs):
+        rounds.append(1)
+        return original(*args, **kwargs)
+
+    settings = DistanceSettings(truncation_mm=5.0)
+    for size in (64, 256):
+        rounds.clear()
+        losses.F.conv2d = counting_conv2d
+        try:
+            signed_distance(torch.rand(1, 1, size, size), torch.tensor([1.0]), settings)
+        finally:
+            losses.F.conv2d = original
+        assert len(rounds) == 6  # ceil(5 mm / 1 mm) + 1
+
+
 def test_signed_distance_of_a_band_against_exact_distances():
     # A vertical band: every distance is horizontal, where kornia's transform is accurate
     # (it is documented as up to 0.17 px short beside a straight edge).
