@@ -223,52 +223,12 @@ class BenchmarkConfig:
 
 def parse_overrides(items: Optional[Iterable[str]]) -> Dict[str, Any]:
     """``["learning_rate=1e-3", "device=cuda"]`` → typed optimiser overrides, checked against ``Settings``."""
-    from .optimiser import Settings
+    from .optimiser import ReconstructionError, parse_setting_overrides
 
-    fields = {f.name: str(f.type) for f in dataclasses.fields(Settings)}
-    out: Dict[str, Any] = {}
-    for item in items or ():
-        key, sep, text = str(item).partition("=")
-        key = key.strip()
-        if not sep or not key:
-            raise BenchmarkError(f"--set {item!r}: write KEY=VALUE, e.g. --set learning_rate=1e-3")
-        if key in _RESERVED_SETTINGS:
-            raise BenchmarkError(f"--set {key}=…: {key} is set by the benchmark; {_RESERVED_SETTINGS[key]}")
-        if key not in fields:
-            raise BenchmarkError(f"--set {key}=…: unknown optimiser setting {key!r}; known: {', '.join(sorted(set(fields) - set(_RESERVED_SETTINGS)))}")
-        out[key] = _typed_value(key, text.strip(), fields[key])
-    return out
-
-
-def _typed_value(key: str, text: str, type_name: str) -> Any:
-    lowered = text.lower()
-    if lowered in ("none", "null"):
-        if "Optional" in type_name:
-            return None
-        raise BenchmarkError(f"--set {key}={text}: {key} needs a value ({type_name})")
-    if "bool" in type_name:
-        if lowered in ("true", "1", "yes", "on"):
-            return True
-        if lowered in ("false", "0", "no", "off"):
-            return False
-        raise BenchmarkError(f"--set {key}={text}: {key} takes true or false")
-    if "int" in type_name:
-        try:
-            number = float(text)
-        except ValueError:
-            number = math.nan
-        if not (math.isfinite(number) and number == int(number)):
-            raise BenchmarkError(f"--set {key}={text}: {key} takes a whole number")
-        return int(number)
-    if "float" in type_name:
-        try:
-            number = float(text)
-        except ValueError:
-            raise BenchmarkError(f"--set {key}={text}: {key} takes a number, e.g. 1e-3") from None
-        if not math.isfinite(number):
-            raise BenchmarkError(f"--set {key}={text}: {key} must be finite")
-        return number
-    return text.strip("'\"")
+    try:
+        return parse_setting_overrides(items, reserved=_RESERVED_SETTINGS)
+    except ReconstructionError as error:
+        raise BenchmarkError(str(error)) from None
 
 
 def parse_suite(suite: str) -> Tuple[str, Optional[Path]]:

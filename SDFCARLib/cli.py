@@ -148,8 +148,12 @@ def _print_metrics(metrics: Dict[str, Dict[str, Any]], stream=None) -> None:
 def _settings(args: argparse.Namespace):
     from .optimiser import make_settings
 
-    return make_settings(args.preset, mode=args.mode, device=args.device, seed=args.seed, steps=args.steps,
-                         threads=args.threads)
+    from .optimiser import parse_setting_overrides
+
+    named = {"mode": args.mode, "device": args.device, "seed": args.seed, "steps": args.steps, "threads": args.threads}
+    reserved = {key: f"use --{key}" for key in named}
+    reserved["preset"] = "use --preset"
+    return make_settings(args.preset, **{**parse_setting_overrides(args.overrides, reserved), **named})
 
 
 def _read_targets(args: argparse.Namespace, geometry) -> Tuple[List[np.ndarray], str, List[np.ndarray]]:
@@ -389,6 +393,9 @@ def _add_optimiser_options(p: argparse.ArgumentParser, preset_default: str = "fa
     p.add_argument("--seed", type=int, default=None, help="random seed (repeatable on the same device)")
     p.add_argument("--steps", type=_positive_int, default=None, help="optimisation steps (default: the preset's)")
     p.add_argument("--threads", type=_positive_int, default=None, help="CPU threads for torch")
+    p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+                   help="any other optimiser setting, repeatable (e.g. --set prune_min_component_fraction=0.02 "
+                        "--set memory_check=false); see optimiser.Settings")
     p.add_argument("--name", default=None, help="name of the result in Slicer (default: the output folder's name)")
     p.add_argument("--overwrite", action="store_true", help="replace result files the output folder already holds")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")

@@ -108,6 +108,7 @@ class Settings:
     prune_min_component_fraction: float = 0.0
     seed: int = 0
     device: str = "auto"
+    memory_check: bool = True  # refuse CPU runs whose estimated peak exceeds the available memory
     threads: Optional[int] = None
 
     def validate(self) -> None:
@@ -157,6 +158,60 @@ PRESETS: Dict[str, Dict[str, Any]] = {
 }
 
 
+def parse_setting_overrides(items: Optional[Sequence[str]], reserved: Optional[Dict[str, str]] = None) -> Dict[str, Any]:
+    """``["learning_rate=1e-3", "memory_check=false"]`` (command-line ``--set``) → typed ``Settings`` overrides.
+
+    ``reserved`` maps settings that the caller sets itself to the option to use instead.
+    """
+    reserved = reserved or {}
+    fields = {f.name: str(f.type) for f in dataclasses.fields(Settings)}
+    out: Dict[str, Any] = {}
+    for item in items or ():
+        key, sep, text = str(item).partition("=")
+        key = key.strip()
+        if not sep or not key:
+            raise ReconstructionError(f"--set {item!r}: write KEY=VALUE, e.g. --set learning_rate=1e-3")
+        if key in reserved:
+            raise ReconstructionError(f"--set {key}=…: {key} is set by this command; {reserved[key]}")
+        if key not in fields:
+            known = ", ".join(sorted(set(fields) - set(reserved) - {"preset"}))
+            raise ReconstructionError(f"--set {key}=…: unknown optimiser setting {key!r}; known: {known}")
+        out[key] = typed_setting_value(key, text.strip(), fields[key])
+    return out
+
+
+def typed_setting_value(key: str, text: str, type_name: str) -> Any:
+    """The text of ``--set key=text`` as the type its ``Settings`` annotation names."""
+    lowered = text.lower()
+    if lowered in ("none", "null"):
+        if "Optional" in type_name:
+            return None
+        raise ReconstructionError(f"--set {key}={text}: {key} needs a value ({type_name})")
+    if "bool" in type_name:
+        if lowered in ("true", "1", "yes", "on"):
+            return True
+        if lowered in ("false", "0", "no", "off"):
+            return False
+        raise ReconstructionError(f"--set {key}={text}: {key} takes true or false")
+    if "int" in type_name:
+        try:
+            number = float(text)
+        except ValueError:
+            number = math.nan
+        if not (math.isfinite(number) and number == int(number)):
+            raise ReconstructionError(f"--set {key}={text}: {key} takes a whole number")
+        return int(number)
+    if "float" in type_name:
+        try:
+            number = float(text)
+        except ValueError:
+            raise ReconstructionError(f"--set {key}={text}: {key} takes a number, e.g. 1e-3") from None
+        if not math.isfinite(number):
+            raise ReconstructionError(f"--set {key}={text}: {key} must be finite")
+        return number
+    return text.strip("'\"")
+
+
 def make_settings(preset: str = "fast", **overrides: Any) -> Settings:
     """Settings of a preset, with any field overridden (None values are ignored)."""
     if preset not in PRESETS:
@@ -172,17 +227,68 @@ def make_settings(preset: str = "fast", **overrides: Any) -> Settings:
     return settings
 
 
-def estimate_memory_bytes(settings: Settings, geometry: Geometry, active_voxels: int) -> int:
-    """Rough peak memory of a reconstruction (bytes), measured against real runs to within ~2×.
+#: resident memory of the interpreter with torch and the inputs before a reconstruction starts
+BASELINE_BYTES = 400 * 2**20
 
-    Per active voxel: the projector (≈50 non-zeros per view, stored with its transpose at 12 bytes
-    each), the fixed hash encoding (8 non-zeros per level, likewise) and the MLP's saved
-    activations (about 16 bytes per unit per layer for forward values, masks and gradients).
+
+def estimate_memory_bytes(settings: Settings, geometry: Geometry, active_voxels: int) -> int:
+    """Peak memory of a reconstruction in bytes, to choose a device and to refuse runs that cannot fit.
+
+    The terms, per run (calibrated against peak RSS measured in bench/RESULTS.md, within ~1.5×):
+
+    * projectors: about 56 non-zeros per active voxel and view, kept as CSR plus transpose
+      (24 B each); building one view briefly needs another ~60 B per non-zero;
+    * hash encoding of the fixed points: 8 non-zeros per point and level, 24 B each, ~80 B while
+      it is built (coalesced and sorted copies); tables with gradient and Adam's moments (16 B/entry);
+    * MLP: ~16 B per unit and layer for the saved activations and their gradients, for every point
+      or, with ``checkpoint_points``, for one chunk (plus the chunk inputs of every point);
+    * L_geo: ~14 saved images per view and source kind per round of the truncated distance cascade;
+    * the interpreter, torch and the inputs (``BASELINE_BYTES``).
     """
-    per_voxel = len(geometry.views) * 50 * 24 + settings.levels * 8 * 24 + 16 * settings.width * settings.depth
-    tables = (2 ** settings.log2_table_size) * settings.levels * settings.features_per_level * 4 * 4
-    images = sum(int(np.prod(v.detector_shape)) for v in geometry.views) * 4 * 64
-    return int(active_voxels * per_voxel + tables + images)
+    views = geometry.views
+    points = int(active_voxels)
+    projector_nnz = 56 * points
+    encoding_nnz = 8 * settings.levels * points
+    stored = len(views) * projector_nnz * 24 + encoding_nnz * 24
+    build_peak = max(projector_nnz * 60, encoding_nnz * 56)
+    tables = (2 ** settings.log2_table_size) * settings.levels * settings.features_per_level * 16
+    mlp_points = min(points, settings.checkpoint_points) if settings.checkpoint_points else points
+    mlp = 16 * settings.width * settings.depth * mlp_points
+    if settings.checkpoint_points:
+        mlp += points * settings.levels * settings.features_per_level * 4 * 3
+    distance = 0
+    if MODES[settings.mode]["geometric"]:
+        for view in views:
+            pixel_mm = float(np.mean(view.isocenter_pixel_spacing_mm)) * settings.dt_downsample
+            rounds = math.ceil(settings.dt_truncation_mm / pixel_mm / (settings.dt_kernel_size // 2)) + 1
+            crop = math.prod(math.ceil(n / settings.dt_downsample) for n in view.detector_shape)
+            distance += 14 * 2 * rounds * crop * 4
+    images = sum(int(np.prod(v.detector_shape)) for v in views) * 4 * 16
+    optimise = mlp + distance + images
+    return int(BASELINE_BYTES + stored + tables + max(build_peak, optimise))
+
+
+def available_memory_bytes() -> Optional[int]:
+    """Memory the system can give this process now (Linux MemAvailable), or None where unknown."""
+    try:
+        with open("/proc/meminfo") as meminfo:
+            for line in meminfo:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except OSError:
+        pass
+    return None
+
+
+def check_host_memory(needed_bytes: int, available_bytes: Optional[int]) -> None:
+    """Refuse a CPU run that would not fit in memory, instead of being killed half-way through it."""
+    if available_bytes is None or needed_bytes <= available_bytes:
+        return
+    raise ReconstructionError(
+        f"this reconstruction needs about {needed_bytes / 2**30:.1f} GiB of memory on the CPU but only "
+        f"{available_bytes / 2**30:.1f} GiB is available: use the 'fast' preset or support 'hull' (the field only "
+        f"inside the masks' visual hull), a smaller volume, a CUDA GPU (--device cuda), or set memory_check "
+        f"to false to try anyway")
 
 
 def choose_device(requested: str, needed_bytes: int = 0) -> Tuple[torch.device, str]:
@@ -270,13 +376,12 @@ def _is_cancelled(cancel: Optional[Callable[[], bool]]) -> bool:
 
 
 def versions() -> Dict[str, str]:
-    import kornia
     import scipy
     import skimage
 
     return {
         "sdfcar": __version__, "python": platform.python_version(), "torch": torch.__version__,
-        "kornia": kornia.__version__, "numpy": np.__version__, "scipy": scipy.__version__, "scikit-image": skimage.__version__,
+        "numpy": np.__version__, "scipy": scipy.__version__, "scikit-image": skimage.__version__,
     }
 
 
@@ -334,6 +439,8 @@ def reconstruct(
         support, voxels = None, np.arange(grid.num_voxels)
     needed_bytes = estimate_memory_bytes(settings, geometry, int(voxels.size))
     device, device_reason = choose_device(settings.device, needed_bytes)
+    if device.type == "cpu" and settings.memory_check:
+        check_host_memory(needed_bytes, available_memory_bytes())
     points = _normalised_points(geometry, voxels, device)
     projectors = [
         ConeBeamProjector(view, grid, voxels=None if support is None else voxels, device=str(device))

@@ -289,9 +289,11 @@ def test_overrides_are_typed_from_the_settings():
     assert bm.parse_overrides(["learning_rate=1e-3", "levels=8", "table_learning_rate=none", "device=cuda"]) == {
         "learning_rate": 1e-3, "levels": 8, "table_learning_rate": None, "device": "cuda"}
     # Typing by the field's annotation (the optimiser's list of flags changes as presets are tuned).
-    assert bm._typed_value("flag", "true", "bool") is True and bm._typed_value("flag", "off", "bool") is False
-    with pytest.raises(bm.BenchmarkError, match="true or false"):
-        bm._typed_value("flag", "maybe", "bool")
+    from SDFCARLib.optimiser import ReconstructionError, typed_setting_value
+
+    assert typed_setting_value("flag", "true", "bool") is True and typed_setting_value("flag", "off", "bool") is False
+    with pytest.raises(ReconstructionError, match="true or false"):
+        typed_setting_value("flag", "maybe", "bool")
     for item, message in [("levels=8.5", "whole number"), ("learning_rate=fast", "takes a number"),
                           ("noequals", "KEY=VALUE"), ("seed=3", "--seed"), ("bogus=1", "unknown optimiser setting")]:
         with pytest.raises(bm.BenchmarkError, match=message):

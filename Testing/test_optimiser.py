@@ -13,7 +13,10 @@ from SDFCARLib.optimiser import (
     PRESETS,
     ReconstructionCancelled,
     ReconstructionError,
+    check_host_memory,
+    estimate_memory_bytes,
     make_settings,
+    parse_setting_overrides,
     reconstruct,
     resolve_device,
     validate_targets,
@@ -88,6 +91,57 @@ def test_resolve_device():
     else:
         with pytest.raises(ReconstructionError, match="no CUDA"):
             resolve_device("cuda")
+
+
+def test_memory_estimate_tracks_measured_runs():
+    # 721A at 128³ / 0.8 mm, two 512² views at 0.35 mm (bench/RESULTS.md): the fast preset on its
+    # 23 452 hull voxels peaked at 1.4 GiB resident; the paper preset on the full grid was killed by
+    # the OOM killer above 23 GiB.
+    grid = VolumeGrid((128, 128, 128), (0.8, 0.8, 0.8))
+    geometry = Geometry(grid, [CArmView(a, 0.0, 1000.0, 757.0, (0.35, 0.35), (512, 512)) for a in (30.0, -30.0)])
+    fast = estimate_memory_bytes(make_settings("fast"), geometry, 23452)
+    paper_full = estimate_memory_bytes(make_settings("paper"), geometry, grid.num_voxels)
+    assert 0.5 * 2**30 < fast < 2 * 2**30
+    assert paper_full > 23 * 2**30
+    # More points, larger MLP, finer distance maps: never less memory.
+    assert estimate_memory_bytes(make_settings("fast"), geometry, 60000) > fast
+    assert estimate_memory_bytes(make_settings("fast", width=256), geometry, 23452) > fast
+    assert estimate_memory_bytes(make_settings("fast", dt_downsample=1), geometry, 23452) > fast
+    assert estimate_memory_bytes(make_settings("fast", mode="neca"), geometry, 23452) < fast  # no L_geo
+
+
+def test_host_memory_check_refuses_with_the_ways_out(case):
+    check_host_memory(2 * 2**30, 4 * 2**30)
+    check_host_memory(2 * 2**30, None)  # unknown (not Linux): no check
+    with pytest.raises(ReconstructionError, match=r"needs about 30\.0 GiB .* only 8\.0 GiB .*'fast' preset.*memory_check"):
+        check_host_memory(30 * 2**30, 8 * 2**30)
+    # In a reconstruction the check comes before any work and can be switched off.
+    import SDFCARLib.optimiser as optimiser
+
+    original = optimiser.available_memory_bytes
+    optimiser.available_memory_bytes = lambda: 1024
+    try:
+        calls = []
+        with pytest.raises(ReconstructionError, match="memory"):
+            reconstruct(case[0], _masks(case), make_settings("fast", steps=2, device="cpu"), progress=calls.append)
+        assert [c["phase"] for c in calls] == ["setup"]
+        result = reconstruct(case[0], _masks(case), make_settings("fast", steps=2, device="cpu", memory_check=False))
+        assert result.report["memory_estimate_bytes"] > 1024
+    finally:
+        optimiser.available_memory_bytes = original
+
+
+def test_setting_overrides_from_the_command_line():
+    assert parse_setting_overrides(["prune_min_component_fraction=0.02", "memory_check=false", "levels=8",
+                                    "table_learning_rate=none"]) == {
+        "prune_min_component_fraction": 0.02, "memory_check": False, "levels": 8, "table_learning_rate": None}
+    for item, message in [("levels=8.5", "whole number"), ("learning_rate=fast", "takes a number"),
+                          ("noequals", "KEY=VALUE"), ("bogus=1", "unknown optimiser setting"),
+                          ("memory_check=maybe", "true or false"), ("alpha=inf", "finite")]:
+        with pytest.raises(ReconstructionError, match=message):
+            parse_setting_overrides([item])
+    with pytest.raises(ReconstructionError, match="use --seed"):
+        parse_setting_overrides(["seed=3"], reserved={"seed": "use --seed"})
 
 
 # --- target validation -------------------------------------------------------------------------------------------

@@ -32,6 +32,8 @@ VARIANTS = {
     "paper+hull": ("paper", {"support": "hull"}, True),
     "fast": ("fast", {}, False),
     "fast dt4": ("fast", {"dt_downsample": 4}, False),
+    "fast dt2": ("fast", {"dt_downsample": 2}, False),
+    "fast dt1": ("fast", {"dt_downsample": 1}, False),
     "fast w32": ("fast", {"width": 32}, False),
     "fast w128": ("fast", {"width": 128}, False),
     "fast 800 steps": ("fast", {"steps": 800}, False),
