@@ -77,6 +77,25 @@ class DistanceSettings:
 CASCADE_H = 0.35
 
 
+class _SymmetricFilter(torch.autograd.Function):
+    """Valid correlation with a fixed kernel that equals itself rotated by 180°.
+
+    Its input gradient is the same correlation of the output gradient zero-padded by kernel size − 1. Written out
+    because the CPU (mkldnn) backward of a one-channel convolution took ~8× its forward
+    (measured: 88 vs 11 ms at 4 × 256²), which made it the largest cost of L_geo.
+    """
+
+    @staticmethod
+    def forward(ctx, padded: torch.Tensor, kernel: torch.Tensor) -> torch.Tensor:  # type: ignore[override]
+        ctx.kernel = kernel
+        return F.conv2d(padded, kernel)
+
+    @staticmethod
+    def backward(ctx, grad: torch.Tensor):  # type: ignore[override]
+        width = ctx.kernel.shape[-1] - 1  # the "full" correlation: zero margins of kernel size − 1
+        return F.conv2d(F.pad(grad, (width, width, width, width)), ctx.kernel), None
+
+
 def cascaded_distance(sources: torch.Tensor, kernel_size: int = 3, max_distance_px: Optional[float] = None,
                       h: float = CASCADE_H) -> torch.Tensor:
     """Distance in pixels (B, 1, H, W) from every pixel to the nearest source, differentiable.
@@ -105,7 +124,7 @@ def cascaded_distance(sources: torch.Tensor, kernel_size: int = 3, max_distance_
     reached = front > 0  # sources are decided in round 0: a distance, or 0 if inside a source
     one = torch.ones_like(front)
     for round_index in range(rounds):
-        response = F.conv2d(F.pad(front, (half, half, half, half), mode="replicate"), kernel)
+        response = _SymmetricFilter.apply(F.pad(front, (half, half, half, half), mode="replicate"), kernel)
         positive = response > 0
         step = -h * torch.log(torch.where(positive, response, one))
         new = positive & (step > 0)

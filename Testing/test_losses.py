@@ -114,6 +114,15 @@ def test_cascaded_distance_equals_kornia_values_and_gradients(kernel_size):
     torch.testing.assert_close(x_ours.grad, x_ref.grad, rtol=1e-4, atol=1e-5)
 
 
+def test_symmetric_filter_gradient():
+    from SDFCARLib.losses import _SymmetricFilter
+
+    offsets = torch.arange(-1, 2, dtype=torch.float64)
+    kernel = torch.exp(-torch.sqrt(offsets[:, None] ** 2 + offsets[None, :] ** 2) / 0.35)[None, None]
+    padded = torch.rand(2, 1, 7, 9, dtype=torch.float64, requires_grad=True)
+    assert torch.autograd.gradcheck(lambda x: _SymmetricFilter.apply(x, kernel), (padded,))
+
+
 def test_cascaded_distance_on_simple_cases_and_bad_shapes():
     image = torch.zeros(1, 1, 9, 9)
     image[0, 0, 4, 4] = 1.0
