@@ -14,7 +14,8 @@ Presets
                on the visual hull of the masks widened by 0.5 mm (elsewhere the occupancy is 0,
                which any mask already demands), an 8 × 64 MLP and an 8-level 2^17 hash table, 400
                steps with the hash table at lr 1e-2 and the MLP at 1e-3 after a 20-step warm-up,
-               L_geo on an 8× max-pooled image, and the skeleton pieces that no mask pixel
+               L_geo on a 2× max-pooled image (8× until the distance cascade was truncated; 2×
+               measured better: bench/RESULTS.md), and the skeleton pieces that no mask pixel
                needs pruned afterwards (``pruning.py``: ghost branches that two views cannot
                rule out). ``bench/`` compares it with ``paper``.
 
@@ -152,7 +153,7 @@ PRESETS: Dict[str, Dict[str, Any]] = {
     ),
     "fast": dict(
         steps=400, learning_rate=1e-3, table_learning_rate=1e-2, warmup_steps=20, support="hull",
-        support_margin_mm=0.5, dt_downsample=8, levels=8, log2_table_size=17, features_per_level=2,
+        support_margin_mm=0.5, dt_downsample=2, levels=8, log2_table_size=17, features_per_level=2,
         base_resolution=16, max_resolution=256, width=64, depth=8, prune=True,
     ),
 }
