@@ -235,11 +235,12 @@ BASELINE_BYTES = 400 * 2**20
 def estimate_memory_bytes(settings: Settings, geometry: Geometry, active_voxels: int) -> int:
     """Peak memory of a reconstruction in bytes, to choose a device and to refuse runs that cannot fit.
 
-    The terms, per run (calibrated against peak RSS measured in bench/RESULTS.md, within ~1.5×):
+    The terms, per run (against peak RSS measured in bench/RESULTS.md: 0.6–2.1× of it; the
+    distance maps are taken as large as the detector, which over-estimates the paper preset):
 
     * projectors: about 56 non-zeros per active voxel and view, kept as CSR plus transpose
       (24 B each); building one view briefly needs another ~60 B per non-zero;
-    * hash encoding of the fixed points: 8 non-zeros per point and level, 24 B each, ~80 B while
+    * hash encoding of the fixed points: 8 non-zeros per point and level, 24 B each, ~56 B while
       it is built (coalesced and sorted copies); tables with gradient and Adam's moments (16 B/entry);
     * MLP: ~16 B per unit and layer for the saved activations and their gradients, for every point
       or, with ``checkpoint_points``, for one chunk (plus the chunk inputs of every point);
