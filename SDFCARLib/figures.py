@@ -79,6 +79,6 @@ def save_result_figure(path: PathLike, masks: Sequence[np.ndarray], vertices_lps
     ax.imshow(overlay_mip(pred, label, axis=1), interpolation="nearest")
     ax.set_title(titles[3] or "vs ground truth (MIP, front)")
     ax.axis("off")
-    fig.tight_layout()
+    fig.tight_layout(rect=(0, 0, 1, 0.94))  # room for the titles above the 3D panel
     fig.savefig(str(path))
     plt.close(fig)
