@@ -146,9 +146,7 @@ def _print_metrics(metrics: Dict[str, Dict[str, Any]], stream=None) -> None:
 
 # --- commands -----------------------------------------------------------------------------------
 def _settings(args: argparse.Namespace):
-    from .optimiser import make_settings
-
-    from .optimiser import parse_setting_overrides
+    from .optimiser import make_settings, parse_setting_overrides
 
     named = {"mode": args.mode, "device": args.device, "seed": args.seed, "steps": args.steps, "threads": args.threads}
     reserved = {key: f"use --{key}" for key in named}

@@ -104,8 +104,8 @@ class Settings:
     prune: bool = False  # remove skeleton pieces no mask pixel needs (pruning.py)
     prune_piece_mm: float = 6.0
     prune_tolerance: float = 0.02
-    # after pruning, drop components smaller than this fraction of the largest (0: keep all); off by
-    # default until the benchmark suites are re-run with it (see pruning.drop_small_components)
+    # after pruning, drop components smaller than this fraction of the largest (0: keep all); off:
+    # it cost the RCA suite ~5 clDice points (bench/RESULTS.md 1c)
     prune_min_component_fraction: float = 0.0
     seed: int = 0
     device: str = "auto"

@@ -209,9 +209,10 @@ def removal_zone(segmentation: np.ndarray, kept: np.ndarray, spacing_mm: Sequenc
 def drop_small_components(segmentation: np.ndarray, min_fraction: float) -> np.ndarray:
     """The segmentation without the 26-connected components smaller than ``min_fraction`` of the largest.
 
-    Specks left after pruning are mostly ghosts. Measured after pruning (fast preset, 400 steps):
-    ``min_fraction=0.02`` gave 721A clDice 0.842 → 0.860 and LAD-3 0.659 → 0.692; keeping only the
-    largest component instead cut LAD-3 to 0.228 (the reconstruction of a true tree can be broken).
+    Specks left after pruning are often ghosts, but reconstructions of thin distal vessels are often
+    broken too. Measured after pruning (fast preset, 8× pooling): ``min_fraction=0.02`` gave 721A
+    clDice 0.842 → 0.860, but the RCA suite 63.8 → 59.0 % (worse in 9 of 10 cases; bench/RESULTS.md
+    1c); keeping only the largest component cut LAD-3 from 0.659 to 0.228. Hence off by default.
     """
     from scipy import ndimage
 
