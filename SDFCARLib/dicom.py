@@ -915,35 +915,6 @@ def write_geometry_json(path: PathLike, geometry: Geometry, provenance: Optional
     return path
 
 
-# --- Beer–Lambert frames (simulated views) ----------------------------------------------------------
-def beer_lambert_frames(
-    line_integrals_mm: np.ndarray,
-    mu_per_mm: float = 0.25,
-    i0: Optional[float] = None,
-    bits_stored: int = 12,
-    noise_sigma: float = 0.0,
-    seed: int = 0,
-) -> np.ndarray:
-    """Detector counts ``round(i0 · exp(−μ·L) + noise)`` of line-integral image(s), as uint8/uint16.
-
-    ``i0`` defaults to 90% of the largest stored value; contrast-filled vessels come out dark.
-    """
-    if bits_stored not in (8, 10, 12, 14, 16):
-        raise ValueError(f"bits_stored must be 8, 10, 12, 14 or 16, got {bits_stored}")
-    top = 2**bits_stored - 1
-    i0 = 0.9 * top if i0 is None else float(i0)
-    counts = i0 * np.exp(-float(mu_per_mm) * np.asarray(line_integrals_mm, dtype=np.float64))
-    if noise_sigma > 0:
-        counts = counts + np.random.default_rng(seed).normal(0.0, noise_sigma, counts.shape)
-    return np.clip(np.rint(counts), 0, top).astype(np.uint8 if bits_stored == 8 else np.uint16)
-
-
-def line_integrals_from_frames(frames: np.ndarray, i0: float, mu_per_mm: float = 0.25) -> np.ndarray:
-    """Inverse of ``beer_lambert_frames``: −ln(I / i0) / μ (mm), clipped at 0."""
-    intensity = np.maximum(np.asarray(frames, dtype=np.float64), 0.5)
-    return np.maximum(-np.log(intensity / float(i0)) / float(mu_per_mm), 0.0)
-
-
 # --- writing XA ------------------------------------------------------------------------------------
 _NATIVE_SYNTAXES = ("1.2.840.10008.1.2", "1.2.840.10008.1.2.1", "1.2.840.10008.1.2.1.99")
 _LOSSY_SYNTAXES = {"1.2.840.10008.1.2.4.50", "1.2.840.10008.1.2.4.51", "1.2.840.10008.1.2.4.81",
@@ -1003,7 +974,7 @@ def write_xa(
         raise ValueError(f"frames must be (rows, cols) or (n, rows, cols), got shape {np.shape(frames)}")
     if not np.issubdtype(array.dtype, np.integer) or (array.size and array.min() < 0):
         raise ValueError("frames must be non-negative integers (uint8 or uint16 detector counts); "
-                         "make them from line integrals with beer_lambert_frames()")
+                         "make them from line integrals with phantoms.beer_lambert_counts()")
     bits = bits_stored if bits_stored is not None else (8 if array.dtype.itemsize == 1 else 16)
     if bits not in (8, 10, 12, 16):
         raise ValueError(f"bits_stored must be 8, 10, 12 or 16 for XA, got {bits}")

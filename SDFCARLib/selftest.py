@@ -33,7 +33,7 @@ import numpy as np
 
 from . import mrml
 from .geometry import Geometry, standard_geometry
-from .phantoms import Branch, CenterlineTree, lad_tree, make_case
+from .phantoms import Branch, CenterlineTree, beer_lambert_counts, lad_tree, make_case
 
 #: Floors the short reconstruction must reach. Measured with SETTINGS (CPU, seed 0): Dice 0.62,
 #: clDice 0.65, reprojection Dice 0.995 and 0.999; a result mirrored along x (a lost LPS→RAS flip)
@@ -67,7 +67,7 @@ class SelfTestCase:
 
     def frames(self) -> List[np.ndarray]:
         """Simulated angiograms: background intensity attenuated along each ray (12-bit)."""
-        return [np.round(FRAME_BACKGROUND * np.exp(-ATTENUATION_PER_MM * li)).astype(np.uint16) for li in self.line_integrals]
+        return [beer_lambert_counts(li, ATTENUATION_PER_MM, FRAME_BACKGROUND, bits_stored=12) for li in self.line_integrals]
 
     def frame_mask_threshold(self) -> float:
         """Frame intensity below which a pixel's path length exceeds the mask threshold."""

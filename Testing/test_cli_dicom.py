@@ -12,7 +12,7 @@ from SDFCARLib import dicom
 from SDFCARLib.cli import main
 from SDFCARLib.geometry import CArmView, Geometry, VolumeGrid
 from SDFCARLib.io import write_mask_png
-from SDFCARLib.phantoms import Branch, CenterlineTree, make_case
+from SDFCARLib.phantoms import Branch, CenterlineTree, beer_lambert_counts, make_case
 
 JPEG_LOSSLESS_SV1 = "1.2.840.10008.1.2.4.70"
 
@@ -28,7 +28,7 @@ def dicom_pair(tmp_path_factory):
     case = make_case(tube, geometry)
     paths, masks = [], []
     for n, (view, line_integral, mask) in enumerate(zip(views, case.line_integrals, case.masks), start=1):
-        frames = np.stack([dicom.beer_lambert_frames(c * line_integral, 0.25, 3000.0, 12) for c in (0.2, 1.0, 0.5)])
+        frames = np.stack([beer_lambert_counts(c * line_integral, 0.25, 3000.0, 12) for c in (0.2, 1.0, 0.5)])
         native = dicom.write_xa(folder / f"native{n}.dcm", frames, view, bits_stored=12,
                                 omit=("ImagerPixelSpacing",) if n == 1 else ())
         paths.append(fx.recompress(native, folder / f"view{n}.dcm", JPEG_LOSSLESS_SV1))

@@ -176,7 +176,7 @@ def test_module_cmake_lists_every_file_of_the_module():
 
 def test_module_cmake_installs_the_whole_library():
     text = cmake_words(MODULE / "CMakeLists.txt")
-    script_globs = re.search(r"file\(GLOB SDFCARLIB_PYTHON_SCRIPTS\s+RELATIVE \$\{SDFCARLIB_SOURCE_DIR\}\s+CONFIGURE_DEPENDS\s+([^)]*)\)", text)
+    script_globs = re.search(r"file\(GLOB_RECURSE SDFCARLIB_PYTHON_SCRIPTS\s+RELATIVE \$\{SDFCARLIB_SOURCE_DIR\}\s+CONFIGURE_DEPENDS\s+([^)]*)\)", text)
     data_globs = re.search(r"file\(GLOB_RECURSE SDFCARLIB_PYTHON_RESOURCES\s+RELATIVE \$\{SDFCARLIB_SOURCE_DIR\}\s+CONFIGURE_DEPENDS\s+([^)]*)\)", text)
     assert script_globs and data_globs
     assert re.search(r"set\(SDFCARLIB_SOURCE_DIR \$\{CMAKE_CURRENT_SOURCE_DIR\}/\.\.\)", text)
@@ -191,8 +191,9 @@ def test_module_cmake_installs_the_whole_library():
         if f.startswith("SDFCARLib/data/"):
             assert any(fnmatch.fnmatch(f, d) for d in data_patterns), f
         else:
-            # file(GLOB) "*" stays within one folder: a sub-package would need its own pattern.
-            matched = [p for p in patterns if fnmatch.fnmatch(f, p) and Path(f).parent == Path(p).parent]
+            # file(GLOB_RECURSE) "SDFCARLib/*.py" takes the .py files of every sub-package too.
+            matched = [p for p in patterns if fnmatch.fnmatch(Path(f).name, Path(p).name)
+                       and Path(f).parent.is_relative_to(Path(p).parent)]
             assert matched, f"{f} would not be installed with the extension"
 
 
