@@ -516,7 +516,7 @@ def run_task(prepared: Dict[str, Any], spec: CaseSpec, mode: str, task: Dict[str
             from .optimiser import make_settings
 
             settings = make_settings(task["preset"], mode=mode, seed=spec.seed, steps=task["steps"], **task["overrides"])
-            row["steps"] = settings.steps
+            row["steps"] = settings.optimisation.steps
             result = _reconstruct(case.geometry, case.targets, settings, case.target_kind)
             prediction = result.segmentation
             row["device"] = result.report.get("device", "")
@@ -633,7 +633,7 @@ def mode_title(mode: str) -> str:
     try:
         from .optimiser import MODES
 
-        return str(MODES[mode]["title"])
+        return MODES[mode].title
     except Exception:
         return mode
 
@@ -1098,7 +1098,7 @@ def task_options(config: BenchmarkConfig) -> Dict[str, Any]:
     from .optimiser import make_settings
 
     modes = [m for m in config.modes if m != HULL]
-    steps = make_settings(config.preset, mode=modes[0], steps=config.steps, **config.overrides).steps if modes else ""
+    steps = make_settings(config.preset, mode=modes[0], steps=config.steps, **config.overrides).optimisation.steps if modes else ""
     return {"protocol": config.protocol, "preset": config.preset, "steps": config.steps, "steps_effective": steps,
             "overrides": dict(config.overrides),
             "overrides_text": json.dumps(config.overrides, sort_keys=True) if config.overrides else "",

@@ -136,7 +136,7 @@ def test_failed_run_is_recorded_and_retried_on_request(tmp_path, capsys, monkeyp
     real = bm._reconstruct
 
     def neca_fails(geometry, targets, settings, target_kind):
-        if settings.mode == "neca":
+        if settings.run.mode == "neca":
             raise RuntimeError("injected failure")
         return real(geometry, targets, settings, target_kind)
 
@@ -289,13 +289,13 @@ def test_overrides_are_typed_from_the_settings():
     assert bm.parse_overrides(["learning_rate=1e-3", "levels=8", "table_learning_rate=none", "device=cuda"]) == {
         "learning_rate": 1e-3, "levels": 8, "table_learning_rate": None, "device": "cuda"}
     # Typing by the field's annotation (the optimiser's list of flags changes as presets are tuned).
-    from SDFCARLib.optimiser import ReconstructionError, typed_setting_value
+    from SDFCARLib.settings import ReconstructionError, typed_setting_value
 
-    assert typed_setting_value("flag", "true", "bool") is True and typed_setting_value("flag", "off", "bool") is False
+    assert typed_setting_value("flag", "true", bool) is True and typed_setting_value("flag", "off", bool) is False
     with pytest.raises(ReconstructionError, match="true or false"):
-        typed_setting_value("flag", "maybe", "bool")
+        typed_setting_value("flag", "maybe", bool)
     for item, message in [("levels=8.5", "whole number"), ("learning_rate=fast", "takes a number"),
-                          ("noequals", "KEY=VALUE"), ("seed=3", "--seed"), ("bogus=1", "unknown optimiser setting")]:
+                          ("noequals", "KEY=VALUE"), ("seed=3", "--seed"), ("bogus=1", "unknown setting")]:
         with pytest.raises(bm.BenchmarkError, match=message):
             bm.parse_overrides([item])
     a = bm.BenchmarkConfig("rca", Path("x"), overrides={"learning_rate": 1e-3})
