@@ -430,7 +430,7 @@ def test_cli_wiring(tmp_path):
         parser.parse_args(["--dicom1", str(p1)])  # --dicom2 is required
 
 
-# --- writing ---------------------------------------------------------------------------------------
+# --- the tests' XA writer (xa_writer.py) ----------------------------------------------------------
 def test_write_xa_refuses_what_it_cannot_write(tmp_path):
     with pytest.raises(ValueError, match="pydicom has no encoder for JPEG Lossless.*RLE Lossless"):
         xa(tmp_path, "a.dcm", transfer_syntax=JPEGLosslessSV1)
