@@ -147,7 +147,7 @@ def test_failing_add_leaves_scene_exactly_as_before(scene, monkeypatch):
     # Fails after the segmentation node exists: it must go again.
     def broken(*args, **kwargs):
         raise RuntimeError("surface extraction failed")
-    monkeypatch.setattr(mrml, "segmentation_surface", broken)
+    monkeypatch.setattr(mrml.results, "segmentation_surface", broken)  # where add_reconstruction_to_scene looks it up
     with pytest.raises(RuntimeError, match="surface extraction failed"):
         mrml.add_reconstruction_to_scene(scene, blob_result(geometry), "Case B", include_occupancy=True)
     assert snapshot(scene) == before
