@@ -29,6 +29,8 @@ from typing import Any, Dict, List, Optional, Sequence, Tuple
 import numpy as np
 
 from . import __version__
+from .cli_types import one_line as _one_line
+from .cli_types import positive_int as _positive_int
 from .dicom import add_dicom_arguments, cli_geometry_from_args, write_geometry_json
 from .geometry import VIEW_PAIRS
 from .io import write_text_atomically
@@ -370,13 +372,6 @@ def cmd_geometry_template(args: argparse.Namespace) -> int:
 
 
 # --- parser -------------------------------------------------------------------------------------
-def _positive_int(text: str) -> int:
-    value = int(text)
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"must be a positive integer, got {text}")
-    return value
-
-
 def _add_optimiser_options(p: argparse.ArgumentParser, preset_default: str = "fast") -> None:
     p.add_argument("--preset", default=preset_default,
                    help="fast: sized for a CPU (default); paper: the published recipe (5000 steps, needs a GPU)")
@@ -508,10 +503,6 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         print(f"error: unexpected {type(exc).__name__}: {_one_line(exc)} (run with --verbose for the traceback)",
               file=sys.stderr)
         return EXIT_FAILURE
-
-
-def _one_line(exc: BaseException) -> str:
-    return " ".join(str(exc).split()) or type(exc).__name__
 
 
 if __name__ == "__main__":
