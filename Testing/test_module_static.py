@@ -278,10 +278,22 @@ def test_top_level_cmake_follows_the_extension_template():
         assert re.search(rf"set\(EXTENSION_{key}\s+\S", text), key
     assert re.search(r'set\(EXTENSION_ICONURL\s*"https://[^"]+\.png"\s*\)', text)
     assert re.search(r'set\(EXTENSION_SCREENSHOTURLS\s*"https://[^"]+"\)', text)
-    order = ["find_package(Slicer REQUIRED)", "include(${Slicer_USE_FILE})", "add_subdirectory(SDFCAR)",
+    order = ["find_package(Slicer ", "include(${Slicer_USE_FILE})", "add_subdirectory(SDFCAR)",
              "include(${Slicer_EXTENSION_GENERATE_CONFIG})", "include(${Slicer_EXTENSION_CPACK})"]
     positions = [text.find(s) for s in order]
     assert all(p >= 0 for p in positions) and positions == sorted(positions), dict(zip(order, positions))
+
+
+def test_supported_slicer_versions_are_stated_alike():
+    """README, CMake and the connector table name the same oldest Slicer."""
+    major_minor = ".".join(OLDEST_SLICER.split(".")[:2])
+    cmake = cmake_words(ROOT / "CMakeLists.txt")
+    assert re.search(rf"find_package\(Slicer {re.escape(major_minor)} REQUIRED\)", cmake), "CMakeLists.txt: find_package(Slicer X.Y REQUIRED)"
+    readme = source(ROOT / "README.md")
+    stated = re.findall(r"3D Slicer (\d+\.\d+) or newer", readme)
+    assert stated and set(stated) == {major_minor}, f"README states {stated}, the checks assume {major_minor}"
+    # The Extensions Index entry has no version field (schema v1.0.2 allows no extra keys): the
+    # Index picks Slicer versions by its branches, so SDFCAR.json cannot state it.
 
 
 def test_icon_is_a_128_pixel_png():
