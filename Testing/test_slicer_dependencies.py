@@ -14,18 +14,24 @@ loads, so three checks, from cheap to faithful:
    bundle and of REQUIREMENTS with their dependencies (linked from this environment's installed
    copies, so it takes seconds and no network) runs the worker end to end on a tiny case.
 
-Check 3 does not ask pip to resolve REQUIREMENTS; the test below that maps each requirement's
-distribution to its import name covers what pip would need.
+Check 3 does not ask pip to resolve REQUIREMENTS; the test that maps each requirement's
+distribution to its import name covers what pip needs. With SDFCAR_PIP_VENV_TEST=1 a last test
+builds the environment with pip instead (about 1.5 min and 1.2 GB the first time; kept under the
+temporary folder, or SDFCAR_SLICER_VENV_DIR, keyed by the package list, and reused);
+SDFCAR_TORCH_SPEC chooses the torch build (default: the version installed here).
 """
 
 from __future__ import annotations
 
 import ast
+import hashlib
 import importlib.metadata
 import json
 import os
+import shutil
 import subprocess
 import sys
+import tempfile
 import textwrap
 from pathlib import Path
 
@@ -297,12 +303,9 @@ def _link_environment(venv: Path, distributions) -> Path:
     return python
 
 
-@pytest.mark.skipif(os.name == "nt", reason="links the installed packages with symlinks")
-def test_worker_runs_in_an_environment_with_only_slicer_and_requirements(tmp_path, tiny_geometry, tiny_case, monkeypatch):
+def _run_worker_in(python, tmp_path, tiny_geometry, tiny_case, monkeypatch):
     from SDFCARLib.jobs import ReconstructionJob, prepare_job
 
-    distributions = _distribution_closure(list(requirements().values()), optional=list(SLICER_BUNDLED.values()))
-    python = _link_environment(tmp_path / "venv", distributions)
     # The environment really is bare: what this suite installs besides (pytest, kornia) is absent.
     probe = subprocess.run([str(python), "-c", "import importlib.util as u; print(u.find_spec('pytest'), u.find_spec('kornia'))"],
                            capture_output=True, text=True, env={"PATH": os.environ.get("PATH", "")})
@@ -318,3 +321,30 @@ def test_worker_runs_in_an_environment_with_only_slicer_and_requirements(tmp_pat
     assert Path(outputs["segmentation"]).is_file() and Path(outputs["surface"]).is_file()
     report = json.loads(Path(outputs["report"]).read_text())
     assert not [w for w in report.get("warnings", []) if "missing" in w or "not available" in w], report["warnings"]
+
+
+@pytest.mark.skipif(os.name == "nt", reason="links the installed packages with symlinks")
+def test_worker_runs_in_an_environment_with_only_slicer_and_requirements(tmp_path, tiny_geometry, tiny_case, monkeypatch):
+    distributions = _distribution_closure(list(requirements().values()), optional=list(SLICER_BUNDLED.values()))
+    python = _link_environment(tmp_path / "venv", distributions)
+    _run_worker_in(python, tmp_path, tiny_geometry, tiny_case, monkeypatch)
+
+
+def _pip_environment() -> Path:
+    torch = os.environ.get("SDFCAR_TORCH_SPEC") or f"torch=={importlib.metadata.version('torch')}"
+    packages = [torch if r == "torch" else r for r in requirements().values()] + list(SLICER_BUNDLED.values())
+    key = hashlib.sha256(json.dumps([sys.version, packages]).encode()).hexdigest()[:16]
+    venv = Path(os.environ.get("SDFCAR_SLICER_VENV_DIR") or tempfile.gettempdir()) / f"sdfcar-slicer-venv-{key}"
+    python = venv / ("Scripts/python.exe" if os.name == "nt" else "bin/python")
+    if not (venv / ".complete").exists():
+        shutil.rmtree(venv, ignore_errors=True)
+        subprocess.run([sys.executable, "-m", "venv", str(venv)], check=True, timeout=300)
+        out = subprocess.run([str(python), "-m", "pip", "install", *packages], capture_output=True, text=True, timeout=3600)
+        assert out.returncode == 0, f"pip could not install {packages}:\n{out.stdout[-2000:]}{out.stderr[-3000:]}"
+        (venv / ".complete").touch()
+    return python
+
+
+@pytest.mark.skipif(os.environ.get("SDFCAR_PIP_VENV_TEST") != "1", reason="set SDFCAR_PIP_VENV_TEST=1 to build the environment with pip")
+def test_worker_runs_in_a_pip_built_environment(tmp_path, tiny_geometry, tiny_case, monkeypatch):
+    _run_worker_in(_pip_environment(), tmp_path, tiny_geometry, tiny_case, monkeypatch)
