@@ -65,6 +65,10 @@ NOT_ON_SLICER_PATHS = {
 }
 
 
+# Telling the standard library apart needs sys.stdlib_module_names (Python 3.10+).
+needs_stdlib_names = pytest.mark.skipif(not hasattr(sys, "stdlib_module_names"), reason="needs Python 3.10+ (sys.stdlib_module_names)")
+
+
 def requirements():
     """REQUIREMENTS of SDFCAR.py (a literal dict: the module cannot be imported without Slicer)."""
     for node in ast.parse(SCRIPT.read_text(encoding="utf-8")).body:
@@ -131,7 +135,7 @@ def module_library_imports():
     return sorted({m for m, _ in _imports(SCRIPT, "SDFCAR") if m.startswith("SDFCARLib") and _module_file(m)})
 
 
-@pytest.mark.skipif(not hasattr(sys, "stdlib_module_names"), reason="needs Python 3.10+ to tell the standard library apart")
+@needs_stdlib_names
 def test_every_import_on_slicer_paths_is_bundled_or_required():
     allowed = allowed_imports()
     found, seen = third_party_imports([WORKER_ENTRY, "SDFCARLib"] + module_library_imports())
@@ -145,6 +149,7 @@ def test_every_import_on_slicer_paths_is_bundled_or_required():
     assert {t for t in own if not _is_stdlib(t)} <= set(SLICER_BUNDLED) | SLICER_APPLICATION_MODULES
 
 
+@needs_stdlib_names
 def test_exemptions_are_still_needed():
     found, _ = third_party_imports([WORKER_ENTRY, "SDFCARLib"] + module_library_imports())
     stale = set(NOT_ON_SLICER_PATHS) - set(found)
@@ -218,6 +223,7 @@ def _run_blocked(tmp_path, body: str, *args):
 TINY = {"steps": 3, "levels": 4, "log2_table_size": 12, "width": 16, "depth": 2, "threads": 1, "seed": 0}
 
 
+@needs_stdlib_names
 def test_blocked_imports_the_worker(tmp_path, tiny_geometry, tiny_case):
     from SDFCARLib.jobs import prepare_job
 
@@ -235,6 +241,7 @@ def test_blocked_imports_the_worker(tmp_path, tiny_geometry, tiny_case):
     assert out.returncode == 0 and status["state"] == "finished", (status, out.stderr[-3000:])
 
 
+@needs_stdlib_names
 def test_blocked_imports_the_modules_library_calls(tmp_path):
     """What the module's own process runs: the sample case, vesselness, inputs' checks, DICOM tags."""
     out, blocked = _run_blocked(tmp_path, '''
@@ -251,6 +258,7 @@ def test_blocked_imports_the_modules_library_calls(tmp_path):
     assert out.returncode == 0, out.stderr[-3000:]
 
 
+@needs_stdlib_names
 def test_the_blocker_blocks(tmp_path):
     """Guard for the check itself: an import Slicer lacks, made by SDFCARLib, is refused and recorded."""
     out, blocked = _run_blocked(tmp_path, '''
