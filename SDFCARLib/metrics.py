@@ -9,6 +9,9 @@ Volume metrics (binary prediction P and label L on the same grid):
 * ``skeleton_dice`` — Dice of the two skeletons, 2|S(P)∩S(L)| / (|S(P)| + |S(L)|): what the public
   NeCA/SDF-CAR evaluation code reports under the name "clDice"; much stricter, as skeletons of
   slightly shifted tubes rarely share voxels.
+* ``components`` — the number of 26-connected components, and ``largest_component_fraction`` the
+  share of the voxels in the largest one (1 for a single piece; a coronary tree is one piece per
+  ostium); ``components_label`` is the same count for the label.
 * ``chamfer_l2_mm`` — symmetric Chamfer distance between the surface voxels (voxels of the shape
   with a 6-neighbour outside it) of P and L: the mean Euclidean distance (mm) from each surface
   voxel of one to the nearest surface voxel of the other, averaged over both directions.
@@ -88,6 +91,16 @@ def skeleton_dice(pred: np.ndarray, label: np.ndarray) -> float:
     return 1.0 if denominator == 0 else float(2.0 * np.logical_and(sp, sl).sum() / denominator)
 
 
+def component_counts(volume: np.ndarray) -> Dict[str, float]:
+    """Number of 26-connected components of ``volume`` and the share of its voxels in the largest (NaN if empty)."""
+    v = _bool(volume)
+    labels, count = ndimage.label(v, structure=np.ones((3, 3, 3), dtype=bool))
+    if count == 0:
+        return {"components": 0, "largest_component_fraction": NAN}
+    sizes = np.bincount(labels.reshape(-1), minlength=count + 1)[1:]
+    return {"components": int(count), "largest_component_fraction": float(sizes.max() / sizes.sum())}
+
+
 def surface_voxels(volume: np.ndarray) -> np.ndarray:
     v = _bool(volume)
     return v & ~ndimage.binary_erosion(v, structure=ndimage.generate_binary_structure(3, 1), border_value=0)
@@ -114,6 +127,8 @@ def volume_metrics(pred: np.ndarray, label: np.ndarray, spacing_mm: Sequence[flo
         "dice": dice(pred, label),
         "iou": iou(pred, label),
         "chamfer_l2_mm": chamfer_l2_mm(pred, label, spacing_mm),
+        **component_counts(pred),
+        "components_label": component_counts(label)["components"],
         "voxels_predicted": int(_bool(pred).sum()),
         "voxels_label": int(_bool(label).sum()),
     }

@@ -8,7 +8,8 @@
 2. ``optimise`` runs Adam on the field (``field.ImplicitField``) against λ2·L_occ, plus λ1·L_geo
    in the modes that use it (``settings.MODES``), reporting progress and honouring cancel;
 3. ``finish`` evaluates the field on the grid, thresholds it, prunes the pieces no mask pixel
-   needs when asked (``pruning.py``), and writes the report.
+   needs when asked (``pruning.py``), joins fragments to the tree through the field when asked
+   (``connectivity.py``), and writes the report.
 
 Learning rates
     Adam moves every weight by about lr per step. The SDF's occupancy logit is −α·s, so a step of
@@ -43,7 +44,8 @@ from .geometry import Geometry
 from .hull import support_mask
 from .losses import DistanceSettings, GeometricLoss, ViewTarget, make_target, occupancy_loss
 from .masks import MaskError, binarise_mask
-from .metrics import mask_dice
+from .connectivity import ReconnectSettings, field_values, reconnect_fragments
+from .metrics import component_counts, mask_dice
 from .projector import ConeBeamProjector, project_volume
 from .pruning import PruneSettings, prune_redundant_branches, removal_zone
 from .settings import MASK_THRESHOLD_MM, TARGET_KINDS, ReconstructionError, Settings, make_settings
@@ -269,6 +271,14 @@ def finish(problem: Problem, model: ImplicitField, history: List[Dict[str, float
         occupancy_volume[zone] = 0.0
         field_volume[zone] = float(field_volume.max()) if settings.mode.field_kind == "sdf" else float(field_volume.min())
         segmentation = occupancy_volume >= threshold
+    reconnection: Optional[Dict[str, Any]] = None
+    if settings.region.reconnect and segmentation.any():
+        if _is_cancelled(cancel):
+            raise ReconstructionCancelled("cancelled before reconnecting fragments")
+        segmentation, occupancy_volume, changed, reconnection = reconnect_fragments(
+            segmentation, occupancy_volume, geometry.volume.spacing_mm, problem.support,
+            ReconnectSettings(settings.region.reconnect_max_gap_mm, settings.region.reconnect_min_occupancy, threshold))
+        field_volume[changed] = field_values(occupancy_volume[changed], settings.mode.field_kind, settings.field.alpha)
     reprojection = reprojection_dice(segmentation, geometry, problem.targets, problem.target_kind)
     output_s = time.perf_counter() - t_out
     report: Dict[str, Any] = {
@@ -285,6 +295,8 @@ def finish(problem: Problem, model: ImplicitField, history: List[Dict[str, float
         "support_voxels": int(problem.voxels.size),
         "segmented_voxels": int(segmentation.sum()),
         "pruning": pruning,
+        "reconnection": reconnection,
+        "components": component_counts(segmentation),
         "projector_nonzeros": [p.nnz for p in problem.projectors],
         "final_losses": {k: v for k, v in history[-1].items() if k != "step"} if history else {},
         "reprojection_dice": reprojection,

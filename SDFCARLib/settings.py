@@ -116,6 +116,9 @@ class RegionSettings:
     prune: bool = False  # remove the skeleton pieces no mask pixel needs (pruning.py)
     prune_piece_mm: float = 6.0
     prune_tolerance: float = 0.02
+    reconnect: bool = False  # join fragments to the tree along bright, short paths of the field (connectivity.py)
+    reconnect_max_gap_mm: float = 4.0  # longest gap a bridge may cross
+    reconnect_min_occupancy: float = 0.1  # lowest geometric-mean occupancy along the gap
 
 
 @dataclass
@@ -204,6 +207,11 @@ class Settings:
             raise ReconstructionError("warmup_steps and checkpoint_points must not be negative")
         if not r.prune_piece_mm > 0 or not 0 <= r.prune_tolerance < 1:
             raise ReconstructionError("prune_piece_mm must be positive and prune_tolerance in [0, 1)")
+        if not r.reconnect_max_gap_mm > 0:
+            raise ReconstructionError(f"reconnect_max_gap_mm must be a positive length in mm, got {r.reconnect_max_gap_mm}")
+        if not 0 < r.reconnect_min_occupancy < 1:
+            raise ReconstructionError(
+                f"reconnect_min_occupancy must be between 0 and 1 (an occupancy), got {r.reconnect_min_occupancy}")
         if not 0 < r.threshold < 1:
             raise ReconstructionError(f"threshold must be between 0 and 1, got {r.threshold}")
         if run.device not in DEVICES and not str(run.device).startswith("cuda:"):
@@ -360,6 +368,7 @@ METRICS: Dict[str, Metric] = {m.key: m for m in (
     Metric("re_mse", "reMSE", "", False, 1e4, 2),
     Metric("reprojection_dice", "reprojection Dice", "", True, 100.0, 2),
     Metric("components", "connected components", "", False, 1.0, 0),
+    Metric("largest_component_fraction", "largest component", "", True, 100.0, 1),
 )}
 
 #: the metrics of a reconstruction against a ground truth, in the order they are reported

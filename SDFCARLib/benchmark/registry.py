@@ -22,9 +22,10 @@ def mode_title(mode: str) -> str:
 #: (column, header, scale, decimals, higher is better) — the paper's six metrics, then ours.
 TABLE_METRICS: List[Tuple[str, str, float, int, bool]] = [
     (key, METRICS[key].table_header, METRICS[key].table_scale, METRICS[key].table_decimals, METRICS[key].higher_is_better)
-    for key in PAPER_METRICS + ("skeleton_dice",)
+    for key in PAPER_METRICS + ("skeleton_dice", "components")
 ] + [("wall_s", "wall time (s)", 1.0, 1, False)]
 
 # The metric columns of results.csv, in order.
 METRIC_COLUMNS = ["cldice", "tprec", "tsens", "skeleton_dice", "dice", "iou", "chamfer_l2_mm", "re_error", "re_mse",
-                  "reprojection_dice_view1", "reprojection_dice_view2", "voxels_predicted", "voxels_label"]
+                  "reprojection_dice_view1", "reprojection_dice_view2", "voxels_predicted", "voxels_label",
+                  "components", "largest_component_fraction", "components_label"]

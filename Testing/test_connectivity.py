@@ -1,0 +1,151 @@
+"""Connected components in the reports and the reconnection of fragments (``connectivity.py``)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from SDFCARLib.connectivity import ReconnectSettings, component_labels, field_values, reconnect_fragments
+from SDFCARLib.geometry import CArmView, Geometry, VolumeGrid
+from SDFCARLib.metrics import component_counts, volume_metrics
+from SDFCARLib.optimiser import reconstruct
+from SDFCARLib.phantoms import Branch, CenterlineTree, simulate_views, voxelize
+from SDFCARLib.settings import ReconstructionError, make_settings, parse_setting_overrides
+
+H = 0.5  # mm per voxel of the analytic volumes
+
+
+def _tube(n: int = 48, radius_mm: float = 1.5) -> np.ndarray:
+    """Occupancy of a straight tube along axis 0 through the centre of an n³ grid (soft wall)."""
+    _, j, k = np.meshgrid(*[np.arange(n)] * 3, indexing="ij")
+    r = np.hypot((j - n // 2) * H, (k - n // 2) * H)
+    return (1.0 / (1.0 + np.exp((r - radius_mm) * 4.0))).astype(np.float32)
+
+
+def _cut(occupancy: np.ndarray, start: int, stop: int, factor: float) -> np.ndarray:
+    out = occupancy.copy()
+    out[start:stop] *= factor
+    return out
+
+
+def test_component_counts_of_a_constructed_volume():
+    v = np.zeros((20, 20, 20), bool)
+    v[2:6, 2:6, 2:6] = True  # 64 voxels
+    v[6, 6, 6] = True  # touches the cube only at a corner: the same 26-connected component
+    v[12:14, 12:14, 12:14] = True  # 8 voxels
+    v[18, 2, 2] = True  # 1 voxel
+    assert component_counts(v) == {"components": 3, "largest_component_fraction": pytest.approx(65 / 74)}
+    labels, sizes = component_labels(v)
+    assert sorted(sizes.tolist()) == [1, 8, 65] and labels.max() == 3
+    empty = component_counts(np.zeros((4, 4, 4)))
+    assert empty["components"] == 0 and np.isnan(empty["largest_component_fraction"])
+    m = volume_metrics(v, v[:, :, ::-1] & False | (np.arange(20) < 10)[:, None, None], (1.0, 1.0, 1.0))
+    assert m["components"] == 3 and m["components_label"] == 1
+
+
+def test_a_gap_with_a_ridge_of_occupancy_is_bridged():
+    occupancy = _cut(_tube(), 22, 26, 0.3)  # 4 voxels = 2 mm where the field dips to 0.3
+    segmentation = occupancy >= 0.5
+    before = segmentation.copy()
+    assert component_counts(segmentation)["components"] == 2
+    joined, new_occupancy, changed, info = reconnect_fragments(segmentation, occupancy, (H, H, H))
+    assert np.array_equal(segmentation, before)  # inputs untouched
+    assert component_counts(joined)["components"] == 1
+    assert component_counts(new_occupancy >= 0.5)["components"] == 1  # the surface at 0.5 includes the bridge
+    assert info["components_before"] == 2 and info["components_after"] == 1 and info["joined"] == 1
+    assert info["gap_mm"][0] == pytest.approx(2.5)  # between the two segmented voxels it joins
+    assert 0.2 < info["gap_occupancy"][0] < 0.35
+    # The bridge has about the tube's cross-section, not a one-voxel thread and not a blob.
+    assert 0.5 * before[10].sum() <= joined[24].sum() <= before[10].sum()
+    assert changed.any() and not changed[:18].any() and not changed[30:].any()
+    assert not (joined & ~before & ~changed).any()  # every added voxel got its occupancy raised
+
+
+def test_the_bridge_respects_the_support():
+    occupancy = _cut(_tube(), 22, 26, 0.3)
+    support = np.ones(occupancy.shape, bool)
+    support[22:26] = False  # the field was never evaluated in the gap
+    joined, _, _, info = reconnect_fragments(occupancy >= 0.5, occupancy, (H, H, H), support)
+    assert info["joined"] == 0 and component_counts(joined)["components"] == 2
+
+
+@pytest.mark.parametrize("describe, factor, gap_voxels", [
+    ("dark field across a short gap", 0.01, 4),
+    ("a bright ridge but longer than max_gap_mm", 0.3, 12),
+])
+def test_unsupported_bridges_are_not_made(describe, factor, gap_voxels):
+    occupancy = _cut(_tube(), 18, 18 + gap_voxels, factor)
+    segmentation = occupancy >= 0.5
+    joined, new_occupancy, changed, info = reconnect_fragments(
+        segmentation, occupancy, (H, H, H), settings=ReconnectSettings(max_gap_mm=4.0, min_occupancy=0.1))
+    assert info["joined"] == 0 and info["left_apart"] == 1, describe
+    assert np.array_equal(joined, segmentation) and np.array_equal(new_occupancy, occupancy) and not changed.any()
+
+
+def test_a_far_blob_behind_low_occupancy_stays_apart_and_nothing_is_dropped():
+    occupancy = _tube()
+    occupancy[:, :, :16] = 0.0
+    i, j, k = np.meshgrid(*[np.arange(48)] * 3, indexing="ij")
+    blob = np.hypot(np.hypot((i - 24) * H, (j - 24) * H), (k - 6) * H) <= 2.0  # 7.5 mm from the tube's wall
+    occupancy[blob] = 0.9
+    occupancy[(k > 8) & (k < 21) & (np.abs(j - 24) < 2) & (np.abs(i - 24) < 2)] = 0.05  # a faint haze between
+    segmentation = occupancy >= 0.5
+    joined, _, _, info = reconnect_fragments(segmentation, occupancy, (H, H, H))
+    assert info["components_before"] == 2 and info["joined"] == 0
+    assert np.array_equal(joined, segmentation)
+
+
+def test_a_chain_of_fragments_is_joined_link_by_link():
+    occupancy = _tube()
+    for start in (12, 24, 36):
+        occupancy[start:start + 3] *= 0.3
+    joined, _, _, info = reconnect_fragments(occupancy >= 0.5, occupancy, (H, H, H))
+    assert info["components_before"] == 4 and info["joined"] == 3 and component_counts(joined)["components"] == 1
+
+
+def test_field_values_invert_the_occupancy():
+    o = np.array([0.05, 0.5, 0.9], np.float32)
+    s = field_values(o, "sdf", 50.0)
+    np.testing.assert_allclose(1.0 / (1.0 + np.exp(50.0 * s)), o, rtol=1e-5)
+    logit = field_values(o, "occupancy", 50.0)
+    np.testing.assert_allclose(1.0 / (1.0 + np.exp(-logit)), o, rtol=1e-5)
+
+
+@pytest.mark.parametrize("values, fragment", [
+    ({"reconnect_max_gap_mm": 0.0}, "reconnect_max_gap_mm must be a positive length in mm, got 0.0"),
+    ({"reconnect_min_occupancy": 1.5}, "reconnect_min_occupancy must be between 0 and 1"),
+    ({"reconnect_min_occupancy": 0.0}, "reconnect_min_occupancy must be between 0 and 1"),
+])
+def test_reconnect_settings_are_validated(values, fragment):
+    with pytest.raises(ReconstructionError) as info:
+        make_settings("fast", **values)
+    assert fragment in str(info.value)
+
+
+def test_reconnect_settings_from_the_command_line():
+    values = parse_setting_overrides(["reconnect=true", "reconnect_max_gap_mm=3", "reconnect_min_occupancy=0.2"])
+    settings = make_settings("fast", **values)
+    assert settings.region.reconnect is True
+    assert settings.region.reconnect_max_gap_mm == 3.0 and settings.region.reconnect_min_occupancy == 0.2
+
+
+def test_reconstruct_reports_components():
+    grid = VolumeGrid((24, 24, 24), (2.0, 2.0, 2.0))
+    views = [CArmView(a, 0.0, 1000.0, 750.0, (1.0, 1.0), (64, 64)) for a in (30.0, -30.0)]
+    tree = CenterlineTree([Branch(np.array([[-12.0, -6.0, -10.0], [0.0, 2.0, 0.0], [12.0, 6.0, 10.0]]),
+                                  np.array([3.0, 2.5, 2.0]))])
+    _, masks = simulate_views(voxelize(tree, grid), grid, views)
+    geometry = Geometry(grid, views)
+    for reconnect in (False, True):
+        result = reconstruct(geometry, masks, make_settings("fast", steps=60, reconnect=reconnect, device="cpu"))
+        assert result.segmentation.any()
+        np.testing.assert_array_equal(result.segmentation, result.occupancy >= result.settings.region.threshold)
+        counts = result.report["components"]
+        assert counts == component_counts(result.segmentation)
+        assert counts["components"] >= 1 and 0 < counts["largest_component_fraction"] <= 1
+        reconnection = result.report["reconnection"]
+        if reconnect:
+            assert reconnection["components_after"] == counts["components"]
+            assert reconnection["components_before"] - reconnection["joined"] <= reconnection["components_after"]
+        else:
+            assert reconnection is None
