@@ -107,10 +107,10 @@ def reconnect_fragments(
         cumulative, _ = mcp.find_costs(np.argwhere(labels == largest))
         joined_now = 0
         reached = {largest}  # the components on the tree's side of the bridges laid this round
-        for label in range(1, sizes.size + 1):
+        for label, box in enumerate(ndimage.find_objects(labels), start=1):
             if label in reached:
                 continue
-            members = np.argwhere(labels == label)
+            members = np.argwhere(labels[box] == label) + [b.start for b in box]
             costs = cumulative[tuple(members.T)]
             if not np.isfinite(costs).any():
                 continue

@@ -369,9 +369,11 @@ METRICS: Dict[str, Metric] = {m.key: m for m in (
     Metric("reprojection_dice", "reprojection Dice", "", True, 100.0, 2),
     Metric("components", "connected components", "", False, 1.0, 0),
     Metric("largest_component_fraction", "largest component", "", True, 100.0, 1),
+    Metric("components_label", "connected components of the truth", "", False, 1.0, 0),  # context for components
 )}
 
 #: the metrics of a reconstruction against a ground truth, in the order they are reported
-GROUND_TRUTH_METRICS: List[str] = ["cldice", "skeleton_dice", "dice", "iou", "chamfer_l2_mm", "re_error", "re_mse"]
+GROUND_TRUTH_METRICS: List[str] = ["cldice", "skeleton_dice", "dice", "iou", "chamfer_l2_mm", "re_error", "re_mse",
+                                   "components", "largest_component_fraction", "components_label"]
 #: the six metrics of the paper's tables
 PAPER_METRICS: Tuple[str, ...] = ("cldice", "dice", "iou", "re_error", "chamfer_l2_mm", "re_mse")

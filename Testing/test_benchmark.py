@@ -24,7 +24,7 @@ from SDFCARLib.geometry import VIEW_PAIRS, VolumeGrid
 TINY = ["--volume-shape", 32, 32, 32, "--spacing-mm", 2, "--detector-shape", 96, 96, "--detector-spacing-mm", 1]
 TINY_GRID = bm.GridOptions((32, 32, 32), 2.0, (96, 96), 1.0)
 TABLE_HEADER = ("| Method | clDice (%) | Dice (%) | IoU (%) | reError | Chamfer-ℓ2 (mm) | reMSE (×1e-4) | "
-                "skeleton-Dice (%) | wall time (s) | cases (ok/failed) |")
+                "skeleton-Dice (%) | connected components | wall time (s) | cases (ok/failed) |")
 
 
 def _parser() -> argparse.ArgumentParser:

@@ -149,3 +149,16 @@ def test_reconstruct_reports_components():
             assert reconnection["components_before"] - reconnection["joined"] <= reconnection["components_after"]
         else:
             assert reconnection is None
+
+
+def test_ground_truth_metrics_show_components_of_result_and_truth():
+    from SDFCARLib.cli import metrics_table
+
+    truth = np.zeros((12, 12, 12), bool)
+    truth[2:10, 5:7, 5:7] = True
+    result = truth.copy()
+    result[5:7] = False  # cut in two
+    m = volume_metrics(result, truth, (1.0, 1.0, 1.0))
+    assert (m["components"], m["components_label"]) == (2, 1)
+    table = metrics_table({"reconstruction": m})
+    assert "connected components  " in table and "connected components of the truth" in table
