@@ -117,6 +117,9 @@ def reconnect_fragments(
             end = tuple(members[int(np.argmin(costs))])
             path = np.asarray(mcp.traceback(end))
             gap = ~segmentation[tuple(path.T)]
+            if not gap.any():  # a bridge laid earlier in this round already touches it
+                reached.add(label)
+                continue
             steps = np.linalg.norm(np.diff(path, axis=0) * spacing, axis=1)
             gap_mm = float(steps[gap[1:] | gap[:-1]].sum())
             mean_occupancy = float(np.exp(np.mean(np.log(np.maximum(occupancy[tuple(path[gap].T)], _FLOOR)))))

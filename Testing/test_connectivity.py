@@ -162,3 +162,12 @@ def test_ground_truth_metrics_show_components_of_result_and_truth():
     assert (m["components"], m["components_label"]) == (2, 1)
     table = metrics_table({"reconstruction": m})
     assert "connected components  " in table and "connected components of the truth" in table
+
+
+def test_a_fragment_beside_a_gap_ends_up_in_the_tree_too():
+    occupancy = _cut(_tube(), 20, 24, 0.3)  # the piece before the gap is the smaller one
+    occupancy[22, 27, 24] = 0.9  # a one-voxel fragment 1.5 mm off the axis, inside the bridge to come
+    segmentation = occupancy >= 0.5
+    assert component_counts(segmentation)["components"] == 3
+    joined, _, _, info = reconnect_fragments(segmentation, occupancy, (H, H, H))
+    assert component_counts(joined)["components"] == 1 and info["components_after"] == 1
