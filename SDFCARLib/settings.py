@@ -14,8 +14,9 @@ Settings
 
     The defaults are the published recipe (the ``paper`` preset). ``fast`` is written as the
     difference from it: the field only on the masks' visual hull, a smaller network and table, a
-    higher learning rate for the hash table, fewer steps, L_geo on 2× max-pooled images, and the
-    skeleton pieces no mask pixel needs pruned afterwards (``pruning.py``). Why each differs is
+    higher learning rate for the hash table, fewer steps, L_geo on 2× max-pooled images, the
+    skeleton pieces no mask pixel needs pruned afterwards (``pruning.py``) and fragments joined to
+    the tree where the field bridges them (``connectivity.py``). Why each differs is
     said next to it; what it measured is in ``bench/RESULTS.md``.
 
 Modes
@@ -234,6 +235,8 @@ PRESETS: Dict[str, Dict[str, Any]] = {  # the default first: lists offer it firs
         dt_downsample=2,
         # two views cannot rule out ghost branches: drop the pieces no mask pixel needs
         prune=True,
+        # then join fragments across short gaps where the field still shows a ridge of vessel
+        reconnect=True,
     ),
     "paper": {},
 }
