@@ -1,4 +1,4 @@
-"""Vessel masks of the views: binarising label images, and a vesselness helper to start from.
+"""Vessel masks of the views: binarising label images, and segmenting X-ray angiography frames.
 
 Binarising (``binarise_mask``)
     The engine wants one binary image per view, of the view's detector shape, with 0 for
@@ -9,7 +9,36 @@ Binarising (``binarise_mask``)
     fix the input. An RGB(A) image is accepted only when its colour channels are equal (a grey
     image saved as colour).
 
-Vesselness (``vesselness_mask``), for when no mask exists — the user edits the result
+Angiogram masks (``segment_angiogram`` / ``angiogram_mask``), for when no mask exists
+    One frame (intensity, vessels dark), its detector pixel spacing and magnification SID/SOD
+    (typical values when unknown, reported as such) → a mask of the vessel tree, the border that
+    was excluded, and every parameter used. All sizes are physical (``AngioMaskSettings``, mm at
+    the isocenter) and converted to pixels with the frame's geometry. Steps:
+
+    1. ``−log I`` (Beer–Lambert: proportional to the iodine path; exposure and the tissue in
+       front only add to it).
+    2. Collimator and image border: the regions wider than the thinnest vessels whose intensity
+       differs from the centre of the image by more than ``shutter_ratio`` and that run along the
+       image edge for more than twice the widest vessel (a vessel leaving the field touches it over
+       its width only); widened, with the image edge, by the filters' reach (2 × the largest σ).
+       They are filled with the nearest field values before filtering, and are never vessel.
+       A frame whose field is under ``min_field_fraction`` is refused.
+    3. Background: grey opening (a window wider than the widest vessel) of the log image, box
+       smoothed and subtracted (a top-hat): soft tissue, ribs, diaphragm and exposure go.
+    4. Ridge filter (Sato by default; Frangi and Meijering selectable) at σ = r/√3 for radii
+       geometric between the smallest and largest vessel radius, at least one pixel.
+    5. Hysteresis on the response in noise units (median and robust spread, 1.4826 × MAD, of the
+       field): seeds above ``high_noise_units``, grown through ``low_noise_units``, so faint
+       vessels connected to the tree are kept and isolated noise is not.
+    6. Silhouette: of those, the pixels whose top-hat (σ = 1 pixel smoothed) stands
+       ``silhouette_noise_units`` above its own noise (the ridge response is wider than the vessel).
+    7. Specks: 8-connected components shorter than ``min_length_mm`` along their skeleton, or
+       less elongated than ``min_elongation`` (length² / area, i.e. length over mean width), go.
+
+    A frame where nothing is left (no contrast, a wrong frame) or where half the image would be
+    vessel is refused with a ``MaskError`` that names the problem.
+
+Vesselness (``vesselness_mask``), the first helper, kept for comparison (bench/masks.py)
     Multi-scale Hessian ridge filter of scikit-image (``frangi`` or ``sato``) on the frame scaled
     to [0, 1] by its 1st–99th percentiles, dark ridges by default (contrast-filled vessels are dark
     in X-ray intensity), then a threshold on the response and removal of connected components
@@ -270,7 +299,7 @@ def _scales_px(settings: AngioMaskSettings, pixel_spacing_mm: Optional[Sequence[
     # A cylinder of radius r answers a Hessian filter best at σ ≈ r/√3 (Sato et al. 1998);
     # below one pixel the Hessian only sees noise.
     radii = np.geomspace(r0, r1, int(settings.scales)) if settings.scales > 1 else np.array([r0])
-    sigmas = sorted({round(max(1.0, r / np.sqrt(3.0)), 2) for r in radii})
+    sigmas = sorted({round(max(1.0, float(r) / np.sqrt(3.0)), 2) for r in radii})
     notes.update({"detector_pixel_spacing_mm": spacing, "magnification": m, "isocenter_pixel_mm": iso_px_mm,
                   "vessel_radius_px": [r0, r1]})
     return iso_px_mm, sigmas, notes
@@ -287,7 +316,8 @@ def _border(log_image: np.ndarray, settings: AngioMaskSettings, opening_px: int,
 
     smooth = ndimage.gaussian_filter(log_image, 2.0)
     rows, cols = smooth.shape
-    centre = smooth[rows // 4: rows - rows // 4, cols // 4: cols - cols // 4]
+    # Collimators close around the centre of the image, which is always exposed.
+    centre = smooth[3 * rows // 8: rows - 3 * rows // 8, 3 * cols // 8: cols - 3 * cols // 8]
     field_level = float(np.median(centre))
     off = np.abs(smooth - field_level) > np.log(settings.shutter_ratio)
     off = ndimage.binary_opening(off, structure=np.ones((2 * opening_px + 1,) * 2, bool))  # no thin vessels
