@@ -299,7 +299,7 @@ def _scales_px(settings: AngioMaskSettings, pixel_spacing_mm: Optional[Sequence[
     # A cylinder of radius r answers a Hessian filter best at σ ≈ r/√3 (Sato et al. 1998);
     # below one pixel the Hessian only sees noise.
     radii = np.geomspace(r0, r1, int(settings.scales)) if settings.scales > 1 else np.array([r0])
-    sigmas = sorted({round(max(1.0, float(r) / np.sqrt(3.0)), 2) for r in radii})
+    sigmas = sorted({float(round(max(1.0, float(r) / np.sqrt(3.0)), 2)) for r in radii})
     notes.update({"detector_pixel_spacing_mm": spacing, "magnification": m, "isocenter_pixel_mm": iso_px_mm,
                   "vessel_radius_px": [r0, r1]})
     return iso_px_mm, sigmas, notes
@@ -402,7 +402,7 @@ def segment_angiogram(
     # lightly smoothed image, smoothed; subtracting it removes tissue, ribs, diaphragm and exposure.
     window = 2 * int(np.ceil(1.5 * r_max_px)) + 3
     base = ndimage.grey_opening(ndimage.gaussian_filter(filled, 1.0), size=(window, window))
-    background = ndimage.uniform_filter(base, size=window)
+    background = ndimage.gaussian_filter(base, 2.0)  # only the blockiness of the opening: a box this wide would bend at kinks
     tophat = filled - background
     response = np.nan_to_num(_ridge(tophat, sigmas, s.method), nan=0.0)
     values = response[field]
@@ -469,3 +469,58 @@ def angiogram_mask(
     """``(mask, parameters)`` of ``segment_angiogram`` (the shape of ``vesselness_mask``'s result)."""
     result = segment_angiogram(frame, pixel_spacing_mm, magnification, settings)
     return result.mask, result.parameters
+
+
+# --- pictures and files of a segmentation --------------------------------------------------------------
+def display_frame(frame: Any) -> np.ndarray:
+    """8-bit grey picture of a frame, scaled between its 1st and 99th percentiles."""
+    image = np.asarray(frame, dtype=np.float64)
+    lo, hi = np.percentile(image, [1.0, 99.0])
+    scale = (hi - lo) if hi > lo else 1.0
+    return np.rint(255.0 * np.clip((image - lo) / scale, 0.0, 1.0)).astype(np.uint8)
+
+
+def overlay_rgb(frame: Any, mask: np.ndarray, border: Optional[np.ndarray] = None) -> np.ndarray:
+    """RGB picture of the frame with the mask's outline in red and the border's outline in blue."""
+    from skimage.segmentation import find_boundaries
+
+    grey = display_frame(frame)
+    rgb = np.dstack([grey, grey, grey])
+    if border is not None and border.any():
+        rgb[find_boundaries(border, mode="inner")] = (40, 120, 255)
+    rgb[find_boundaries(mask, mode="inner")] = (255, 30, 30)
+    return rgb
+
+
+def segmentation_paths(out: PathLike) -> Dict[str, Path]:
+    """The files ``write_segmentation`` writes for ``out`` = ``NAME.png``."""
+    out = Path(out)
+    if out.suffix.lower() != ".png":
+        raise MaskError(f"--out {out}: the mask is written as PNG; give a name ending in .png")
+    stem = out.with_suffix("")
+    return {"mask": out, "frame": Path(f"{stem}_frame.png"), "overlay": Path(f"{stem}_overlay.png"),
+            "parameters": Path(f"{stem}.json")}
+
+
+def write_segmentation(out: PathLike, frame: Any, result: AngioMask, source: Dict[str, Any],
+                       overwrite: bool = False) -> Dict[str, Path]:
+    """Mask (0/255 PNG), the frame used (16-bit PNG of its values when they are whole numbers in
+    range, else its 8-bit picture), the overlay PNG and a JSON of the parameters and the source."""
+    import imageio.v3 as iio
+
+    from .io import write_json, write_mask_png
+
+    paths = segmentation_paths(out)
+    existing = [str(p) for p in paths.values() if p.exists()]
+    if existing and not overwrite:
+        raise MaskError(f"{', '.join(existing)} exist(s); choose another --out or add --overwrite")
+    paths["mask"].parent.mkdir(parents=True, exist_ok=True)
+    image = np.asarray(frame, dtype=np.float64)
+    exact = bool(np.all(image == np.rint(image)) and image.min() >= 0 and image.max() <= 65535)
+    stored = image.astype(np.uint16) if exact else display_frame(image)
+    write_mask_png(paths["mask"], result.mask)
+    iio.imwrite(paths["frame"], stored, extension=".png")
+    iio.imwrite(paths["overlay"], overlay_rgb(image, result.mask, result.border), extension=".png")
+    write_json(paths["parameters"], {"source": source, "frame_png": "frame values" if exact else "8-bit picture",
+                                     "parameters": result.parameters})
+    return paths
