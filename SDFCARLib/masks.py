@@ -338,6 +338,42 @@ def _border(log_image: np.ndarray, settings: AngioMaskSettings, opening_px: int,
     return border, shutter, info
 
 
+def _local_noise(image: np.ndarray, field: np.ndarray, block: int = 32) -> np.ndarray:
+    """Smooth map of the noise standard deviation: robust (median) spread of the fine residual
+    in blocks of the field, interpolated; blocks without field take the nearest block's value."""
+    residual = np.abs(image - ndimage.gaussian_filter(image, 1.0)).astype(np.float64)
+    residual[~field] = np.nan
+    rows, cols = image.shape
+    nr, nc = -(-rows // block), -(-cols // block)
+    padded = np.full((nr * block, nc * block), np.nan)
+    padded[:rows, :cols] = residual
+    with np.errstate(all="ignore"):
+        import warnings
+
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN blocks (border) are filled below
+            level = np.nanmedian(padded.reshape(nr, block, nc, block).transpose(0, 2, 1, 3).reshape(nr, nc, -1), axis=2)
+    missing = ~np.isfinite(level) | (level <= 0)
+    if missing.all():
+        return np.ones_like(image, dtype=np.float64)
+    if missing.any():
+        _, (ri, ci) = ndimage.distance_transform_edt(missing, return_indices=True)
+        level = level[ri, ci]
+    level = ndimage.zoom(level, (rows / nr, cols / nc), order=1, mode="nearest", grid_mode=True)[:rows, :cols]
+    return np.maximum(level, 1e-6 * float(level.max()))
+
+
+def _disk_opening(image: np.ndarray, radius: int) -> np.ndarray:
+    """Grey opening by a disk: unlike a square it follows curved edges (diaphragm, heart border)."""
+    from skimage.morphology import disk, opening
+
+    try:
+        footprint = disk(radius, decomposition="crosses")  # scikit-image >= 0.20: fast
+    except TypeError:
+        footprint = disk(radius)
+    return opening(image, footprint)
+
+
 def _ridge(image: np.ndarray, sigmas: Sequence[float], method: str) -> np.ndarray:
     from skimage.filters import frangi, meijering, sato
 
@@ -401,9 +437,13 @@ def segment_angiogram(
     # Background: grey opening (vessels are bright in −log I and narrower than the window) of the
     # lightly smoothed image, smoothed; subtracting it removes tissue, ribs, diaphragm and exposure.
     window = 2 * int(np.ceil(1.5 * r_max_px)) + 3
-    base = ndimage.grey_opening(ndimage.gaussian_filter(filled, 1.0), size=(window, window))
+    base = _disk_opening(ndimage.gaussian_filter(filled, 1.0), window // 2)
     background = ndimage.gaussian_filter(base, 2.0)  # only the blockiness of the opening: a box this wide would bend at kinks
-    tophat = filled - background
+    # Quantum noise is larger in −log I where fewer photons arrive (behind the diaphragm, the
+    # spine): the top-hat is divided by a local noise level so that thresholds mean the same
+    # everywhere.
+    noise = _local_noise(filled, field)
+    tophat = (filled - background) / noise
     response = np.nan_to_num(_ridge(tophat, sigmas, s.method), nan=0.0)
     values = response[field]
     median = float(np.median(values))
