@@ -232,12 +232,34 @@ def cmd_geometry(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def _auto_masks(args: argparse.Namespace, geometry, provenance) -> List[Tuple[Dict[str, Any], np.ndarray, Any]]:
+    """--auto-masks: the segment pipeline on the frame of each DICOM view the geometry was read from."""
+    from .dicom import load_xa
+    from .masks import segment_angiogram
+
+    if not (args.dicom1 and args.dicom2):
+        raise ValueError("--auto-masks segments the frames of --dicom1 and --dicom2; give both (or give --mask1/--mask2)")
+    if any([args.mask1, args.mask2, args.lineint1, args.lineint2]):
+        raise ValueError("--auto-masks makes the masks itself; remove --mask1/--mask2 (or --lineint1/--lineint2)")
+    auto = []
+    for n, (view, info) in enumerate(zip(geometry.views, provenance["views"]), start=1):
+        frame_info = info["frame"]
+        frame = load_xa(getattr(args, f"dicom{n}")).frames[int(frame_info["index"])]
+        auto.append((frame_info, frame, segment_angiogram(frame, view.pixel_spacing_mm, view.sid_mm / view.sod_mm)))
+        p = auto[-1][2].parameters
+        print(f"view {n}: auto mask of frame {frame_info['index']}: {p['components']} component(s), "
+              f"{100 * p['vessel_fraction']:.1f}% of the frame", file=sys.stderr)
+    return auto
+
+
 def cmd_reconstruct(args: argparse.Namespace) -> int:
     from .io import align_to_grid, read_label
     from .outputs import RESULT_FILES, check_destination, write_reconstruction
 
     geometry, provenance = _geometry_for_reconstruct(args)
-    targets, kind, masks = _read_targets(args, geometry)
+    auto = _auto_masks(args, geometry, provenance) if args.auto_masks else None
+    targets, kind, masks = ([a.mask for _, _, a in auto], "mask", [a.mask for _, _, a in auto]) if auto \
+        else _read_targets(args, geometry)
     label = None
     if args.label:
         label, label_grid = read_label(args.label, grid=geometry.volume, what="ground-truth label")
@@ -249,8 +271,19 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
               "dicom": [_absolute(args.dicom1), _absolute(args.dicom2)] if args.dicom1 else None,
               "geometry_provenance": provenance,
               "targets": [_absolute(p) for p in ([args.mask1, args.mask2] if kind == "mask" else [args.lineint1, args.lineint2])]}
+    if auto:
+        inputs["targets"] = [f"auto_mask{n}.png" for n in (1, 2)]
+        inputs["auto_masks"] = [dict(a.parameters, frame=f) for f, _, a in auto]
     files = write_reconstruction(result, args.out, name=args.name, label=label, masks=masks, overwrite=args.overwrite,
                                  extra={"inputs": inputs})
+    if auto:
+        from .masks import write_segmentation
+
+        for n, (f, frame, a) in enumerate(auto, start=1):
+            write_segmentation(Path(args.out) / f"auto_mask{n}.png", frame, a,
+                               {"dicom": _absolute(getattr(args, f"dicom{n}")), "frame": f}, overwrite=True)
+        print(f"masks made by the segment pipeline (--auto-masks): {args.out}/auto_mask1.png, auto_mask2.png "
+              "(overlays beside them; check them by eye)")
     _summarise(files)
     return EXIT_OK
 
@@ -464,6 +497,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--mask2", help="vessel mask of view 2")
     p.add_argument("--lineint1", help="line-integral image of view 1 (mm; NRRD/TIFF), instead of --mask1")
     p.add_argument("--lineint2", help="line-integral image of view 2, instead of --mask2")
+    p.add_argument("--auto-masks", action="store_true",
+                   help="with --dicom1/--dicom2: make the masks with the segment pipeline (written as auto_maskN*.png "
+                        "in --out, their parameters in report.json) instead of --mask1/--mask2")
     p.add_argument("--target-kind", choices=("mask", "line_integral"), default=None,
                    help="what the view images are (default: from which options are given)")
     p.add_argument("--label", help="optional ground truth (volume, .seg.nrrd or centreline) for metrics in report.json")

@@ -33,7 +33,10 @@ def run(tmp_path_factory):
     settings = AngiogramSettings(collimator_fraction=0.06, ribs=1)
     frames = np.stack([simulate_angiogram(c * line_integral, 0.3, 7, settings)[0] for c in (0.0, 1.0, 0.5)])
     view = CArmView(30.0, 0.0, 975.0, 750.0, (0.39, 0.39), (128, 128))
-    path = dicom.write_xa(tmp_path_factory.mktemp("xa") / "run.dcm", frames, view, bits_stored=12)
+    folder = tmp_path_factory.mktemp("xa")
+    path = dicom.write_xa(folder / "run.dcm", frames, view, bits_stored=12)
+    other = CArmView(-30.0, 20.0, 975.0, 750.0, (0.39, 0.39), (128, 128))  # same frames: plumbing only
+    dicom.write_xa(folder / "run2.dcm", frames, other, bits_stored=12)
     return path, line_integral > 0
 
 
@@ -88,3 +91,22 @@ def test_segment_bad_images(tmp_path, capsys):
     assert "--frame picks a frame of a --dicom run" in capsys.readouterr().err
     assert main(["segment", "--image", str(flat), "--out", str(tmp_path / "m.nrrd")]) == 2
     assert "ending in .png" in capsys.readouterr().err
+
+
+def test_reconstruct_with_auto_masks(run, tmp_path, capsys):
+    path, _ = run
+    out = tmp_path / "result"
+    args = ["reconstruct", "--dicom1", str(path), "--dicom2", str(path.parent / "run2.dcm"), "--auto-masks",
+            "--volume-shape", "16", "16", "16", "--volume-spacing", "4", "--steps", "2", "--no-progress", "--out", str(out)]
+    assert main(args) == 0, capsys.readouterr().err
+    captured = capsys.readouterr()
+    assert "auto mask of frame 1" in captured.err and "--auto-masks" in captured.out
+    report = json.loads((out / "report.json").read_text())
+    auto = report["inputs"]["auto_masks"]
+    assert len(auto) == 2 and auto[0]["pipeline"] == "angiogram_mask" and auto[0]["frame"]["index"] == 1
+    assert report["inputs"]["targets"] == ["auto_mask1.png", "auto_mask2.png"]
+    assert main(["segment", "--dicom", str(path), "--out", str(tmp_path / "seg.png")]) == 0
+    assert np.array_equal(read_image(out / "auto_mask1.png"), read_image(tmp_path / "seg.png"))
+    assert (out / "auto_mask2_overlay.png").exists()
+    assert main(args[:-1] + [str(tmp_path / "r2"), "--mask1", "m.png"]) == 2
+    assert "remove --mask1/--mask2" in capsys.readouterr().err

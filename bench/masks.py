@@ -1,0 +1,160 @@
+"""Vessel masks of angiography frames: the first helper (``masks.vesselness_mask``) against the
+pipeline (``masks.segment_angiogram``), on simulated angiograms with a known silhouette and on the
+real XA runs of the static phantom.
+
+    python bench/masks.py --cases 3 --real ../shared/data/xa-phantom --out bench/masks_results.md
+
+Simulated: ``--cases`` RCA and as many LAD procedural trees (seeds 1…N), two views each (LAO 30 /
+RAO 30, 512² detector at 0.278 mm, SID/SOD 1000/757), the frame from ``angiogram.simulate_angiogram``
+with its defaults (12 bits, SNR 25, 0.3 mm blur, smooth tissue, ribs, diaphragm) and, in view 2, a
+collimator over 5 % of each side. Truth: the silhouette ``line integral > 0.2 mm`` (every branch of
+these trees is at least 1 mm in diameter). Real: the frame ``dicom.choose_frame`` picks in each run,
+the pixel spacing and SID/SOD of its tags. Per frame: Dice and clDice against the truth, 8-connected
+components, mask pixels in the border the pipeline detects (collimator + image edge), and the time
+on one thread. Figures go to ``--figures``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import platform
+import statistics
+import sys
+import time
+from pathlib import Path
+
+os.environ.setdefault("OMP_NUM_THREADS", "1")  # time per frame on one core
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+import numpy as np  # noqa: E402
+from skimage.measure import label as connected_components  # noqa: E402
+
+from SDFCARLib.angiogram import AngiogramSettings, simulate_angiogram  # noqa: E402
+from SDFCARLib.geometry import standard_geometry  # noqa: E402
+from SDFCARLib.masks import (AngioMaskSettings, MaskError, overlay_rgb, segment_angiogram,  # noqa: E402
+                             vesselness_mask)
+from SDFCARLib.metrics import cldice, mask_dice  # noqa: E402
+from SDFCARLib.phantoms import lad_tree, make_case, rca_tree  # noqa: E402
+
+METHODS = {
+    "old helper (vesselness_mask, frangi)": None,
+    "pipeline, sato (default)": AngioMaskSettings(),
+    "pipeline, frangi": AngioMaskSettings(method="frangi"),
+    "pipeline, meijering": AngioMaskSettings(method="meijering"),
+}
+
+
+def _run(method, frame, spacing, magnification):
+    """(mask, border or None, seconds)."""
+    started = time.perf_counter()
+    if method is None:
+        mask, _ = vesselness_mask(frame)
+        return mask, None, time.perf_counter() - started
+    result = segment_angiogram(frame, spacing, magnification, method)
+    return result.mask, result.border, time.perf_counter() - started
+
+
+def _median(values):
+    return statistics.median(values) if values else float("nan")
+
+
+def simulated(n_cases: int, figures: Path):
+    geometry = standard_geometry("lao30-rao30")
+    view_spacing = geometry.views[0].pixel_spacing_mm
+    magnification = geometry.views[0].sid_mm / geometry.views[0].sod_mm
+    rows = {name: [] for name in METHODS}
+    example = None
+    for suite, tree in (("RCA", rca_tree), ("LAD", lad_tree)):
+        for seed in range(1, n_cases + 1):
+            case = make_case(tree(seed), geometry)
+            for v in range(2):
+                settings = AngiogramSettings(collimator_fraction=0.05 if v == 1 else 0.0)
+                frame, _ = simulate_angiogram(case.line_integrals[v], view_spacing, 100 * seed + v, settings)
+                truth = case.masks[v]
+                border = segment_angiogram(frame, view_spacing, magnification).border
+                for name, method in METHODS.items():
+                    try:
+                        mask, _, seconds = _run(method, frame, view_spacing, magnification)
+                    except MaskError as exc:
+                        print(f"{suite}-{seed} view {v + 1} {name}: {exc}", file=sys.stderr)
+                        mask, seconds = np.zeros_like(truth), float("nan")
+                    rows[name].append({"dice": mask_dice(mask, truth), "cldice": cldice(mask, truth),
+                                       "components": int(connected_components(mask, connectivity=2).max()),
+                                       "border_px": int((mask & border).sum()), "seconds": seconds})
+                if example is None and v == 1:
+                    example = (frame, {name: _run(m, frame, view_spacing, magnification) for name, m in
+                                       list(METHODS.items())[:2]}, border)
+                print(f"{suite}-{seed} view {v + 1}: " + ", ".join(
+                    f"{name.split(' (')[0].split(',')[0]} Dice {rows[name][-1]['dice']:.3f}" for name in list(METHODS)[:2]),
+                    file=sys.stderr)
+    if example is not None:
+        import imageio.v3 as iio
+
+        frame, results, border = example
+        panels = [overlay_rgb(frame, mask, border) for mask, _, _ in results.values()]
+        iio.imwrite(figures / "masks_simulated.png", np.concatenate(panels, axis=1)[::2, ::2])
+    return rows
+
+
+def real(folder: Path, figures: Path):
+    from SDFCARLib.dicom import choose_frame, load_xa, view_from_dicom
+
+    rows, panels = [], {name: [] for name in list(METHODS)[:2]}
+    for name in ("IM2", "IM3", "IM7"):
+        run = load_xa(folder / name)
+        choice = choose_frame(run)
+        frame = run.frames[choice.index]
+        view, _ = view_from_dicom(run, choice.index)
+        magnification = view.sid_mm / view.sod_mm
+        border = segment_angiogram(frame, view.pixel_spacing_mm, magnification).border
+        for method_name, method in list(METHODS.items())[:2]:
+            mask, _, seconds = _run(method, frame, view.pixel_spacing_mm, magnification)
+            rows.append({"run": name, "frame": choice.index, "method": method_name,
+                         "components": int(connected_components(mask, connectivity=2).max()),
+                         "border_px": int((mask & border).sum()), "fraction": float(mask.mean()), "seconds": seconds})
+            panels[method_name].append(overlay_rgb(frame, mask, border)[::2, ::2])
+    import imageio.v3 as iio
+
+    iio.imwrite(figures / "masks_real.png", np.concatenate([np.concatenate(p, axis=1) for p in panels.values()], axis=0))
+    return rows
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--cases", type=int, default=3, help="trees per suite (RCA and LAD), two views each")
+    parser.add_argument("--real", type=Path, default=None, help="folder with the IM2, IM3, IM7 XA runs")
+    parser.add_argument("--figures", type=Path, default=Path("bench/figures"))
+    parser.add_argument("--out", type=Path, default=None, help="also write the tables to this Markdown file")
+    args = parser.parse_args(argv)
+    args.figures.mkdir(parents=True, exist_ok=True)
+    lines = [f"Machine: {platform.processor() or platform.machine()}, Python {platform.python_version()}, "
+             f"OMP_NUM_THREADS={os.environ['OMP_NUM_THREADS']}", ""]
+    sim = simulated(args.cases, args.figures)
+    lines += [f"Simulated angiograms: {2 * args.cases} trees × 2 views = {4 * args.cases} frames (512²); "
+              "median over frames, [min–max]", "",
+              "| method | Dice | clDice | components / image | border px (total) | s / frame |",
+              "|---|---:|---:|---:|---:|---:|"]
+    for name, values in sim.items():
+        def col(key, fmt="{:.3f}"):
+            v = [r[key] for r in values]
+            return f"{fmt.format(_median(v))} [{fmt.format(min(v))}–{fmt.format(max(v))}]"
+        lines.append(f"| {name} | {col('dice')} | {col('cldice')} | {col('components', '{:.0f}')} | "
+                     f"{sum(r['border_px'] for r in values)} | {col('seconds', '{:.2f}')} |")
+    if args.real is not None:
+        lines += ["", "Real XA runs of the static phantom (the frame `choose_frame` picks):", "",
+                  "| run | frame | method | components | border px | vessel % | s / frame |",
+                  "|---|---:|---|---:|---:|---:|---:|"]
+        for r in real(args.real, args.figures):
+            lines.append(f"| {r['run']} | {r['frame']} | {r['method']} | {r['components']} | {r['border_px']} | "
+                         f"{100 * r['fraction']:.1f} | {r['seconds']:.2f} |")
+    text = "\n".join(lines) + "\n"
+    print(text)
+    if args.out:
+        args.out.write_text(text, encoding="utf-8")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
