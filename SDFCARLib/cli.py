@@ -30,16 +30,17 @@ from typing import Any, Dict, List, Optional, Sequence, Tuple
 import numpy as np
 
 from . import __version__
+from .cli_types import one_line as _one_line
+from .cli_types import positive_int as _positive_int
 from .dicom import add_dicom_arguments, cli_geometry_from_args, write_geometry_json
 from .geometry import VIEW_PAIRS
 from .io import write_text_atomically
+from .settings import DEFAULT_MODE, GROUND_TRUTH_METRICS, METRICS, MODES, make_settings, parse_setting_overrides, setting_help
 
 EXIT_OK, EXIT_FAILURE, EXIT_BAD_INPUT, EXIT_CANCELLED = 0, 1, 2, 130
 
-METRIC_ROWS = [
-    ("cldice", "clDice"), ("skeleton_dice", "skeleton Dice"), ("dice", "Dice"), ("iou", "IoU"),
-    ("chamfer_l2_mm", "Chamfer-L2 (mm)"), ("re_error", "reError"), ("re_mse", "reMSE"),
-]
+METRIC_ROWS = [(key, METRICS[key].title + (f" ({METRICS[key].unit})" if METRICS[key].unit else ""))
+               for key in GROUND_TRUTH_METRICS]
 
 
 # --- progress and cancellation ------------------------------------------------------------------
@@ -147,8 +148,6 @@ def _print_metrics(metrics: Dict[str, Dict[str, Any]], stream=None) -> None:
 
 # --- commands -----------------------------------------------------------------------------------
 def _settings(args: argparse.Namespace):
-    from .optimiser import make_settings, parse_setting_overrides
-
     named = {"mode": args.mode, "device": args.device, "seed": args.seed, "steps": args.steps, "threads": args.threads}
     reserved = {key: f"use --{key}" for key in named}
     reserved["preset"] = "use --preset"
@@ -415,8 +414,8 @@ def cmd_demo(args: argparse.Namespace) -> int:
     check_destination(args.out, list(RESULT_FILES.values()), args.overwrite)
     case = load_sample_case()
     settings = _settings(args)
-    print(f"SDFCAR demo: bundled sample case ({case.directory}), {settings.preset} preset, mode {settings.mode}, "
-          f"{settings.steps} steps", file=sys.stderr)
+    print(f"SDFCAR demo: bundled sample case ({case.directory}), {settings.run.preset} preset, mode {settings.run.mode}, "
+          f"{settings.optimisation.steps} steps", file=sys.stderr)
     started = time.perf_counter()
     result = _run_reconstruction(case.geometry, case.masks, settings, "mask", not args.no_progress)
     files = write_reconstruction(result, args.out, name=args.name or "SDFCAR demo", label=case.label, masks=case.masks,
@@ -449,27 +448,18 @@ def cmd_geometry_template(args: argparse.Namespace) -> int:
 
 
 # --- parser -------------------------------------------------------------------------------------
-def _positive_int(text: str) -> int:
-    value = int(text)
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"must be a positive integer, got {text}")
-    return value
-
-
 def _add_optimiser_options(p: argparse.ArgumentParser, preset_default: str = "fast") -> None:
-    # Presets and modes are validated by optimiser.make_settings, so that this parser stays
-    # importable without torch (fast --help) and follows the optimiser's list.
     p.add_argument("--preset", default=preset_default,
                    help="fast: sized for a CPU (default); paper: the published recipe (5000 steps, needs a GPU)")
     p.add_argument("--mode", default=None,
-                   help="sdfcar (default): SDF + combined loss; neca: occupancy + L_occ; occ-combined; sdf-occ")
+                   help="; ".join(f"{key}: {mode.title}" for key, mode in MODES.items()) + f" (default {DEFAULT_MODE})")
     p.add_argument("--device", default="auto", choices=("auto", "cpu", "cuda"), help="auto: CUDA when available")
     p.add_argument("--seed", type=int, default=None, help="random seed (repeatable on the same device)")
     p.add_argument("--steps", type=_positive_int, default=None, help="optimisation steps (default: the preset's)")
     p.add_argument("--threads", type=_positive_int, default=None, help="CPU threads for torch")
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
-                   help="any other optimiser setting, repeatable (e.g. --set prune_min_component_fraction=0.02 "
-                        "--set memory_check=false); see optimiser.Settings")
+                   help="any other setting, repeatable (e.g. --set support_margin_mm=1 --set memory_check=false); "
+                        "the settings with the published recipe's values: " + setting_help().replace("%", "%%"))
     p.add_argument("--name", default=None, help="name of the result in Slicer (default: the output folder's name)")
     p.add_argument("--overwrite", action="store_true", help="replace result files the output folder already holds")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -611,10 +601,6 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         print(f"error: unexpected {type(exc).__name__}: {_one_line(exc)} (run with --verbose for the traceback)",
               file=sys.stderr)
         return EXIT_FAILURE
-
-
-def _one_line(exc: BaseException) -> str:
-    return " ".join(str(exc).split()) or type(exc).__name__
 
 
 if __name__ == "__main__":

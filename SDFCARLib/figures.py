@@ -1,7 +1,12 @@
-"""Figures: the paper's overlay view (green overlap, red predicted only, blue missed) as MIPs."""
+"""Figures: the paper's overlay view (green overlap, red predicted only, blue missed) as MIPs.
+
+``save_overlay_figure`` writes the benchmark's overlay PNGs; ``save_result_figure`` is the
+one-picture summary of a reconstruction shown in the README (``docs/demo-result.png``).
+"""
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 from typing import Sequence, Union
 
@@ -29,14 +34,21 @@ def overlay_mip(pred: np.ndarray, label: np.ndarray, axis: int) -> np.ndarray:
     return rgb
 
 
-def save_overlay(path: PathLike, pred: np.ndarray, label: np.ndarray, titles: Sequence[str] = ()) -> None:
-    """Save a PNG with the overlay MIPs along the three axes side by side."""
+def save_overlay_figure(path: PathLike, prediction: np.ndarray, label: np.ndarray, min_panel_px: int = 256) -> Path:
+    """The paper's overlay (green overlap, red predicted only, blue missed) as MIPs along the three
+    axes, enlarged by whole pixels so that a 128³ case is readable; a PNG at ``path``."""
+    # imageio costs ~0.1 s to import, and the CLI's parser imports this module (via the benchmark).
     import imageio.v3 as iio
 
-    panels = [overlay_mip(pred, label, axis) for axis in (1, 0, 2)]
+    path = Path(path)
+    panels = [overlay_mip(prediction, label, axis) for axis in (1, 0, 2)]
+    factor = max(1, int(math.ceil(min_panel_px / max(max(p.shape[:2]) for p in panels))))
+    panels = [np.repeat(np.repeat(p, factor, axis=0), factor, axis=1) for p in panels]
     height = max(p.shape[0] for p in panels)
-    padded = [np.pad(p, ((0, height - p.shape[0]), (0, 4), (0, 0)), constant_values=255) for p in panels]
+    padded = [np.pad(p, ((0, height - p.shape[0]), (0, 6), (0, 0)), constant_values=255) for p in panels]
+    path.parent.mkdir(parents=True, exist_ok=True)
     iio.imwrite(str(path), np.concatenate(padded, axis=1))
+    return path
 
 
 def save_result_figure(path: PathLike, masks: Sequence[np.ndarray], vertices_lps: np.ndarray, faces: np.ndarray,

@@ -34,6 +34,7 @@ from typing import Any, Callable, Optional, Sequence, Tuple, Union
 import numpy as np
 
 from .geometry import VolumeGrid
+from .masks import MaskError, binarise_mask
 
 PathLike = Union[str, Path]
 
@@ -162,29 +163,19 @@ def _check_shape(data: np.ndarray, path: Path, detector_shape: Optional[Sequence
             "detector_shape in GEOM.json")
 
 
-def read_mask(path: PathLike, detector_shape: Optional[Sequence[int]] = None, what: str = "mask") -> np.ndarray:
-    """A binary vessel mask (bool ``(rows, cols)``): 0 = background, one non-zero value = vessel."""
+def read_mask(path: PathLike, detector_shape: Optional[Sequence[int]] = None, what: str = "mask",
+              label: Optional[float] = None) -> np.ndarray:
+    """A binary vessel mask (bool ``(rows, cols)``) by the package's one mask rule (``masks.binarise_mask``).
+
+    ``label``: the vessel label of a label image (default: the image must be binary).
+    """
     path = Path(path)
     data = read_image(path, what)
     _check_shape(data, path, detector_shape, what)
-    if data.dtype != bool:
-        if np.issubdtype(data.dtype, np.floating) and not np.all(np.isfinite(data)):
-            raise InputError(f"{path}: the {what} contains NaN or infinite values; give a mask of 0 and 1 (or 0 and 255)")
-        values = np.unique(data)
-        nonzero = values[values != 0]
-        if nonzero.size > 1 or np.any(values < 0):
-            shown = ", ".join(f"{v:g}" for v in values[:6]) + (", …" if values.size > 6 else "")
-            raise InputError(
-                f"{path}: the {what} is not binary (values {shown}); give a mask with 0 for background and "
-                "one non-zero value (e.g. 1 or 255) for vessel, or threshold it first")
-        data = data != 0
-    if not data.any():
-        raise InputError(f"{path}: the {what} is empty (no vessel pixel); segment the vessels of this view first")
-    if data.all():
-        raise InputError(
-            f"{path}: the {what} marks every pixel as vessel; a vessel mask needs background (0) around "
-            "the vessels — check that it is not inverted")
-    return data
+    try:
+        return binarise_mask(data, detector_shape, label, source=f"{path}")
+    except MaskError as exc:
+        raise InputError(str(exc)) from None
 
 
 def read_line_integral(path: PathLike, detector_shape: Optional[Sequence[int]] = None) -> np.ndarray:

@@ -150,12 +150,12 @@ def run_job(job_dir: PathLike, progress: Optional[Callable[[Dict[str, Any]], Non
         manifest, geometry, targets, settings, kind = _load_job(job_dir)
         result = reconstruct(geometry, targets, settings, target_kind=kind, progress=on_progress,
                              cancel=cancel_flag.exists)
-        on_progress({"phase": "writing", "step": settings.steps, "total": settings.steps})
+        on_progress({"phase": "writing", "step": settings.optimisation.steps, "total": settings.optimisation.steps})
         paths = write_reconstruction(result, job_dir / "output", name=manifest.get("name"))
         paths = {k: str(v) for k, v in paths.items()}
         write_json(job_dir / "status.json", {"state": "finished", "message": "", "outputs": paths})
         (job_dir / "INCOMPLETE").unlink()
-        on_progress({"phase": "done", "step": settings.steps, "total": settings.steps})
+        on_progress({"phase": "done", "step": settings.optimisation.steps, "total": settings.optimisation.steps})
         return paths
     except ReconstructionCancelled as exc:
         write_json(job_dir / "status.json", {"state": "cancelled", "message": str(exc)})

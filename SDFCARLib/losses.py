@@ -50,7 +50,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import List, Optional, Sequence, Tuple, Union
+from typing import List, Optional, Sequence, Tuple
 
 import numpy as np
 import torch
@@ -220,7 +220,7 @@ class ViewTarget:
     silhouette: torch.Tensor  # (H, W) in [0, 1]
     kind: str  # "mask" | "line_integral"
     reference_mm: float  # L_ref for line-integral targets (1 for masks)
-    silhouette_length_mm: Union[float, torch.Tensor]  # τ, a scalar or one per pixel
+    silhouette_length_mm: float  # τ
 
     def silhouette_of(self, line_integral: torch.Tensor) -> torch.Tensor:
         return silhouette(line_integral, self.silhouette_length_mm)
@@ -232,27 +232,11 @@ class ViewTarget:
         return line_integral / self.reference_mm
 
 
-def make_target(data: torch.Tensor, kind: str, silhouette_length_mm: float, mask_model: str = "silhouette",
-                pixel_mm: float = 1.0) -> ViewTarget:
-    """The target of one view. ``mask_model="width"`` sets τ per mask pixel from the vessel width.
-
-    With "width", τ on a mask pixel is a third of the path length a round vessel of the mask's
-    local width would give there (``priors.chord_length_estimate``), at least
-    ``silhouette_length_mm``: the silhouette then saturates (S = 0.95) at about the vessel's own
-    chord instead of rewarding ever more path length, which otherwise fills the whole visual hull
-    wherever it is wide. Measured gain: see bench/RESULTS.md.
-    """
+def make_target(data: torch.Tensor, kind: str, silhouette_length_mm: float) -> ViewTarget:
+    """The target of one view: a binary mask, or line integrals (mm) normalised by their maximum."""
     if kind == "mask":
         image = (data > 0).to(torch.float32)
-        length: Union[float, torch.Tensor] = silhouette_length_mm
-        if mask_model == "width":
-            from .priors import chord_length_estimate
-
-            chord = chord_length_estimate(image.cpu().numpy() > 0, pixel_mm)
-            length = torch.as_tensor(np.maximum(chord / 3.0, silhouette_length_mm), device=data.device)
-        elif mask_model != "silhouette":
-            raise ValueError(f"mask_model must be 'silhouette' or 'width', got {mask_model!r}")
-        return ViewTarget(image, image, kind, 1.0, length)
+        return ViewTarget(image, image, kind, 1.0, silhouette_length_mm)
     if kind == "line_integral":
         reference = float(data.max())
         if reference <= 0:

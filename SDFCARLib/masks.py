@@ -1,11 +1,12 @@
 """Vessel masks of the views: binarising label images, and segmenting X-ray angiography frames.
 
 Binarising (``binarise_mask``)
-    The engine wants one binary image per view, of the view's detector shape, with 0 for
-    background and non-zero for vessel (``optimiser.validate_targets``). Label images and
-    segmentations often hold several labels: give ``label`` to keep one of them, or leave it out
-    to take every non-zero pixel as vessel. The same checks as the engine's apply (2-D, numeric,
-    finite, the detector's size, not empty, not everything), each with a message that says how to
+    The one mask rule of the package (the file reader, the engine and the MRML bridge call it):
+    one binary image per view, of the view's detector shape, with 0 for background and one
+    non-zero value for vessel. Label images and segmentations often hold several labels: give
+    ``label`` to keep one of them; without it an image of more than two values is refused, since
+    a grey frame given as a mask would otherwise pass. Checked: 2-D, numeric, finite, the
+    detector's size, binary, not empty, not everything — each with a message that says how to
     fix the input. An RGB(A) image is accepted only when its colour channels are equal (a grey
     image saved as colour).
 
@@ -100,28 +101,29 @@ def binarise_mask(
                             f"{hint}; the mask must be drawn on the frame of that view, pixel for pixel")
     if np.issubdtype(a.dtype, np.floating) and not np.all(np.isfinite(a)):
         raise MaskError(f"{source}: the mask contains NaN or infinite values; fix the image")
+    present = np.unique(a)
     if label is not None:
-        present = np.unique(a)
         if not np.any(present == label):
             shown = ", ".join(f"{v:g}" for v in present[:10].astype(float)) + ("…" if present.size > 10 else "")
             raise MaskError(f"{source}: label {label:g} does not occur in the image (values present: {shown}); "
                             "choose one of those, or give no label to take every non-zero pixel as vessel")
         mask = a == label
     else:
+        # Without a label only 0 and one other value are unambiguous: a grey frame or a label image
+        # of several structures given by mistake would otherwise pass as a mask.
+        if np.count_nonzero(present) > 1 or np.any(present < 0):
+            shown = ", ".join(f"{v:g}" for v in present[:6].astype(float)) + (", …" if present.size > 6 else "")
+            raise MaskError(f"{source}: the mask is not binary (values {shown}); give a mask with 0 for background and "
+                            "one non-zero value (e.g. 1 or 255) for vessel, threshold it first, or choose the vessel "
+                            "label of a label image")
         mask = a != 0
     if not mask.any():
         raise MaskError(f"{source}: the mask is empty (no vessel pixel); segment the vessels of this view first")
     if mask.all():
-        raise MaskError(f"{source}: the mask covers the whole image; it is not a vessel segmentation "
-                        "(was the background saved as non-zero? give the label of the vessels)")
+        raise MaskError(f"{source}: the mask covers the whole image: it marks every pixel as vessel, so it is not a "
+                        "vessel segmentation (is it inverted, or was the background saved as non-zero? give the label of "
+                        "the vessels)")
     return mask
-
-
-def load_mask(path: PathLike, detector_shape: Optional[Sequence[int]] = None, label: Optional[float] = None) -> np.ndarray:
-    """Read a label image (PNG/TIFF/NRRD via ``SDFCARLib.io.read_image``) and binarise it."""
-    from .io import read_image  # lazily: io.py reads the file formats
-
-    return binarise_mask(read_image(path), detector_shape, label, source=str(path))
 
 
 def _normalise(frame: np.ndarray) -> np.ndarray:

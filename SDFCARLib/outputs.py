@@ -219,7 +219,7 @@ def write_reconstruction(
     out_dir = Path(out_dir)
     grid = result.geometry.volume
     name = name or out_dir.name or "SDFCAR"
-    level = float(result.settings.threshold)
+    level = float(result.settings.region.threshold)
     report: Dict[str, Any] = dict(result.report)
     report_warnings: List[str] = list(report.get("warnings", []))
     with staged_directory(out_dir, list(RESULT_FILES.values()), overwrite) as staging:
@@ -238,9 +238,9 @@ def write_reconstruction(
                                    "install it with pip install 'SDFCARLib[headless]'")
         attributes = {
             "SDFCAR.method": str(report.get("method", "")),
-            "SDFCAR.mode": result.settings.mode,
-            "SDFCAR.preset": result.settings.preset,
-            "SDFCAR.seed": str(result.settings.seed),
+            "SDFCAR.mode": result.settings.run.mode,
+            "SDFCAR.preset": result.settings.run.preset,
+            "SDFCAR.seed": str(result.settings.run.seed),
             "SDFCAR.geometryDigest": result.geometry.digest(),
             "SDFCAR.coordinateSystem": "LPS",
         }

@@ -19,11 +19,8 @@ Method (a greedy minimal set cover at the level of skeleton pieces)
     Every removed piece therefore explained at most ``tolerance`` of its own pixels alone, so the
     reprojection of what is kept matches the masks almost exactly as before.
 
-Measured (fast preset, 400 steps, binary masks LAO 30 / RAO 30, 128³ at 0.8 mm): on the 721A
-centreline clDice 0.730 → 0.842, Dice 0.625 → 0.729, Chamfer 1.62 → 0.55 mm, reprojection Dice
-0.99 before and after; on the procedural LAD-3 tree clDice 0.488 → 0.659. Pieces of 6 mm worked
-better than whole branches (100 mm: pieces too coarse to separate a ghost from its true vessel)
-or 3 mm (pieces too short to be told apart). Optimising again on the pruned support was worse.
+Pieces of about 6 mm are the default: whole branches are too coarse to separate a ghost from
+its true vessel, pieces of a few voxels too short to be told apart (bench/RESULTS.md).
 """
 
 from __future__ import annotations
@@ -204,23 +201,3 @@ def removal_zone(segmentation: np.ndarray, kept: np.ndarray, spacing_mm: Sequenc
     to_kept = ndimage.distance_transform_edt(~kept, sampling=spacing) if kept.any() else np.full(kept.shape, np.inf)
     shell = (to_removed <= float(np.linalg.norm(spacing)) + 1e-6) & (to_removed < to_kept) & ~kept
     return removed | shell
-
-
-def drop_small_components(segmentation: np.ndarray, min_fraction: float) -> np.ndarray:
-    """The segmentation without the 26-connected components smaller than ``min_fraction`` of the largest.
-
-    Specks left after pruning are often ghosts, but reconstructions of thin distal vessels are often
-    broken too. Measured after pruning (fast preset, 8× pooling): ``min_fraction=0.02`` gave 721A
-    clDice 0.842 → 0.860, but the RCA suite 63.8 → 59.0 % (worse in 9 of 10 cases; bench/RESULTS.md
-    1c); keeping only the largest component cut LAD-3 from 0.659 to 0.228. Hence off by default.
-    """
-    from scipy import ndimage
-
-    segmentation = np.asarray(segmentation, dtype=bool)
-    if min_fraction <= 0 or not segmentation.any():
-        return segmentation.copy()
-    components, count = ndimage.label(segmentation, structure=np.ones((3, 3, 3)))
-    sizes = np.bincount(components.ravel())[1:]
-    keep = np.flatnonzero(sizes >= min_fraction * sizes.max()) + 1
-    return np.isin(components, keep)
-

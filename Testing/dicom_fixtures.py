@@ -4,7 +4,7 @@
   first-order prediction = selection value 1, one fixed Huffman table), written from the standard
   because no encoder for this syntax is installed here; the decoders under test are pydicom's
   (pylibjpeg-libjpeg).
-* ``raw_xa`` — an XA dataset assembled by hand from stored values (independent of ``write_xa``).
+* ``raw_xa`` — an XA dataset assembled by hand from stored values (independent of ``xa_writer.write_xa``).
 * ``recompress`` — re-encapsulate a native file as JPEG Lossless SV1 or JPEG baseline (Pillow).
 * ``make_enhanced`` — turn a classic XA file into an Enhanced XA object with the geometry in the
   functional groups.

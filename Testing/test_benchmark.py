@@ -1,4 +1,4 @@
-"""The evaluation harness (SDFCARLib/benchmark.py): a tiny end-to-end run on a Dask LocalCluster,
+"""The evaluation harness (SDFCARLib/benchmark/): a tiny end-to-end run on a Dask LocalCluster,
 resume, recorded failures, the folder suite's preprocessing, the summary tables and bad input.
 
 Runs use a 32³ grid at 2 mm and a 96² detector at 1 mm with a few optimisation steps, so that the
@@ -18,11 +18,12 @@ import numpy as np
 import pytest
 
 from SDFCARLib import benchmark as bm
+from SDFCARLib.benchmark import run as bm_run
 from SDFCARLib.geometry import VIEW_PAIRS, VolumeGrid
 
 TINY = ["--volume-shape", 32, 32, 32, "--spacing-mm", 2, "--detector-shape", 96, 96, "--detector-spacing-mm", 1]
 TINY_GRID = bm.GridOptions((32, 32, 32), 2.0, (96, 96), 1.0)
-TABLE_HEADER = ("| Method | clDice (%) | Dice (%) | IoU (%) | reError | CD-ℓ2 (mm) | reMSE (×1e-4) | "
+TABLE_HEADER = ("| Method | clDice (%) | Dice (%) | IoU (%) | reError | Chamfer-ℓ2 (mm) | reMSE (×1e-4) | "
                 "skeleton-Dice (%) | wall time (s) | cases (ok/failed) |")
 
 
@@ -133,14 +134,14 @@ def test_tiny_suite_end_to_end_then_resume(tmp_path, capsys):
 def test_failed_run_is_recorded_and_retried_on_request(tmp_path, capsys, monkeypatch):
     from distributed import LocalCluster
 
-    real = bm._reconstruct
+    real = bm_run._reconstruct
 
     def neca_fails(geometry, targets, settings, target_kind):
-        if settings.mode == "neca":
+        if settings.run.mode == "neca":
             raise RuntimeError("injected failure")
         return real(geometry, targets, settings, target_kind)
 
-    monkeypatch.setattr(bm, "_reconstruct", neca_fails)
+    monkeypatch.setattr(bm_run, "_reconstruct", neca_fails)
     out = tmp_path / "bench"
     argv = ["--suite", "lad", "--cases", 1, "--modes", "sdfcar,neca", "--steps", 2, "--out", out, "--no-progress",
             "--protocol", "clinical-lao30-rao30", *TINY]
@@ -166,7 +167,7 @@ def test_failed_run_is_recorded_and_retried_on_request(tmp_path, capsys, monkeyp
         # A plain re-run keeps the failure (no new row); --retry-failed runs it again.
         code, _, err = run_cli(capsys, *argv, "--scheduler", cluster.scheduler_address)
         assert code == 0 and len(read_csv(out / "results.csv")[1]) == 3
-        monkeypatch.setattr(bm, "_reconstruct", real)
+        monkeypatch.setattr(bm_run, "_reconstruct", real)
         code, _, err = run_cli(capsys, *argv, "--scheduler", cluster.scheduler_address, "--retry-failed")
         assert code == 0, err
     _, rows = read_csv(out / "results.csv")
@@ -289,13 +290,13 @@ def test_overrides_are_typed_from_the_settings():
     assert bm.parse_overrides(["learning_rate=1e-3", "levels=8", "table_learning_rate=none", "device=cuda"]) == {
         "learning_rate": 1e-3, "levels": 8, "table_learning_rate": None, "device": "cuda"}
     # Typing by the field's annotation (the optimiser's list of flags changes as presets are tuned).
-    from SDFCARLib.optimiser import ReconstructionError, typed_setting_value
+    from SDFCARLib.settings import ReconstructionError, typed_setting_value
 
-    assert typed_setting_value("flag", "true", "bool") is True and typed_setting_value("flag", "off", "bool") is False
+    assert typed_setting_value("flag", "true", bool) is True and typed_setting_value("flag", "off", bool) is False
     with pytest.raises(ReconstructionError, match="true or false"):
-        typed_setting_value("flag", "maybe", "bool")
+        typed_setting_value("flag", "maybe", bool)
     for item, message in [("levels=8.5", "whole number"), ("learning_rate=fast", "takes a number"),
-                          ("noequals", "KEY=VALUE"), ("seed=3", "--seed"), ("bogus=1", "unknown optimiser setting")]:
+                          ("noequals", "KEY=VALUE"), ("seed=3", "--seed"), ("bogus=1", "unknown setting")]:
         with pytest.raises(bm.BenchmarkError, match=message):
             bm.parse_overrides([item])
     a = bm.BenchmarkConfig("rca", Path("x"), overrides={"learning_rate": 1e-3})
@@ -373,7 +374,7 @@ def test_summary_table_means_bold_and_ordering():
     assert neca[-1].rstrip(" |") == "3/1"
     ordering = "\n".join(bm.ordering_lines(table))
     assert "Dice (%): sdfcar better (90.00 vs 60.00; sdfcar better in 3/3 cases)" in ordering
-    assert "CD-ℓ2 (mm): sdfcar better (1.00 vs 2.00; sdfcar better in 2/2 cases)" in ordering
+    assert "Chamfer-ℓ2 (mm): sdfcar better (1.00 vs 2.00; sdfcar better in 2/2 cases)" in ordering
     assert "reproduces on 6 of 6 metrics — it reproduces." in ordering
     swapped = [dict(r, mode={"sdfcar": "neca", "neca": "sdfcar"}.get(r["mode"], r["mode"])) for r in rows if r["status"] == "ok"]
     assert "it does not fully reproduce" in "\n".join(bm.ordering_lines(bm.summary_tables(swapped, ["sdfcar", "neca"])[0]))

@@ -154,7 +154,7 @@ def test_unknown_mode_and_preset_are_refused(tmp_path, capsys, geometry_file, ma
     _assert_bad_input(code, err, "unknown mode 'sdf'")
     code, _, err = run(capsys, *base, "--preset", "slow")
     _assert_bad_input(code, err, "unknown preset 'slow'")
-    for setting, message in [("steps=3", "use --steps"), ("bogus=1", "unknown optimiser setting 'bogus'"),
+    for setting, message in [("steps=3", "use --steps"), ("bogus=1", "unknown setting 'bogus'"),
                              ("memory_check=maybe", "takes true or false")]:
         code, _, err = run(capsys, *base, "--set", setting)
         _assert_bad_input(code, err, message)
@@ -224,7 +224,7 @@ def test_reconstruct_end_to_end_writes_every_output(simulated, tmp_path, capsys,
     code, stdout, err = run(capsys, "reconstruct", "--geometry", simulated / "geometry.json",
                             "--mask1", simulated / "views" / "view1_mask.png", "--mask2", simulated / "views" / "view2_mask.png",
                             "--label", simulated / "label.nrrd", "--out", out, "--steps", 3, "--seed", 3, "--no-progress",
-                            "--set", "prune_min_component_fraction=0.05", "--set", "support_margin_mm=1")
+                            "--set", "prune_tolerance=0.05", "--set", "support_margin_mm=1")
     assert code == 0, err
     report = json.loads((out / "report.json").read_text())
     names = {"occupancy.nrrd", "field.nrrd", "segmentation.seg.nrrd", "surface.vtk", "report.json"}
@@ -234,7 +234,7 @@ def test_reconstruct_end_to_end_writes_every_output(simulated, tmp_path, capsys,
 
     assert report["settings"]["steps"] == 3 and report["seed"] == 3 and report["target_kind"] == "mask"
     assert report["settings"]["preset"] == "fast" and report["settings"]["mode"] == "sdfcar"
-    assert report["settings"]["prune_min_component_fraction"] == 0.05 and report["settings"]["support_margin_mm"] == 1.0
+    assert report["settings"]["prune_tolerance"] == 0.05 and report["settings"]["support_margin_mm"] == 1.0
     for key in ("device", "versions", "timings_s", "final_losses", "geometry"):
         assert key in report
     assert len(report["reprojection_dice"]) == 2

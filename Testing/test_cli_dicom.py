@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 import dicom_fixtures as fx
-from SDFCARLib import dicom
+from xa_writer import write_xa
 from SDFCARLib.cli import main
 from SDFCARLib.geometry import CArmView, Geometry, VolumeGrid
 from SDFCARLib.io import write_mask_png
@@ -29,8 +29,8 @@ def dicom_pair(tmp_path_factory):
     paths, masks = [], []
     for n, (view, line_integral, mask) in enumerate(zip(views, case.line_integrals, case.masks), start=1):
         frames = np.stack([beer_lambert_counts(c * line_integral, 0.25, 3000.0, 12) for c in (0.2, 1.0, 0.5)])
-        native = dicom.write_xa(folder / f"native{n}.dcm", frames, view, bits_stored=12,
-                                omit=("ImagerPixelSpacing",) if n == 1 else ())
+        native = write_xa(folder / f"native{n}.dcm", frames, view, bits_stored=12,
+                          omit=("ImagerPixelSpacing",) if n == 1 else ())
         paths.append(fx.recompress(native, folder / f"view{n}.dcm", JPEG_LOSSLESS_SV1))
         masks.append(write_mask_png(folder / f"mask{n}.png", mask))
     return geometry, paths, masks

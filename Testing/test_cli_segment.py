@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from skimage.draw import line
 
-from SDFCARLib import dicom
+from xa_writer import write_xa
 from SDFCARLib.angiogram import AngiogramSettings, simulate_angiogram
 from SDFCARLib.cli import main
 from SDFCARLib.geometry import CArmView
@@ -34,9 +34,9 @@ def run(tmp_path_factory):
     frames = np.stack([simulate_angiogram(c * line_integral, 0.3, 7, settings)[0] for c in (0.0, 1.0, 0.5)])
     view = CArmView(30.0, 0.0, 975.0, 750.0, (0.39, 0.39), (128, 128))
     folder = tmp_path_factory.mktemp("xa")
-    path = dicom.write_xa(folder / "run.dcm", frames, view, bits_stored=12)
+    path = write_xa(folder / "run.dcm", frames, view, bits_stored=12)
     other = CArmView(-30.0, 20.0, 975.0, 750.0, (0.39, 0.39), (128, 128))  # same frames: plumbing only
-    dicom.write_xa(folder / "run2.dcm", frames, other, bits_stored=12)
+    write_xa(folder / "run2.dcm", frames, other, bits_stored=12)
     return path, line_integral > 0
 
 
@@ -97,7 +97,7 @@ def test_reconstruct_with_auto_masks(run, tmp_path, capsys):
     path, _ = run
     out = tmp_path / "result"
     args = ["reconstruct", "--dicom1", str(path), "--dicom2", str(path.parent / "run2.dcm"), "--auto-masks",
-            "--volume-shape", "16", "16", "16", "--volume-spacing", "4", "--steps", "2", "--no-progress", "--out", str(out)]
+            "--volume-shape", "8", "8", "8", "--volume-spacing", "8", "--steps", "1", "--no-progress", "--out", str(out)]
     assert main(args) == 0, capsys.readouterr().err
     captured = capsys.readouterr()
     assert "auto mask of frame 1" in captured.err and "--auto-masks" in captured.out

@@ -15,6 +15,7 @@ from pydicom.uid import (CTImageStorage, DeflatedExplicitVRLittleEndian, Explici
                          RLELossless)
 
 import dicom_fixtures as fx
+import xa_writer
 from SDFCARLib import dicom
 from SDFCARLib.dicom import DicomInputError
 from SDFCARLib.geometry import CArmView, Geometry, VolumeGrid
@@ -31,7 +32,7 @@ def frames16(n=3, bits=12, shape=(40, 48)):
 def xa(tmp_path, name="run.dcm", frames=None, view=VIEW, **kwargs):
     frames = frames16() if frames is None else frames
     kwargs.setdefault("bits_stored", 12 if frames.dtype == np.uint16 else 8)
-    return dicom.write_xa(tmp_path / name, frames, view, **kwargs)
+    return xa_writer.write_xa(tmp_path / name, frames, view, **kwargs)
 
 
 def field(prov, key):
@@ -245,10 +246,10 @@ def test_dicom_angle_convention_matches_the_detector_direction(tmp_path):
 def test_sod_and_sid_fallbacks_from_the_magnification(tmp_path):
     m = 1000.0 / 757.0
     view, prov = dicom.view_from_dicom(xa(tmp_path, "a.dcm", omit=("DistanceSourceToPatient",)), 0)
-    assert math.isclose(view.sod_mm, 1000.0 / float(dicom._ds(m)), rel_tol=1e-12)
+    assert math.isclose(view.sod_mm, 1000.0 / float(xa_writer._ds(m)), rel_tol=1e-12)
     assert field(prov, "sod_mm")["source"].startswith("fallback: SID / tag (0018,1114) EstimatedRadiographicMagnificationFactor")
     view, prov = dicom.view_from_dicom(xa(tmp_path, "b.dcm", omit=("DistanceSourceToDetector",)), 0)
-    assert math.isclose(view.sid_mm, 757.0 * float(dicom._ds(m)), rel_tol=1e-12)
+    assert math.isclose(view.sid_mm, 757.0 * float(xa_writer._ds(m)), rel_tol=1e-12)
     assert field(prov, "sid_mm")["source"].startswith("fallback: SOD × tag (0018,1114)")
 
 
@@ -429,16 +430,16 @@ def test_cli_wiring(tmp_path):
         parser.parse_args(["--dicom1", str(p1)])  # --dicom2 is required
 
 
-# --- writing ---------------------------------------------------------------------------------------
+# --- the tests' XA writer (xa_writer.py) ----------------------------------------------------------
 def test_write_xa_refuses_what_it_cannot_write(tmp_path):
     with pytest.raises(ValueError, match="pydicom has no encoder for JPEG Lossless.*RLE Lossless"):
         xa(tmp_path, "a.dcm", transfer_syntax=JPEGLosslessSV1)
     with pytest.raises(ValueError, match="non-negative integers"):
-        dicom.write_xa(tmp_path / "b.dcm", np.zeros((40, 48), np.float32), VIEW)
+        xa_writer.write_xa(tmp_path / "b.dcm", np.zeros((40, 48), np.float32), VIEW)
     with pytest.raises(ValueError, match="detector shape"):
-        dicom.write_xa(tmp_path / "c.dcm", np.zeros((10, 10), np.uint8), VIEW)
+        xa_writer.write_xa(tmp_path / "c.dcm", np.zeros((10, 10), np.uint8), VIEW)
     with pytest.raises(ValueError, match="more than 8 bits"):
-        dicom.write_xa(tmp_path / "d.dcm", np.full((40, 48), 300, np.uint16), VIEW, bits_stored=8)
+        xa_writer.write_xa(tmp_path / "d.dcm", np.full((40, 48), 300, np.uint16), VIEW, bits_stored=8)
     path = xa(tmp_path, "e.dcm")
     before = path.read_bytes()
     with pytest.raises(FileExistsError):
@@ -471,8 +472,8 @@ def test_round_trip_phantom_dicom_geometry_reconstruction(tmp_path):
     paths = []
     for n, (view, line_integral) in enumerate(zip(views, case.line_integrals), start=1):
         frames = np.stack([beer_lambert_counts(c * line_integral, mu, i0, 12) for c in contrast])
-        native = dicom.write_xa(tmp_path / f"n{n}.dcm", frames, view, bits_stored=12,
-                                omit=("ImagerPixelSpacing",) if n == 1 else ())
+        native = xa_writer.write_xa(tmp_path / f"n{n}.dcm", frames, view, bits_stored=12,
+                                    omit=("ImagerPixelSpacing",) if n == 1 else ())
         paths.append(fx.recompress(native, tmp_path / f"v{n}.dcm", JPEGLosslessSV1) if n == 1 else native)
     # View 1: multi-frame JPEG Lossless without ImagerPixelSpacing — refused, then supplied by the user.
     with pytest.raises(DicomInputError, match="pixel spacing is missing"):

@@ -63,19 +63,6 @@ def test_make_target():
         make_target(torch.zeros(3, 3), "line_integral", TAU)
     with pytest.raises(ValueError, match="kind"):
         make_target(data, "probability", TAU)
-    # The width model: τ per mask pixel from the vessel's width, at least the global τ, so a wide
-    # vessel needs a longer path to look filled than a thin one.
-    band = torch.zeros(40, 60)
-    band[10:13, :] = 1.0  # 3 px wide
-    band[20:32, :] = 1.0  # 12 px wide
-    width = make_target(band, "mask", TAU, mask_model="width", pixel_mm=0.25)
-    lengths = width.silhouette_length_mm
-    assert lengths.shape == band.shape and float(lengths.min()) >= TAU
-    assert float(lengths[26, 30]) > float(lengths[11, 30])
-    # S = 0.95 at about the chord of a round vessel 12 px × 0.25 mm = 3 mm wide: τ ≈ 1 mm at its centre.
-    assert float(lengths[26, 30]) == pytest.approx(3.0 / 3.0, rel=0.2)
-    with pytest.raises(ValueError, match="mask_model"):
-        make_target(data, "mask", TAU, mask_model="guess")
 
 
 # --- signed distance ---------------------------------------------------------------------------------------

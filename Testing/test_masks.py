@@ -8,8 +8,9 @@ from scipy import ndimage
 from skimage.measure import label as connected_components
 
 from SDFCARLib.geometry import CArmView, Geometry, VolumeGrid
-from SDFCARLib.masks import (AngioMaskSettings, MaskError, angiogram_mask, binarise_mask, load_mask,
-                             segment_angiogram, vesselness_mask)
+from SDFCARLib.io import InputError, read_mask
+from SDFCARLib.masks import (AngioMaskSettings, MaskError, angiogram_mask, binarise_mask, segment_angiogram,
+                             vesselness_mask)
 from SDFCARLib.metrics import mask_dice
 
 
@@ -22,7 +23,10 @@ def test_binary_and_label_images():
     labels[1, :3], labels[3, 4:] = 1, 2
     only_two = binarise_mask(labels, label=2)
     assert only_two.dtype == bool and only_two.sum() == 4 and only_two[3, 4:].all()
-    assert binarise_mask(labels).sum() == 3 + 4  # every non-zero label is vessel
+    with pytest.raises(MaskError, match=r"not binary \(values 0, 1, 2\).*choose the vessel label"):
+        binarise_mask(labels)  # two labels without a choice are ambiguous
+    with pytest.raises(MaskError, match="not binary"):
+        binarise_mask(-labels.astype(np.int16).clip(0, 1))  # 0 and -1
     assert binarise_mask(labels.astype(np.float32) * 0.5, label=1.0).sum() == 4  # float labels
 
 
@@ -61,17 +65,18 @@ def test_bad_masks_are_refused_with_the_fix():
         binarise_mask(np.array([["a", "b"], ["c", "d"]]))
 
 
-def test_load_mask_reads_a_label_image(tmp_path):
-    io = pytest.importorskip("SDFCARLib.io", reason="SDFCARLib.io (read_image) is written by another helper")
-    imageio = pytest.importorskip("imageio.v3")
+def test_read_mask_takes_one_label_of_a_label_image(tmp_path):
+    import imageio.v3 as imageio
+
     labels = np.zeros((9, 11), np.uint8)
     labels[2, 1:9], labels[6, 3:] = 1, 2
     path = tmp_path / "labels.png"
     imageio.imwrite(path, labels)
-    assert hasattr(io, "read_image")
-    assert np.array_equal(load_mask(path, (9, 11), label=2), labels == 2)
-    with pytest.raises(MaskError, match="differs from the detector shape"):
-        load_mask(path, (11, 9))
+    assert np.array_equal(read_mask(path, (9, 11), label=2), labels == 2)
+    with pytest.raises(InputError, match="differs from the detector shape"):
+        read_mask(path, (11, 9))
+    with pytest.raises(InputError, match="labels.png: the mask is not binary"):
+        read_mask(path, (9, 11))
 
 
 # --- vesselness ----------------------------------------------------------------------------------------

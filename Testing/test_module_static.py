@@ -53,7 +53,8 @@ def wrapper_parameters():
 
 
 # --- Python ------------------------------------------------------------------------------------------
-@pytest.mark.parametrize("path", [SCRIPT, LIBRARY / "mrml.py", LIBRARY / "selftest.py"], ids=lambda p: p.name)
+@pytest.mark.parametrize("path", [SCRIPT, *sorted((LIBRARY / "mrml").glob("*.py")), LIBRARY / "selftest.py"],
+                         ids=lambda p: p.relative_to(ROOT).as_posix())
 def test_python_39_grammar(path):
     tree = ast.parse(source(path), filename=str(path), feature_version=(3, 9))
     future_annotations = any(isinstance(n, ast.ImportFrom) and n.module == "__future__" and
@@ -150,7 +151,7 @@ def test_import_time_rules():
                 if isinstance(inner, ast.Import):
                     assert not any(a.name.startswith("slicer.") and not a.asname for a in inner.names), ast.unparse(inner)
     # SDFCARLib never imports Qt or the Slicer application; slicer (slicer-core) only inside functions.
-    for path in sorted(LIBRARY.glob("*.py")):
+    for path in sorted(LIBRARY.rglob("*.py")):  # sub-packages (mrml/, ...) too
         for node in ast.parse(source(path)).body:
             if isinstance(node, (ast.Import, ast.ImportFrom)):
                 names = [a.name for a in node.names] if isinstance(node, ast.Import) else [node.module or ""]

@@ -19,6 +19,7 @@ slicer = pytest.importorskip("slicer", reason="the MRML bridge tests need the sl
 
 from SDFCARLib import mrml  # noqa: E402
 from SDFCARLib.geometry import CArmView, Geometry, VolumeGrid  # noqa: E402
+from SDFCARLib.masks import MaskError  # noqa: E402
 from SDFCARLib.optimiser import Reconstruction, make_settings  # noqa: E402
 
 
@@ -147,7 +148,7 @@ def test_failing_add_leaves_scene_exactly_as_before(scene, monkeypatch):
     # Fails after the segmentation node exists: it must go again.
     def broken(*args, **kwargs):
         raise RuntimeError("surface extraction failed")
-    monkeypatch.setattr(mrml, "segmentation_surface", broken)
+    monkeypatch.setattr(mrml.results, "segmentation_surface", broken)  # where add_reconstruction_to_scene looks it up
     with pytest.raises(RuntimeError, match="surface extraction failed"):
         mrml.add_reconstruction_to_scene(scene, blob_result(geometry), "Case B", include_occupancy=True)
     assert snapshot(scene) == before
@@ -358,6 +359,33 @@ def test_frame_and_mask_from_volume_nodes(scene):
         mrml.mask_from_volume_node(node)
 
 
+def test_masks_from_volume_nodes_follow_the_one_mask_rule(scene):
+    # masks.binarise_mask decides, as for mask files: 0 is background, and the mask is neither
+    # empty nor everything. A two-valued image with a non-zero background used to pass (the larger
+    # value taken as vessel); it is refused with binarise_mask's message now.
+    mask = np.zeros((30, 40), bool)
+    mask[3:7, 30:35] = True
+    grey_background = mrml.add_frame_volume_node(scene, np.where(mask, 200.0, 50.0), "mask on grey")
+    with pytest.raises(mrml.MRMLBridgeError, match=r"not binary \(values 50, 200\)") as caught:
+        mrml.mask_from_volume_node(grey_background)
+    assert isinstance(caught.value.__cause__, MaskError)
+    assert "'mask on grey'" in str(caught.value)
+    # ... and the fix the message names works: the vessel label.
+    np.testing.assert_array_equal(mrml.mask_from_volume_node(grey_background, label=200), mask)
+    empty = mrml.add_frame_volume_node(scene, np.zeros((30, 40), bool), "empty", class_name="vtkMRMLLabelMapVolumeNode")
+    with pytest.raises(mrml.MRMLBridgeError, match="empty"):
+        mrml.mask_from_volume_node(empty)
+    labels = mrml.add_frame_volume_node(scene, mask * 2 + np.eye(30, 40, dtype=np.uint8), "labels",
+                                        class_name="vtkMRMLLabelMapVolumeNode")
+    np.testing.assert_array_equal(mrml.mask_from_volume_node(labels, label=2), mask)
+    with pytest.raises(mrml.MRMLBridgeError, match="label 7 does not occur"):
+        mrml.mask_from_volume_node(labels, label=7)
+    # A threshold makes the mask of a grey image; the result is checked like any mask.
+    frame = mrml.add_frame_volume_node(scene, np.arange(30 * 40, dtype=np.float32).reshape(30, 40), "frame")
+    with pytest.raises(mrml.MRMLBridgeError, match="empty"):
+        mrml.mask_from_volume_node(frame, threshold=5000)
+
+
 def test_multi_slice_volume_needs_a_slice_index(scene):
     volume = mrml.add_volume_node(scene, np.arange(4 * 5 * 3, dtype=np.float32).reshape(4, 5, 3), VolumeGrid((4, 5, 3), (1, 1, 1)), "cine")
     with pytest.raises(mrml.MRMLBridgeError, match="3 slices"):
@@ -380,6 +408,31 @@ def test_mask_from_segmentation_node_on_its_frame(scene):
         mrml.mask_from_segmentation_node(seg, node, segments=["LAD"])
     with pytest.raises(mrml.MRMLBridgeError, match="segmentation"):
         mrml.mask_from_segmentation_node(None, node)
+
+
+def test_nodes_by_class_finds_the_nodes_without_leaking(scene):
+    volume = scene.AddNewNodeByClass("vtkMRMLScalarVolumeNode", "volume")
+    label = scene.AddNewNodeByClass("vtkMRMLLabelMapVolumeNode", "label")
+    scene.AddNewNodeByClass("vtkMRMLModelNode", "model")
+    assert mrml.nodes_by_class(scene, "vtkMRMLScalarVolumeNode") == [volume, label]  # subclasses too, scene order
+    assert mrml.nodes_by_class(scene, "vtkMRMLSequenceNode") == []
+    # GetNodesByClass's collection kept a reference to every node it listed, for ever: each
+    # look-up of a proxy's sequence added one to every browser's count.
+    browser = scene.AddNewNodeByClass("vtkMRMLSequenceBrowserNode", "browser")
+    references = browser.GetReferenceCount()
+    for _ in range(3):
+        assert mrml.sequence_of_proxy_node(scene, volume) == (None, None)
+    assert browser.GetReferenceCount() == references
+
+
+def test_the_bridge_never_calls_get_nodes_by_class():
+    import ast
+
+    package = Path(mrml.__file__).parent
+    calls = [f"{path.name}:{node.lineno}" for path in sorted(package.parent.rglob("*.py"))
+             for node in ast.walk(ast.parse(path.read_text(encoding="utf-8")))
+             if isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute) and node.func.attr == "GetNodesByClass"]
+    assert not calls, f"GetNodesByClass leaks its vtkCollection; use mrml.nodes_by_class: {calls}"
 
 
 def test_frames_from_a_sequence_and_its_browser(scene):

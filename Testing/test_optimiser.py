@@ -8,140 +8,10 @@ import torch
 
 from SDFCARLib.geometry import CArmView, Geometry, VolumeGrid
 from SDFCARLib.losses import silhouette
-from SDFCARLib.optimiser import (
-    MODES,
-    PRESETS,
-    ReconstructionCancelled,
-    ReconstructionError,
-    check_host_memory,
-    estimate_memory_bytes,
-    make_settings,
-    parse_setting_overrides,
-    reconstruct,
-    resolve_device,
-    validate_targets,
-)
+from SDFCARLib.optimiser import ReconstructionCancelled, reconstruct, validate_targets
+from SDFCARLib.settings import MODES, ReconstructionError, make_settings
 from SDFCARLib.phantoms import Branch, CenterlineTree, simulate_views, voxelize
 from SDFCARLib.projector import project_volume
-
-
-# --- presets and modes --------------------------------------------------------------------------------------
-def test_paper_preset_is_the_published_recipe():
-    s = make_settings("paper")
-    assert s.preset == "paper" and s.mode == "sdfcar"
-    assert s.learning_rate == 1e-4 and s.steps == 5000
-    assert (s.lambda_geo, s.lambda_occ, s.alpha) == (1.0, 0.25, 50.0)
-    assert (s.levels, s.log2_table_size, s.features_per_level) == (16, 19, 2)
-    assert (s.width, s.depth) == (256, 8)
-    assert s.support == "full" and s.dt_downsample == 1
-    config = s.field_config()
-    assert config.kind == "sdf" and config.alpha == 50.0 and config.levels == 16
-
-
-def test_fast_preset_keeps_losses_and_representation():
-    paper, fast = make_settings("paper"), make_settings("fast")
-    assert fast.preset == "fast" and fast.support == "hull"
-    assert fast.steps < paper.steps
-    assert (fast.lambda_geo, fast.lambda_occ, fast.alpha) == (paper.lambda_geo, paper.lambda_occ, paper.alpha)
-    assert fast.field_config().kind == paper.field_config().kind
-
-
-@pytest.mark.parametrize("preset", sorted(PRESETS))
-@pytest.mark.parametrize("mode, kind, geometric", [
-    ("sdfcar", "sdf", True), ("neca", "occupancy", False), ("occ-combined", "occupancy", True), ("sdf-occ", "sdf", False),
-])
-def test_modes_select_representation_and_loss(preset, mode, kind, geometric):
-    s = make_settings(preset, mode=mode)
-    assert s.mode == mode and s.preset == preset
-    assert s.field_config().kind == kind
-    assert MODES[mode]["geometric"] is geometric
-    assert s.to_dict()["mode"] == mode
-
-
-def test_overrides_and_none_values():
-    s = make_settings("fast", steps=30, seed=5, learning_rate=None)
-    assert s.steps == 30 and s.seed == 5
-    assert s.learning_rate == make_settings("fast").learning_rate  # None leaves the preset's value
-
-
-@pytest.mark.parametrize("kwargs, fragment", [
-    (dict(preset="slow"), "unknown preset 'slow'"),
-    (dict(mode="nerf"), "unknown mode 'nerf'"),
-    (dict(stepz=10), "unknown setting(s): stepz"),
-    (dict(steps=0), "steps"),
-    (dict(learning_rate=-1.0), "learning_rate"),
-    (dict(alpha=0.0), "alpha"),
-    (dict(device="tpu"), "device"),
-    (dict(support="box"), "support"),
-    (dict(dt_downsample=0), "dt_downsample"),
-])
-def test_bad_settings(kwargs, fragment):
-    kwargs = dict(kwargs)
-    preset = kwargs.pop("preset", "fast")
-    with pytest.raises(ReconstructionError) as info:
-        make_settings(preset, **kwargs)
-    assert fragment in str(info.value)
-
-
-def test_resolve_device():
-    assert resolve_device("cpu") == torch.device("cpu")
-    assert resolve_device("auto").type == ("cuda" if torch.cuda.is_available() else "cpu")
-    if torch.cuda.is_available():
-        assert resolve_device("cuda").type == "cuda"
-    else:
-        with pytest.raises(ReconstructionError, match="no CUDA"):
-            resolve_device("cuda")
-
-
-def test_memory_estimate_tracks_measured_runs():
-    # 721A at 128³ / 0.8 mm, two 512² views at 0.35 mm (bench/RESULTS.md): the fast preset on its
-    # 23 452 hull voxels peaked at 1.4 GiB resident; the paper preset on the full grid was killed by
-    # the OOM killer above 23 GiB.
-    grid = VolumeGrid((128, 128, 128), (0.8, 0.8, 0.8))
-    geometry = Geometry(grid, [CArmView(a, 0.0, 1000.0, 757.0, (0.35, 0.35), (512, 512)) for a in (30.0, -30.0)])
-    fast = estimate_memory_bytes(make_settings("fast"), geometry, 23452)
-    paper_full = estimate_memory_bytes(make_settings("paper"), geometry, grid.num_voxels)
-    assert 0.5 * 2**30 < fast < 2 * 2**30
-    assert paper_full > 23 * 2**30
-    # More points, larger MLP, finer distance maps: never less memory.
-    assert estimate_memory_bytes(make_settings("fast"), geometry, 60000) > fast
-    assert estimate_memory_bytes(make_settings("fast", width=256), geometry, 23452) > fast
-    assert estimate_memory_bytes(make_settings("fast", dt_downsample=1), geometry, 23452) > fast
-    assert estimate_memory_bytes(make_settings("fast", mode="neca"), geometry, 23452) < fast  # no L_geo
-
-
-def test_host_memory_check_refuses_with_the_ways_out(case):
-    check_host_memory(2 * 2**30, 4 * 2**30)
-    check_host_memory(2 * 2**30, None)  # unknown (not Linux): no check
-    with pytest.raises(ReconstructionError, match=r"needs about 30\.0 GiB .* only 8\.0 GiB .*'fast' preset.*memory_check"):
-        check_host_memory(30 * 2**30, 8 * 2**30)
-    # In a reconstruction the check comes before any work and can be switched off.
-    import SDFCARLib.optimiser as optimiser
-
-    original = optimiser.available_memory_bytes
-    optimiser.available_memory_bytes = lambda: 1024
-    try:
-        calls = []
-        with pytest.raises(ReconstructionError, match="memory"):
-            reconstruct(case[0], _masks(case), make_settings("fast", steps=2, device="cpu"), progress=calls.append)
-        assert [c["phase"] for c in calls] == ["setup"]
-        result = reconstruct(case[0], _masks(case), make_settings("fast", steps=2, device="cpu", memory_check=False))
-        assert result.report["memory_estimate_bytes"] > 1024
-    finally:
-        optimiser.available_memory_bytes = original
-
-
-def test_setting_overrides_from_the_command_line():
-    assert parse_setting_overrides(["prune_min_component_fraction=0.02", "memory_check=false", "levels=8",
-                                    "table_learning_rate=none"]) == {
-        "prune_min_component_fraction": 0.02, "memory_check": False, "levels": 8, "table_learning_rate": None}
-    for item, message in [("levels=8.5", "whole number"), ("learning_rate=fast", "takes a number"),
-                          ("noequals", "KEY=VALUE"), ("bogus=1", "unknown optimiser setting"),
-                          ("memory_check=maybe", "true or false"), ("alpha=inf", "finite")]:
-        with pytest.raises(ReconstructionError, match=message):
-            parse_setting_overrides([item])
-    with pytest.raises(ReconstructionError, match="use --seed"):
-        parse_setting_overrides(["seed=3"], reserved={"seed": "use --seed"})
 
 
 # --- target validation -------------------------------------------------------------------------------------------
@@ -179,12 +49,12 @@ def _replace(items, index, value):
 @pytest.mark.parametrize("make_bad, fragment", [
     (lambda m: m[:1], "1 target image(s) for 2 view(s)"),
     (lambda m: m + m[:1], "3 target image(s) for 2 view(s)"),
-    (lambda m: _replace(m, 1, m[1][:60]), "view 2: image shape (60, 64)"),
-    (lambda m: _replace(m, 0, np.where(m[0] > 0, np.nan, 0.0)), "view 1: the image contains NaN"),
+    (lambda m: _replace(m, 1, m[1][:60]), "view 2: mask shape (60, 64) differs from the detector shape"),
+    (lambda m: _replace(m, 0, np.where(m[0] > 0, np.nan, 0.0)), "view 1: the mask contains NaN"),
     (lambda m: _replace(m, 1, np.zeros_like(m[1])), "view 2: the mask is empty"),
     (lambda m: _replace(m, 0, np.full_like(m[0], 255)), "view 1: the mask covers the whole image"),
     (lambda m: _replace(m, 0, m[0] // 255 * np.arange(64, dtype=np.uint8)[None, :]), "view 1: the mask is not binary"),
-    (lambda m: _replace(m, 1, np.full(m[1].shape, "a")), "view 2: image data type"),
+    (lambda m: _replace(m, 1, np.full(m[1].shape, "a")), "view 2: data type"),
 ])
 def test_validate_targets_errors(case, make_bad, fragment):
     with pytest.raises(ReconstructionError) as info:
@@ -236,11 +106,11 @@ def test_reconstruction_outputs(run, case):
     assert result.occupancy.shape == result.field.shape == result.segmentation.shape == grid.shape
     assert result.occupancy.dtype == np.float32 and result.segmentation.dtype == bool
     assert np.all((result.occupancy >= 0) & (result.occupancy <= 1))
-    np.testing.assert_array_equal(result.segmentation, result.occupancy >= result.settings.threshold)
+    np.testing.assert_array_equal(result.segmentation, result.occupancy >= result.settings.region.threshold)
     assert result.support is not None and result.support.shape == grid.shape
     assert not np.any(case[1] & ~result.support)  # the fast preset's support holds the whole vessel
     assert not np.any(result.occupancy[~result.support])
-    assert result.settings.mode == mode and result.geometry == case[0]
+    assert result.settings.run.mode == mode and result.geometry == case[0]
     assert len(result.history) == STEPS and result.history[-1]["step"] == STEPS
     assert all(np.isfinite(h["loss"]) for h in result.history)
 
@@ -256,7 +126,7 @@ def test_reconstruction_report(run):
     assert report["timings_s"]["total"] > 0
     assert report["device"].startswith("cpu")
     assert "torch" in report["versions"]
-    assert (report["final_losses"]["l_geo"] > 0) == MODES[mode]["geometric"]
+    assert (report["final_losses"]["l_geo"] > 0) == MODES[mode].geometric_loss
     # the fast preset prunes whatever it segmented
     assert report["pruning"] is None if not result.segmentation.any() else report["pruning"]["pieces"] >= 1
 
@@ -280,7 +150,7 @@ def test_reconstruction_beats_the_empty_prediction(run, case):
     # The empty prediction scores L_occ = mean(mask) and soft Dice 0.
     mode, result, _ = run
     geometry, label, _, masks = case
-    tau = result.settings.silhouette_length_mm
+    tau = result.settings.loss.silhouette_length_mm
     occupancy = result.occupancy
     rendered = [silhouette(torch.as_tensor(project_volume(occupancy, v, geometry.volume)), tau).numpy() for v in geometry.views]
     l_occ = np.mean([np.mean((r - m) ** 2) for r, m in zip(rendered, masks)])

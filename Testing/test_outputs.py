@@ -26,7 +26,7 @@ def _reconstruction(geometry, occupancy: np.ndarray):
     from SDFCARLib.optimiser import Reconstruction, make_settings
 
     settings = make_settings("fast", steps=1)
-    report = {"method": "test", "settings": settings.to_dict(), "seed": settings.seed, "reprojection_dice": [1.0, 1.0]}
+    report = {"method": "test", "settings": settings.to_dict(), "seed": settings.run.seed, "reprojection_dice": [1.0, 1.0]}
     field = np.log((1 - occupancy + 1e-6) / (occupancy + 1e-6)).astype(np.float32)
     return Reconstruction(geometry, settings, occupancy, field, occupancy >= 0.5, None, report, [])
 

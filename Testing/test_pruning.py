@@ -7,10 +7,10 @@ import pytest
 
 from SDFCARLib.geometry import CArmView, Geometry, VolumeGrid
 from SDFCARLib.metrics import mask_dice
-from SDFCARLib.optimiser import ReconstructionError, make_settings
+from SDFCARLib.settings import make_settings
 from SDFCARLib.phantoms import Branch, CenterlineTree, simulate_views, voxelize
 from SDFCARLib.projector import project_volume
-from SDFCARLib.pruning import PruneSettings, drop_small_components, prune_redundant_branches, removal_zone, skeleton_pieces
+from SDFCARLib.pruning import PruneSettings, prune_redundant_branches, removal_zone, skeleton_pieces
 
 GRID = VolumeGrid((40, 40, 40), (1.0, 1.0, 1.0))
 # AP sees (x, z), LAO 90 sees (y, z): two vertical vessels make two lines in each view.
@@ -113,23 +113,5 @@ def test_removal_zone_covers_the_removed_voxels_and_spares_the_kept(ghost_case):
 
 
 def test_presets_prune_only_in_fast():
-    assert make_settings("fast").prune is True
-    assert make_settings("paper").prune is False  # the published recipe has no post-processing
-
-
-def test_small_components_are_dropped_relative_to_the_largest():
-    vessel = _tube(0.5, 0.5, -15.0, 15.0, 1.5)
-    speck = np.zeros(GRID.shape, bool)
-    speck[2:4, 2:4, 2:4] = True  # 8 voxels, far from the vessel
-    assert speck.sum() < 0.05 * vessel.sum()
-    both = vessel | speck
-    np.testing.assert_array_equal(drop_small_components(both, 0.05), vessel)
-    np.testing.assert_array_equal(drop_small_components(both, 0.0), both)  # 0 keeps everything
-    np.testing.assert_array_equal(drop_small_components(both, speck.sum() / vessel.sum()), both)
-    assert not drop_small_components(np.zeros(GRID.shape, bool), 0.5).any()
-
-
-def test_min_component_fraction_is_validated_and_off_by_default():
-    assert make_settings("fast").prune_min_component_fraction == 0.0
-    with pytest.raises(ReconstructionError, match="prune_min_component_fraction"):
-        make_settings("fast", prune_min_component_fraction=1.5)
+    assert make_settings("fast").region.prune is True
+    assert make_settings("paper").region.prune is False  # the published recipe has no post-processing

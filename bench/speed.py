@@ -38,7 +38,6 @@ VARIANTS = {
     "fast w128": ("fast", {"width": 128}, False),
     "fast 800 steps": ("fast", {"steps": 800}, False),
     "fast sdf-occ": ("fast", {"mode": "sdf-occ"}, False),
-    "fast width-mask": ("fast", {"mask_model": "width"}, False),
 }
 THRESHOLDS = (0.5, 0.6, 0.7, 0.75, 0.8)
 
@@ -91,7 +90,7 @@ def worker(spec: dict) -> dict:
     curve = []
 
     def snapshot(step, occupancy):
-        seg = occupancy >= settings.threshold
+        seg = occupancy >= settings.region.threshold
         m = metrics.volume_metrics(seg, case.label, case.geometry.volume.spacing_mm)
         curve.append({"step": step, "cldice": m["cldice"], "dice": m["dice"]})
 
@@ -101,7 +100,7 @@ def worker(spec: dict) -> dict:
     wall = time.perf_counter() - t0
     timings = result.report["timings_s"]
     out = {"case": spec["case"], "variant": spec["variant"], "timings": timings, "wall_s": wall,
-           "support_voxels": result.report["support_voxels"], "steps_run": settings.steps,
+           "support_voxels": result.report["support_voxels"], "steps_run": settings.optimisation.steps,
            "peak_rss_gib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20}
     if spec["timing_only"]:
         full_steps = spec["full_steps"]

@@ -1,0 +1,243 @@
+"""Inputs from a scene: X-ray frames and vessel masks from volume, segmentation and sequence nodes.
+
+2D frames in volume nodes
+    An X-ray frame in Slicer is a volume with one slice (a PNG/TIFF read by ITK, one frame of an
+    XA cine run loaded by the DICOM module as a sequence). Its array ``[k, j, i]`` has ``j`` along
+    image rows (top to bottom, as stored in the file) and ``i`` along columns, so pixel
+    ``(row, col)`` is ``array[0, row, col]`` whatever the node's IJK→RAS matrix.
+
+Masks
+    A mask read from a volume node passes the library's one mask rule, ``masks.binarise_mask``
+    (not empty, not everything, finite, ...), so the GUI accepts exactly what the command line does.
+
+DICOM references
+    ``dicom_frame_reference`` names the file and frame a shown frame came from (the SOP instance UID
+    the DICOM module stores on the node), for reading the C-arm geometry from its header.
+"""
+
+from __future__ import annotations
+
+from typing import Any, List, Optional, Sequence, Tuple
+
+import numpy as np
+
+from ..masks import MaskError, binarise_mask
+from .results import _segment_ids, _segment_mask_at_ras
+from .scene import (MRMLBridgeError, _image_data, _numpy_matrix, _slicer, _vtk_matrix, nodes_by_class, prepare_scene,
+                    scene_transaction)
+
+
+def frame_from_volume_node(node, slice_index: Optional[int] = None) -> np.ndarray:
+    """The 2D frame (rows, cols), float32, of a volume node holding an X-ray image.
+
+    The node must hold one slice (or give ``slice_index`` for a multi-frame volume); pixel
+    (row, col) is ``array[slice, row, col]`` (see the module docstring). RGB frames become grey.
+    """
+    from vtk.util import numpy_support
+
+    if node is None or not hasattr(node, "GetImageData"):
+        raise MRMLBridgeError("no volume node given; choose the volume that holds the X-ray frame")
+    image = node.GetImageData()
+    if image is None or image.GetPointData().GetScalars() is None:
+        raise MRMLBridgeError(f"volume {node.GetName()!r} holds no image data; load the frame first")
+    dims = image.GetDimensions()
+    scalars = image.GetPointData().GetScalars()
+    components = scalars.GetNumberOfComponents()
+    array = numpy_support.vtk_to_numpy(scalars).reshape(dims[2], dims[1], dims[0], components)
+    array = array.astype(np.float32)
+    array = array[..., 0] if components == 1 else array[..., : min(components, 3)].mean(axis=-1)
+    if dims[2] == 1:
+        return array[0]
+    if slice_index is None:
+        raise MRMLBridgeError(
+            f"volume {node.GetName()!r} has {dims[2]} slices; an X-ray frame has one. Choose the frame "
+            "(slice index), or load the cine run as a sequence and pick its frame")
+    if not 0 <= slice_index < dims[2]:
+        raise MRMLBridgeError(f"slice index {slice_index} is out of range for volume {node.GetName()!r} with {dims[2]} slices")
+    return array[slice_index]
+
+
+def mask_from_volume_node(node, threshold: Optional[float] = None, slice_index: Optional[int] = None,
+                          label: Optional[float] = None) -> np.ndarray:
+    """A boolean vessel mask (rows, cols) from a labelmap or scalar volume node holding a 2D frame.
+
+    Labelmaps and two-valued volumes give ``value != 0`` (``label``: only that value); other
+    scalar volumes need ``threshold`` (vessel = value > threshold). The result must pass
+    ``masks.binarise_mask``: a two-valued image whose background is not 0 is refused there.
+    """
+    frame = frame_from_volume_node(node, slice_index)
+    if threshold is not None:
+        frame = frame > float(threshold)
+    elif label is None and not node.IsA("vtkMRMLLabelMapVolumeNode"):
+        # A grey X-ray frame chosen by mistake would pass as "every non-zero pixel is vessel".
+        values = np.unique(frame)
+        if values.size > 2:
+            raise MRMLBridgeError(
+                f"volume {node.GetName()!r} holds {values.size} different values, so it is an image, not a mask; "
+                "give a labelmap or segmentation of the vessels, or a threshold")
+    try:
+        return binarise_mask(frame, label=label, source=f"volume {node.GetName()!r}")
+    except MaskError as exc:
+        raise MRMLBridgeError(str(exc)) from exc
+
+
+def mask_from_segmentation_node(segmentation_node, reference_volume_node=None,
+                                segments: Optional[Sequence[str]] = None, slice_index: Optional[int] = None) -> np.ndarray:
+    """A boolean vessel mask (rows, cols) on a 2D frame from a segmentation node.
+
+    The mask is the union of ``segments`` (IDs or names; default: every segment) sampled at the
+    pixel centres of ``reference_volume_node`` (default: the segmentation's reference geometry
+    volume), which holds the frame (slice ``slice_index`` of a multi-frame volume).
+    """
+    slicer = _slicer()
+    if segmentation_node is None or not segmentation_node.IsA("vtkMRMLSegmentationNode"):
+        raise MRMLBridgeError("no segmentation node given; choose the segmentation of the vessels")
+    if reference_volume_node is None:
+        role = slicer.vtkMRMLSegmentationNode.GetReferenceImageGeometryReferenceRole()
+        reference_volume_node = segmentation_node.GetNodeReference(role)
+        if reference_volume_node is None:
+            raise MRMLBridgeError(
+                f"segmentation {segmentation_node.GetName()!r} has no reference volume; give the frame's volume node")
+    all_ids = _segment_ids(segmentation_node)
+    if not all_ids:
+        raise MRMLBridgeError(f"segmentation {segmentation_node.GetName()!r} has no segment; paint the vessels first")
+    segmentation = segmentation_node.GetSegmentation()
+    chosen: List[str] = []
+    for key in (segments if segments is not None else all_ids):
+        if key in all_ids:
+            chosen.append(key)
+            continue
+        by_name = segmentation.GetSegmentIdBySegmentName(key)
+        if not by_name:
+            names = [segmentation.GetSegment(i).GetName() for i in all_ids]
+            raise MRMLBridgeError(f"segmentation {segmentation_node.GetName()!r} has no segment {key!r} (segments: {', '.join(names)})")
+        chosen.append(by_name)
+    rows, cols = frame_from_volume_node(reference_volume_node, slice_index).shape
+    vtk_matrix = _vtk_matrix(np.eye(4))
+    reference_volume_node.GetIJKToRASMatrix(vtk_matrix)
+    ijk_to_ras = _numpy_matrix(vtk_matrix)
+    k = 0 if reference_volume_node.GetImageData().GetDimensions()[2] == 1 else int(slice_index)
+    jj, ii = np.meshgrid(np.arange(rows), np.arange(cols), indexing="ij")
+    ijk = np.stack([ii.reshape(-1), jj.reshape(-1), np.full(rows * cols, k)], axis=-1).astype(np.float64)
+    ras = ijk @ ijk_to_ras[:3, :3].T + ijk_to_ras[:3, 3]
+    mask = np.zeros(rows * cols, dtype=bool)
+    for segment_id in chosen:
+        mask |= _segment_mask_at_ras(segmentation_node, segment_id, ras)
+    return mask.reshape(rows, cols)
+
+
+def add_frame_volume_node(scene, frame: np.ndarray, name: str, pixel_spacing_mm: Sequence[float] = (1.0, 1.0),
+                          class_name: str = "vtkMRMLScalarVolumeNode"):
+    """A volume node with one slice holding a 2D frame (rows, cols), laid out as Slicer's DICOM
+    module lays out XA frames (IJK→RAS = diag(−col spacing, −row spacing, 1))."""
+    frame = np.asarray(frame)
+    if frame.ndim != 2:
+        raise MRMLBridgeError(f"frame {name!r} must be 2D (rows, cols), got shape {frame.shape}")
+    if frame.dtype == bool:
+        frame = frame.astype(np.uint8)
+    node = scene.AddNewNodeByClass(class_name, name)
+    node.SetAndObserveImageData(_image_data(frame.T[:, :, None]))
+    node.SetIJKToRASMatrix(_vtk_matrix(np.diag([-float(pixel_spacing_mm[1]), -float(pixel_spacing_mm[0]), 1.0, 1.0])))
+    node.CreateDefaultDisplayNodes()
+    return node
+
+
+def _frame_labelmap(mask: np.ndarray, frame_node):
+    """vtkOrientedImageData of a 2D mask (rows, cols) laid on a frame volume node's pixels."""
+    import vtk
+
+    slicer = _slicer()
+    mask = np.asarray(mask, dtype=bool)
+    frame = frame_from_volume_node(frame_node)
+    if mask.shape != frame.shape:
+        raise MRMLBridgeError(f"mask shape {mask.shape} differs from the frame shape {frame.shape} of {frame_node.GetName()!r}")
+    labelmap = slicer.vtkOrientedImageData()
+    labelmap.ShallowCopy(_image_data(mask.T[:, :, None].astype(np.uint8), vtk.VTK_UNSIGNED_CHAR))
+    matrix = _vtk_matrix(np.eye(4))
+    frame_node.GetIJKToRASMatrix(matrix)
+    labelmap.SetImageToWorldMatrix(matrix)
+    return labelmap
+
+
+def set_segment_mask(segmentation_node, mask: np.ndarray, frame_node, segment_name: str = "Vessels",
+                     color: Sequence[float] = (1.0, 0.3, 0.3)) -> str:
+    """Replace (or add) the segment ``segment_name`` with a 2D mask (rows, cols) on a frame; return its ID."""
+    slicer = _slicer()
+    if segmentation_node.GetScene() is not None:
+        prepare_scene(segmentation_node.GetScene())
+    labelmap = _frame_labelmap(mask, frame_node)
+    segmentation = segmentation_node.GetSegmentation()
+    segment_id = segmentation.GetSegmentIdBySegmentName(segment_name)
+    if segment_id:
+        if not slicer.vtkSlicerSegmentationsModuleLogic.SetBinaryLabelmapToSegment(
+                labelmap, segmentation_node, segment_id, slicer.vtkSlicerSegmentationsModuleLogic.MODE_REPLACE):
+            raise MRMLBridgeError(f"Slicer could not write the mask into segment {segment_name!r} of {segmentation_node.GetName()!r}")
+        return segment_id
+    return segmentation_node.AddSegmentFromBinaryLabelmapRepresentation(labelmap, segment_name, [float(c) for c in color])
+
+
+def add_mask_segmentation_node(scene, mask: np.ndarray, frame_node, name: str, segment_name: str = "Vessels"):
+    """A segmentation node over a frame volume node holding a 2D mask (rows, cols) as one segment."""
+    prepare_scene(scene)
+    with scene_transaction(scene):
+        node = scene.AddNewNodeByClass("vtkMRMLSegmentationNode", name)
+        node.CreateDefaultDisplayNodes()
+        node.SetReferenceImageGeometryParameterFromVolumeNode(frame_node)
+        set_segment_mask(node, mask, frame_node, segment_name)
+    return node
+
+
+def sequence_of_proxy_node(scene, proxy_node) -> Tuple[Any, Any]:
+    """(browser node, sequence node) that drive ``proxy_node``, or (None, None) if none does."""
+    if proxy_node is None:
+        return None, None
+    for browser in nodes_by_class(scene, "vtkMRMLSequenceBrowserNode"):
+        if browser.IsProxyNodeID(proxy_node.GetID()):
+            return browser, browser.GetSequenceNode(proxy_node)
+    return None, None
+
+
+def sequence_frame_node(sequence, index: int):
+    """Data node of frame ``index`` (0-based) of a sequence node or of a browser's main sequence."""
+    if sequence is not None and sequence.IsA("vtkMRMLSequenceBrowserNode"):
+        browser = sequence
+        sequence = browser.GetMasterSequenceNode()
+        if sequence is None:
+            raise MRMLBridgeError(f"sequence browser {browser.GetName()!r} has no sequence")
+    if sequence is None or not sequence.IsA("vtkMRMLSequenceNode"):
+        raise MRMLBridgeError("no sequence given; choose the cine run loaded by the DICOM module")
+    count = sequence.GetNumberOfDataNodes()
+    if not 0 <= int(index) < count:
+        raise MRMLBridgeError(f"frame {index} is out of range: sequence {sequence.GetName()!r} has {count} frames (0 to {count - 1})")
+    return sequence.GetNthDataNode(int(index))
+
+
+def frame_from_sequence(sequence, index: int) -> np.ndarray:
+    """Frame ``index`` (0-based) of a cine run loaded as a sequence: a (rows, cols) float32 array."""
+    return frame_from_volume_node(sequence_frame_node(sequence, index))
+
+
+def dicom_instance_uid(node) -> Optional[str]:
+    """The SOP instance UID Slicer's DICOM module stored on a loaded volume (or frame), if any."""
+    if node is None:
+        return None
+    value = node.GetAttribute("DICOM.instanceUIDs")
+    return value.split()[0] if value else None
+
+
+def dicom_frame_reference(scene, node, index: int = -1) -> Tuple[Optional[str], Optional[int]]:
+    """(SOP instance UID, 0-based frame in that DICOM file) of the frame a volume node shows.
+
+    For a sequence proxy node, ``index`` picks the sequence item (-1: the item on display); a
+    multi-frame run loaded as one sequence shares one UID, so the item is the file's frame, while a
+    run stored one file per frame has a UID per item and frame 0 in each. For another volume the
+    frame is ``index`` (None when -1: let the DICOM reader choose).
+    """
+    browser, sequence = sequence_of_proxy_node(scene, node)
+    if sequence is None:
+        return dicom_instance_uid(node), (int(index) if index is not None and index >= 0 else None)
+    item = int(index) if index is not None and index >= 0 else int(browser.GetSelectedItemNumber())
+    data_node = sequence_frame_node(sequence, item)
+    uid = dicom_instance_uid(data_node)
+    uids = {dicom_instance_uid(sequence.GetNthDataNode(i)) for i in range(sequence.GetNumberOfDataNodes())}
+    return uid, (item if len(uids) == 1 else 0)

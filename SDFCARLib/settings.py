@@ -1,0 +1,368 @@
+"""Settings of a reconstruction, its presets and modes, the standard protocols and the metric registry.
+
+This module imports nothing heavy (no torch, no scikit-image), so the command line, the Slicer
+module and the benchmark read the lists from here instead of copying them, and ``--help`` stays
+fast.
+
+Settings
+    ``Settings`` groups the values by the component they steer: ``field`` (hash encoding + MLP),
+    ``optimisation`` (Adam, steps), ``loss`` (λ's and the distance maps of L_geo), ``region``
+    (where the field is evaluated and what of it becomes the result: support, threshold,
+    pruning) and ``run`` (preset, mode, seed, device, threads). Every key is unique across the
+    groups, so a setting is also named by its key alone — ``make_settings("fast", steps=200)``,
+    ``--set steps=200``, and the flat dict in ``report.json`` (``Settings.to_dict``).
+
+    The defaults are the published recipe (the ``paper`` preset). ``fast`` is written as the
+    difference from it: the field only on the masks' visual hull, a smaller network and table, a
+    higher learning rate for the hash table, fewer steps, L_geo on 2× max-pooled images, and the
+    skeleton pieces no mask pixel needs pruned afterwards (``pruning.py``). Why each differs is
+    said next to it; what it measured is in ``bench/RESULTS.md``.
+
+Modes
+    The paper's method and its ablations (Tables 1–4): which representation the field has and
+    whether L_geo is used.
+
+Protocols
+    The views, grid and detector the benchmarks and the sample case use, and the line-integral
+    threshold (mm) that turns a simulated view into a mask.
+
+Metrics
+    Every reported metric once: its key (as in ``metrics.py`` and the tables), title, unit and which
+    direction is better.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import typing
+from dataclasses import dataclass
+from typing import Any, Dict, List, Mapping, Optional, Sequence, Tuple
+
+
+class ReconstructionError(ValueError):
+    """The inputs or settings cannot be reconstructed; the message names the problem and the fix."""
+
+
+# --- modes ------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class Mode:
+    key: str
+    title: str  # the long name (report.json, the Slicer module)
+    table_title: str  # the short row name of the paper's tables
+    field_kind: str  # "sdf": s(x) with occupancy σ(−α·s); "occupancy": the logit itself
+    geometric_loss: bool  # λ1·L_geo + λ2·L_occ when true, L_occ alone otherwise
+
+
+MODES: Dict[str, Mode] = {m.key: m for m in (
+    Mode("sdfcar", "SDF-CAR (SDF rep. + combined loss)", "SDF-CAR", "sdf", True),
+    Mode("neca", "NeCA (occupancy rep. + occupancy loss)", "NeCA", "occupancy", False),
+    Mode("occ-combined", "Occ. rep. + combined loss", "Occ. Rep. + Combined Loss", "occupancy", True),
+    Mode("sdf-occ", "SDF rep. + occupancy loss", "SDF Rep. + Occ. Loss", "sdf", False),
+)}
+DEFAULT_MODE = "sdfcar"
+TARGET_KINDS = ("mask", "line_integral")
+SUPPORTS = ("hull", "full")
+DEVICES = ("auto", "cpu", "cuda")
+
+
+# --- settings ---------------------------------------------------------------------------------------
+@dataclass
+class FieldSettings:
+    """The implicit field (``field.py``): multiresolution hash encoding, then a residual MLP."""
+
+    levels: int = 16
+    features_per_level: int = 2
+    log2_table_size: int = 19
+    base_resolution: int = 16
+    max_resolution: int = 256
+    width: int = 256
+    depth: int = 8
+    alpha: float = 50.0  # occupancy σ(−α·s) of the SDF modes
+    initial_occupancy: float = 0.01  # the output bias starts every voxel at this occupancy
+
+
+@dataclass
+class OptimisationSettings:
+    """Adam on the hash table and the MLP."""
+
+    steps: int = 5000
+    learning_rate: float = 1e-4
+    table_learning_rate: Optional[float] = None  # the hash table's; None: learning_rate
+    warmup_steps: int = 0  # linear warm-up of both learning rates
+    checkpoint_points: int = 262144  # >0: the MLP in checkpointed chunks of this many points (memory)
+
+
+@dataclass
+class LossSettings:
+    """λ1·L_geo + λ2·L_occ (``losses.py``)."""
+
+    lambda_geo: float = 1.0
+    lambda_occ: float = 0.25
+    silhouette_length_mm: float = 0.3  # path length at which a rendered ray counts as vessel
+    dt_downsample: int = 1  # L_geo on images max-pooled by this factor
+    dt_threshold: float = 0.5
+    dt_truncation_mm: float = 5.0  # distances clipped here
+    dt_kernel_size: int = 3
+
+
+@dataclass
+class RegionSettings:
+    """Where the field is evaluated, and what of it becomes the result."""
+
+    support: str = "full"  # "full": every voxel; "hull": the masks' visual hull widened by the margin
+    support_margin_mm: float = 0.5
+    threshold: float = 0.5  # segmentation = occupancy ≥ threshold
+    prune: bool = False  # remove the skeleton pieces no mask pixel needs (pruning.py)
+    prune_piece_mm: float = 6.0
+    prune_tolerance: float = 0.02
+
+
+@dataclass
+class RunSettings:
+    """What to run and where."""
+
+    preset: str = "paper"
+    mode: str = DEFAULT_MODE
+    seed: int = 0
+    device: str = "auto"  # "auto" | "cpu" | "cuda" | "cuda:N"
+    memory_check: bool = True  # refuse CPU runs whose estimated peak exceeds the available memory
+    threads: Optional[int] = None  # CPU threads for torch; None: torch's default
+
+
+GROUPS: Dict[str, type] = {
+    "field": FieldSettings, "optimisation": OptimisationSettings, "loss": LossSettings,
+    "region": RegionSettings, "run": RunSettings,
+}
+
+
+def _field_types(cls: type) -> Dict[str, Any]:
+    hints = typing.get_type_hints(cls)
+    return {f.name: hints[f.name] for f in dataclasses.fields(cls)}
+
+
+#: every setting's key → (its group, its type)
+SETTING_KEYS: Dict[str, Tuple[str, Any]] = {
+    key: (group, kind) for group, cls in GROUPS.items() for key, kind in _field_types(cls).items()
+}
+
+
+@dataclass
+class Settings:
+    field: FieldSettings = dataclasses.field(default_factory=FieldSettings)
+    optimisation: OptimisationSettings = dataclasses.field(default_factory=OptimisationSettings)
+    loss: LossSettings = dataclasses.field(default_factory=LossSettings)
+    region: RegionSettings = dataclasses.field(default_factory=RegionSettings)
+    run: RunSettings = dataclasses.field(default_factory=RunSettings)
+
+    @classmethod
+    def from_dict(cls, values: Mapping[str, Any]) -> "Settings":
+        """Settings from flat keys (``to_dict``'s form); unknown keys are an error."""
+        unknown = sorted(set(values) - set(SETTING_KEYS))
+        if unknown:
+            raise ReconstructionError(f"unknown setting(s): {', '.join(unknown)}; known: {', '.join(sorted(SETTING_KEYS))}")
+        grouped: Dict[str, Dict[str, Any]] = {group: {} for group in GROUPS}
+        for key, value in values.items():
+            grouped[SETTING_KEYS[key][0]][key] = value
+        return cls(**{group: GROUPS[group](**kw) for group, kw in grouped.items()})
+
+    def to_dict(self) -> Dict[str, Any]:
+        """Every setting by its key (flat), as ``report.json`` and the job folders store them."""
+        out: Dict[str, Any] = {}
+        for group in GROUPS:
+            out.update(dataclasses.asdict(getattr(self, group)))
+        return out
+
+    def replace(self, **values: Any) -> "Settings":
+        """A copy with some settings changed, by key."""
+        return Settings.from_dict({**self.to_dict(), **values})
+
+    @property
+    def mode(self) -> Mode:
+        return MODES[self.run.mode]
+
+    def validate(self) -> None:
+        """Raise ``ReconstructionError`` naming the first setting out of range and its range."""
+        f, o, l, r, run = self.field, self.optimisation, self.loss, self.region, self.run
+        if run.preset not in PRESETS:
+            raise ReconstructionError(f"unknown preset {run.preset!r}; choose one of {', '.join(PRESETS)}")
+        if run.mode not in MODES:
+            raise ReconstructionError(f"unknown mode {run.mode!r}; choose one of {', '.join(MODES)}")
+        if r.support not in SUPPORTS:
+            raise ReconstructionError(f"support must be 'hull' or 'full', got {r.support!r}")
+        if o.steps < 1:
+            raise ReconstructionError(f"steps must be at least 1, got {o.steps}")
+        for name, value in (("learning_rate", o.learning_rate), ("alpha", f.alpha),
+                            ("silhouette_length_mm", l.silhouette_length_mm)):
+            if not value > 0:
+                raise ReconstructionError(f"{name} must be positive, got {value}")
+        if o.table_learning_rate is not None and not o.table_learning_rate > 0:
+            raise ReconstructionError(f"table_learning_rate must be positive or none, got {o.table_learning_rate}")
+        if l.dt_downsample < 1:
+            raise ReconstructionError("dt_downsample must be at least 1")
+        if o.warmup_steps < 0 or o.checkpoint_points < 0:
+            raise ReconstructionError("warmup_steps and checkpoint_points must not be negative")
+        if not r.prune_piece_mm > 0 or not 0 <= r.prune_tolerance < 1:
+            raise ReconstructionError("prune_piece_mm must be positive and prune_tolerance in [0, 1)")
+        if not 0 < r.threshold < 1:
+            raise ReconstructionError(f"threshold must be between 0 and 1, got {r.threshold}")
+        if run.device not in DEVICES and not str(run.device).startswith("cuda:"):
+            raise ReconstructionError(f"device must be auto, cpu or cuda, got {run.device!r}")
+        if run.threads is not None and run.threads < 1:
+            raise ReconstructionError(f"threads must be at least 1, got {run.threads}")
+
+
+# --- presets ----------------------------------------------------------------------------------------
+#: preset → the settings that differ from the published recipe (the defaults above)
+PRESETS: Dict[str, Dict[str, Any]] = {
+    "paper": {},
+    "fast": dict(
+        # the field only where both masks see vessel (elsewhere the masks already demand 0)
+        support="hull",
+        # a CPU cannot afford 8 × 256 on every voxel; the hash table holds the spatial detail
+        levels=8, log2_table_size=17, width=64, checkpoint_points=0,
+        # 400 steps converge only with the table at 1e-2; the MLP at 1e-3 (α = 50 amplifies its
+        # output layer's steps), both warmed up so that Adam's first steps do not saturate σ(−α·s)
+        steps=400, learning_rate=1e-3, table_learning_rate=1e-2, warmup_steps=20,
+        dt_downsample=2,
+        # two views cannot rule out ghost branches: drop the pieces no mask pixel needs
+        prune=True,
+    ),
+}
+DEFAULT_PRESET = "fast"
+
+
+def make_settings(preset: str = DEFAULT_PRESET, **overrides: Any) -> Settings:
+    """Settings of a preset with any setting overridden by key (None values are ignored); validated."""
+    if preset not in PRESETS:
+        raise ReconstructionError(f"unknown preset {preset!r}; choose one of {', '.join(PRESETS)}")
+    values = dict(PRESETS[preset])
+    values.update({k: v for k, v in overrides.items() if v is not None and k != "preset"})
+    values["preset"] = preset
+    settings = Settings.from_dict(values)
+    settings.validate()
+    return settings
+
+
+def setting_help() -> str:
+    """One line per setting key with its type and default, for ``--help``."""
+    defaults = Settings().to_dict()
+    lines = []
+    for group in GROUPS:
+        keys = [k for k, (g, _) in SETTING_KEYS.items() if g == group]
+        lines.append(f"{group}: " + ", ".join(f"{k}={defaults[k]}" for k in keys))
+    return "; ".join(lines)
+
+
+def parse_setting_overrides(items: Optional[Sequence[str]], reserved: Optional[Mapping[str, str]] = None) -> Dict[str, Any]:
+    """``["learning_rate=1e-3", "memory_check=false"]`` (command-line ``--set``) → typed overrides.
+
+    Each value is read as its setting's declared type. ``reserved`` maps the settings that the
+    caller sets itself to the option to use instead.
+    """
+    reserved = reserved or {}
+    out: Dict[str, Any] = {}
+    for item in items or ():
+        key, sep, text = str(item).partition("=")
+        key = key.strip()
+        if not sep or not key:
+            raise ReconstructionError(f"--set {item!r}: write KEY=VALUE, e.g. --set learning_rate=1e-3")
+        if key in reserved:
+            raise ReconstructionError(f"--set {key}=…: {key} is set by this command; {reserved[key]}")
+        if key not in SETTING_KEYS:
+            known = ", ".join(sorted(set(SETTING_KEYS) - set(reserved) - {"preset"}))
+            raise ReconstructionError(f"--set {key}=…: unknown setting {key!r}; known: {known}")
+        out[key] = typed_setting_value(key, text.strip(), SETTING_KEYS[key][1])
+    return out
+
+
+def typed_setting_value(key: str, text: str, kind: Any) -> Any:
+    """The text of ``--set key=text`` as ``kind`` (bool, int, float, str, or Optional of one)."""
+    optional = typing.get_origin(kind) is typing.Union and type(None) in typing.get_args(kind)
+    base = next(a for a in typing.get_args(kind) if a is not type(None)) if optional else kind
+    lowered = text.lower()
+    if lowered in ("none", "null"):
+        if optional:
+            return None
+        raise ReconstructionError(f"--set {key}={text}: {key} needs a value ({base.__name__})")
+    if base is bool:
+        if lowered in ("true", "1", "yes", "on"):
+            return True
+        if lowered in ("false", "0", "no", "off"):
+            return False
+        raise ReconstructionError(f"--set {key}={text}: {key} takes true or false")
+    if base is int:
+        try:
+            number = float(text)
+        except ValueError:
+            number = math.nan
+        if not (math.isfinite(number) and number == int(number)):
+            raise ReconstructionError(f"--set {key}={text}: {key} takes a whole number")
+        return int(number)
+    if base is float:
+        try:
+            number = float(text)
+        except ValueError:
+            raise ReconstructionError(f"--set {key}={text}: {key} takes a number, e.g. 1e-3") from None
+        if not math.isfinite(number):
+            raise ReconstructionError(f"--set {key}={text}: {key} must be finite")
+        return number
+    return text.strip("'\"")
+
+
+# --- protocols --------------------------------------------------------------------------------------
+#: a simulated view's mask is its line integral above this path length (mm): fainter shadows
+#: are too faint to segment
+MASK_THRESHOLD_MM = 0.2
+
+#: the paper's grid and detector (NeCA / SDF-CAR): 128³ voxels of 0.8 mm, 512² pixels of 0.278 mm
+PAPER_VOLUME_SHAPE: Tuple[int, int, int] = (128, 128, 128)
+PAPER_SPACING_MM = 0.8
+PAPER_DETECTOR_SHAPE: Tuple[int, int] = (512, 512)
+PAPER_DETECTOR_SPACING_MM = 0.278
+
+#: benchmark protocol → (view pair of ``geometry.VIEW_PAIRS``, target kind)
+PROTOCOLS: Dict[str, Tuple[str, str]] = {
+    "paper": ("paper", "line_integral"),
+    "clinical-lao30-rao30": ("lao30-rao30", "mask"),
+    "clinical-lao50cra25-rao50cra25": ("lao50cra25-rao50cra25", "mask"),
+}
+
+
+# --- metrics ----------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class Metric:
+    key: str
+    title: str
+    unit: str  # "" for ratios in [0, 1]
+    higher_is_better: bool
+    table_scale: float = 1.0  # the benchmark tables print value × scale …
+    table_decimals: int = 3  # … with this many decimals
+
+    @property
+    def table_header(self) -> str:
+        if self.table_scale == 100.0:
+            return f"{self.title} (%)"
+        if self.table_scale != 1.0:
+            return f"{self.title} (×{1 / self.table_scale:.0e})".replace("e-0", "e-")
+        return f"{self.title} ({self.unit})" if self.unit else self.title
+
+
+METRICS: Dict[str, Metric] = {m.key: m for m in (
+    Metric("cldice", "clDice", "", True, 100.0, 2),
+    Metric("tprec", "topology precision", "", True, 100.0, 2),
+    Metric("tsens", "topology sensitivity", "", True, 100.0, 2),
+    Metric("skeleton_dice", "skeleton-Dice", "", True, 100.0, 2),
+    Metric("dice", "Dice", "", True, 100.0, 2),
+    Metric("iou", "IoU", "", True, 100.0, 2),
+    Metric("chamfer_l2_mm", "Chamfer-ℓ2", "mm", False, 1.0, 2),
+    Metric("re_error", "reError", "", False, 1.0, 3),
+    Metric("re_mse", "reMSE", "", False, 1e4, 2),
+    Metric("reprojection_dice", "reprojection Dice", "", True, 100.0, 2),
+    Metric("components", "connected components", "", False, 1.0, 0),
+)}
+
+#: the metrics of a reconstruction against a ground truth, in the order they are reported
+GROUND_TRUTH_METRICS: List[str] = ["cldice", "skeleton_dice", "dice", "iou", "chamfer_l2_mm", "re_error", "re_mse"]
+#: the six metrics of the paper's tables
+PAPER_METRICS: Tuple[str, ...] = ("cldice", "dice", "iou", "re_error", "chamfer_l2_mm", "re_mse")

@@ -1,0 +1,120 @@
+"""Settings: the published recipe as defaults, presets, modes, typed overrides, and no torch on import."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import pytest
+
+from SDFCARLib.settings import (
+    GROUPS,
+    METRICS,
+    MODES,
+    PRESETS,
+    SETTING_KEYS,
+    ReconstructionError,
+    Settings,
+    make_settings,
+    parse_setting_overrides,
+    setting_help,
+)
+
+
+def test_importing_settings_loads_no_torch():
+    code = "import sys, SDFCARLib.settings; assert 'torch' not in sys.modules, 'torch was imported'"
+    subprocess.run([sys.executable, "-c", code], check=True)
+
+
+def test_defaults_are_the_published_recipe_and_paper_adds_nothing():
+    s = make_settings("paper")
+    assert PRESETS["paper"] == {} and s.to_dict() == {**Settings().to_dict(), "preset": "paper"}
+    assert s.run.preset == "paper" and s.run.mode == "sdfcar"
+    assert s.optimisation.learning_rate == 1e-4 and s.optimisation.steps == 5000
+    assert (s.loss.lambda_geo, s.loss.lambda_occ, s.field.alpha) == (1.0, 0.25, 50.0)
+    assert (s.field.levels, s.field.log2_table_size, s.field.features_per_level) == (16, 19, 2)
+    assert (s.field.width, s.field.depth) == (256, 8)
+    assert s.region.support == "full" and s.loss.dt_downsample == 1
+
+
+def test_fast_preset_keeps_losses_and_representation():
+    paper, fast = make_settings("paper"), make_settings("fast")
+    assert fast.run.preset == "fast" and fast.region.support == "hull" and fast.region.prune
+    assert fast.optimisation.steps < paper.optimisation.steps
+    assert (fast.loss.lambda_geo, fast.loss.lambda_occ, fast.field.alpha) == (1.0, 0.25, 50.0)
+    assert fast.mode.field_kind == paper.mode.field_kind == "sdf"
+    # every key of a preset is a setting
+    assert all(set(values) <= set(SETTING_KEYS) for values in PRESETS.values())
+
+
+@pytest.mark.parametrize("preset", sorted(PRESETS))
+@pytest.mark.parametrize("mode, kind, geometric", [
+    ("sdfcar", "sdf", True), ("neca", "occupancy", False), ("occ-combined", "occupancy", True), ("sdf-occ", "sdf", False),
+])
+def test_modes_select_representation_and_loss(preset, mode, kind, geometric):
+    s = make_settings(preset, mode=mode)
+    assert s.run.mode == mode and s.run.preset == preset
+    assert s.mode.field_kind == kind and MODES[mode].geometric_loss is geometric
+    assert s.to_dict()["mode"] == mode
+
+
+def test_keys_are_unique_across_groups_and_round_trip():
+    keys = [f for cls in GROUPS.values() for f in cls.__dataclass_fields__]
+    assert len(keys) == len(set(keys)) == len(SETTING_KEYS)
+    s = make_settings("fast", steps=30, seed=5, support_margin_mm=1.5)
+    assert Settings.from_dict(s.to_dict()) == s
+    assert s.replace(steps=31).optimisation.steps == 31 and s.optimisation.steps == 30
+
+
+def test_overrides_and_none_values():
+    s = make_settings("fast", steps=30, seed=5, learning_rate=None)
+    assert s.optimisation.steps == 30 and s.run.seed == 5
+    assert s.optimisation.learning_rate == make_settings("fast").optimisation.learning_rate
+
+
+@pytest.mark.parametrize("kwargs, fragment", [
+    (dict(preset="slow"), "unknown preset 'slow'"),
+    (dict(mode="nerf"), "unknown mode 'nerf'"),
+    (dict(stepz=10), "unknown setting(s): stepz"),
+    (dict(steps=0), "steps"),
+    (dict(learning_rate=-1.0), "learning_rate"),
+    (dict(alpha=0.0), "alpha"),
+    (dict(device="tpu"), "device"),
+    (dict(support="box"), "support"),
+    (dict(dt_downsample=0), "dt_downsample"),
+    (dict(threshold=1.0), "threshold"),
+    (dict(threads=0), "threads"),
+])
+def test_bad_settings(kwargs, fragment):
+    kwargs = dict(kwargs)
+    preset = kwargs.pop("preset", "fast")
+    with pytest.raises(ReconstructionError) as info:
+        make_settings(preset, **kwargs)
+    assert fragment in str(info.value)
+
+
+def test_setting_overrides_are_typed_from_the_fields():
+    assert parse_setting_overrides(["support_margin_mm=2", "memory_check=false", "levels=8",
+                                    "table_learning_rate=none", "support=hull"]) == {
+        "support_margin_mm": 2.0, "memory_check": False, "levels": 8, "table_learning_rate": None, "support": "hull"}
+    assert isinstance(parse_setting_overrides(["support_margin_mm=2"])["support_margin_mm"], float)
+    for item, message in [("levels=8.5", "whole number"), ("learning_rate=fast", "takes a number"),
+                          ("noequals", "KEY=VALUE"), ("bogus=1", "unknown setting"),
+                          ("memory_check=maybe", "true or false"), ("alpha=inf", "finite"),
+                          ("steps=none", "needs a value")]:
+        with pytest.raises(ReconstructionError, match=message):
+            parse_setting_overrides([item])
+    with pytest.raises(ReconstructionError, match="use --seed"):
+        parse_setting_overrides(["seed=3"], reserved={"seed": "use --seed"})
+
+
+def test_help_lists_every_key_with_its_default():
+    text = setting_help()
+    assert all(f"{key}=" in text for key in SETTING_KEYS)
+    assert "steps=5000" in text and "alpha=50.0" in text
+
+
+def test_metric_registry():
+    assert METRICS["cldice"].higher_is_better and not METRICS["chamfer_l2_mm"].higher_is_better
+    assert METRICS["chamfer_l2_mm"].unit == "mm"
+    assert METRICS["dice"].table_header == "Dice (%)" and METRICS["re_mse"].table_header == "reMSE (×1e-4)"
