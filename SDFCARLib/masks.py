@@ -411,6 +411,8 @@ def segment_angiogram(
     Absent values take typical ones (reported in the parameters). Raises ``MaskError`` naming
     the problem for frames it cannot segment (flat, mostly collimator, no vessel, colour…).
     """
+    from skimage.filters import apply_hysteresis_threshold
+
     s = settings if settings is not None else AngioMaskSettings()
     s.check()
     started = time.perf_counter()
@@ -426,7 +428,7 @@ def segment_angiogram(
     log_image = -np.log(np.maximum(image - min(float(image.min()), 0.0), floor))
     r_max_px = float(geometry["vessel_radius_px"][1])
     margin_px = int(np.ceil(2.0 * max(sigmas))) + 2
-    border, shutter, border_info = _border(-log_image, s, max(1, int(round(0.5 * r_max_px))), margin_px,
+    border, _, border_info = _border(-log_image, s, max(1, int(round(0.5 * r_max_px))), margin_px,
                                            int(np.ceil(4.0 * r_max_px)))
     field = ~border
     if field.mean() < s.min_field_fraction:
@@ -436,11 +438,13 @@ def segment_angiogram(
     # Fill the border with the nearest field values so the filters see no shutter edge.
     _, (ri, ci) = ndimage.distance_transform_edt(border, return_indices=True)
     filled = log_image[ri, ci]
-    # Background: grey opening (vessels are bright in −log I and narrower than the window) of the
-    # lightly smoothed image, smoothed; subtracting it removes tissue, ribs, diaphragm and exposure.
+    # Background: grey opening by a disk wider than the widest vessel (vessels are bright in −log I)
+    # of the lightly smoothed image; subtracting it removes tissue, ribs, diaphragm and exposure.
+    # Only the opening's blockiness is smoothed away: a window-wide smoothing bends at kinks
+    # (the field's edge) and made false ridges there.
     window = 2 * int(np.ceil(1.5 * r_max_px)) + 3
     base = _disk_opening(ndimage.gaussian_filter(filled, 1.0), window // 2)
-    background = ndimage.gaussian_filter(base, 2.0)  # only the blockiness of the opening: a box this wide would bend at kinks
+    background = ndimage.gaussian_filter(base, 2.0)
     # Quantum noise is larger in −log I where fewer photons arrive (behind the diaphragm, the
     # spine): the top-hat is divided by a local noise level so that thresholds mean the same
     # everywhere.
@@ -457,8 +461,6 @@ def segment_angiogram(
                         "vessel-like structure (flat or saturated frame?)")
     normalised = np.where(field, (response - median) / spread, 0.0)
     high, low = s.high_noise_units, s.low_noise_units
-    from skimage.filters import apply_hysteresis_threshold
-
     raw = apply_hysteresis_threshold(normalised, low, high) & field
     # The ridge response spreads beyond the vessel at the large scales: the silhouette is where
     # the (lightly smoothed) top-hat itself stands out of its noise.
