@@ -41,11 +41,27 @@ def _addLibraryPath():
 
 _addLibraryPath()
 
-#: Python packages the reconstruction needs: import name -> pip requirement.
-REQUIREMENTS = {"torch": "torch", "skimage": "scikit-image", "pydicom": "pydicom"}
-PRESETS = ["fast", "paper"]
-MODES = ["sdfcar", "neca", "occ-combined", "sdf-occ"]
-DEVICES = ["auto", "cpu", "cuda"]
+import SDFCARLib.settings as SDFCARSettings  # noqa: E402  (found through the path added above)
+
+#: The one list of Python packages SDFCAR needs that Slicer does not bundle: import name -> pip
+#: requirement. Slicer bundles numpy, scipy, pydicom, pillow, requests, packaging and VTK (its
+#: SuperBuild/External_python-*.cmake), so they are not here. The worker process (PythonSlicer)
+#: shares Slicer's site-packages, so what is installed here serves both. torch comes first: the
+#: PyTorch extension's installer picks the build for the GPU when it is installed.
+#: Testing/test_slicer_dependencies.py checks this list against every import of SDFCARLib.
+REQUIREMENTS = {
+    "torch": "torch",
+    "skimage": "scikit-image",
+    "nrrd": "pynrrd",  # the worker writes its results as NRRD
+    "imageio": "imageio",  # the sample case's masks are PNG files
+}
+#: What each action needs, so a user who only loads the sample case is not asked for torch.
+SAMPLE_REQUIREMENTS = ["nrrd", "imageio"]
+VESSELNESS_REQUIREMENTS = ["skimage"]
+# The lists come from the library's torch-free settings module, so the GUI offers what the engine runs.
+PRESETS = list(SDFCARSettings.PRESETS)
+MODES = list(SDFCARSettings.MODES)
+DEVICES = list(SDFCARSettings.DEVICES)
 
 
 class SDFCAR(ScriptedLoadableModule):
@@ -73,8 +89,16 @@ It builds on NeCA (Wang et al., 2024). Not a medical device: for research use on
         slicer.app.connect("startupCompleted()", registerSampleData)
 
 
+SAMPLE_NAME = "SDFCAR two-view case"
+#: The file type of SDFCARFileReader, and the name the Sample Data module gives its cached copy.
+SAMPLE_FILE_TYPE = "SDFCARSampleCase"
+SAMPLE_FILE_NAME = "SDFCAR-sample.sdfcar.json"
+
+
 def registerSampleData():
     """Register the bundled two-view sample case with the Sample Data module."""
+    import inspect
+
     import SampleData
 
     if _addLibraryPath() is None:
@@ -82,16 +106,67 @@ def registerSampleData():
     from SDFCARLib.sample_data import SAMPLE_DIR
 
     iconsPath = os.path.join(os.path.dirname(__file__), "Resources", "Icons")
-    SampleData.SampleDataLogic.registerCustomSampleDataSource(
+    register = SampleData.SampleDataLogic.registerCustomSampleDataSource
+    # The console call SampleData.downloadSample(SAMPLE_NAME) ignores customDownloader (only the
+    # module's button uses it) and loads each file with the IO manager's reader for its file
+    # type; SDFCARFileReader below is that reader. The keyword is loadFileType up to Slicer 5.6
+    # and loadFileTypes from 5.8 (SampleData.py); the 5.6 default, "VolumeFile", would read the
+    # file as an image.
+    fileTypeKeyword = "loadFileTypes" if "loadFileTypes" in inspect.signature(register).parameters else "loadFileType"
+    register(
         category="SDFCAR",
-        sampleName="SDFCAR two-view case",
+        sampleName=SAMPLE_NAME,
         thumbnailFileName=os.path.join(iconsPath, "SDFCAR.png"),
-        # Bundled files: nothing to download, the custom loader reads them in place.
+        # Bundled files: nothing to download; the reader loads the case from the library folder.
         uris=(SAMPLE_DIR / "geometry.json").as_uri(),
-        fileNames="geometry.json",
+        fileNames=SAMPLE_FILE_NAME,
         nodeNames="SDFCAR sample",
-        customDownloader=lambda source: SDFCARLogic().loadSampleCase(),
+        customDownloader=lambda source: loadSampleCaseAsking(),
+        **{fileTypeKeyword: SAMPLE_FILE_TYPE},
     )
+
+
+def loadSampleCaseAsking():
+    """Load the sample case after offering to install what it needs; returns the nodes it added
+    (frame and mask of each view, then the ground truth), or [] when the user declines."""
+    logic = SDFCARLogic()
+    with slicer.util.tryWithErrorDisplay("Could not load the SDFCAR sample case.", waitCursor=True):
+        if not logic.ensureDependencies(SAMPLE_REQUIREMENTS):
+            return []
+        truth = logic.loadSampleCase()
+        p = logic.getParameterNode()
+        return [p.frame1, p.mask1, p.frame2, p.mask2, truth]
+
+
+class SDFCARFileReader:
+    """Reads the sample case's marker file (found by Slicer by its name: <module>FileReader), so
+    that SampleData.downloadSample("SDFCAR two-view case") loads the case from the console."""
+
+    def __init__(self, parent):
+        self.parent = parent
+
+    def description(self):
+        return "SDFCAR sample case"
+
+    def fileType(self):
+        return SAMPLE_FILE_TYPE
+
+    def extensions(self):
+        return ["SDFCAR sample case (*.sdfcar.json)"]
+
+    def canLoadFile(self, filePath):
+        return str(filePath).endswith(".sdfcar.json")
+
+    def load(self, properties):
+        try:
+            nodes = loadSampleCaseAsking()
+        except Exception:  # noqa: BLE001 - already shown to the user; the IO manager wants False
+            logging.exception("Could not load the SDFCAR sample case")
+            return False
+        if not nodes:
+            return False
+        self.parent.loadedNodes = [node.GetID() for node in nodes]
+        return True
 
 
 @parameterNodeWrapper
@@ -119,8 +194,8 @@ class SDFCARParameterNode:
     centerR: Annotated[float, WithinRange(-1000.0, 1000.0)] = 0.0
     centerA: Annotated[float, WithinRange(-1000.0, 1000.0)] = 0.0
     centerS: Annotated[float, WithinRange(-1000.0, 1000.0)] = 0.0
-    preset: Annotated[str, Choice(PRESETS)] = "fast"
-    mode: Annotated[str, Choice(MODES)] = "sdfcar"
+    preset: Annotated[str, Choice(PRESETS)] = SDFCARSettings.DEFAULT_PRESET
+    mode: Annotated[str, Choice(MODES)] = SDFCARSettings.DEFAULT_MODE
     device: Annotated[str, Choice(DEVICES)] = "auto"
     steps: Annotated[int, WithinRange(0, 1000000)] = 0
     seed: Annotated[int, WithinRange(0, 2147483647)] = 0
@@ -192,10 +267,11 @@ class SDFCARWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
     def setParameterNode(self, inputParameterNode):
         if self._parameterNode:
             self._parameterNode.disconnectGui(self._parameterNodeGuiTag)
+            self._parameterNodeGuiTag = None
             self.removeObserver(self._parameterNode, vtk.vtkCommand.ModifiedEvent, self._checkCanApply)
         self._parameterNode = inputParameterNode
         if self._parameterNode:
-            self._parameterNodeGuiTag = self._parameterNode.connectGui(self.ui)
+            self._parameterNodeGuiTag = self._parameterNode.connectParametersToGui(parameterWidgets(self.ui))
             self.addObserver(self._parameterNode, vtk.vtkCommand.ModifiedEvent, self._checkCanApply)
             self._checkCanApply()
 
@@ -223,7 +299,7 @@ class SDFCARWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
 
     def onVesselness(self, n):
         with slicer.util.tryWithErrorDisplay(f"Vesselness could not segment frame {n}.", waitCursor=True):
-            if not self.logic.ensureDependencies(["skimage"]):
+            if not self.logic.ensureDependencies(VESSELNESS_REQUIREMENTS):
                 return
             p = self._parameterNode
             segmentation, parameters = self.logic.vesselnessMask(
@@ -234,8 +310,6 @@ class SDFCARWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
 
     def onReadGeometry(self):
         with slicer.util.tryWithErrorDisplay("Could not read the C-arm geometry from the DICOM tags.", waitCursor=True):
-            if not self.logic.ensureDependencies(["pydicom"]):
-                return
             notes = self.logic.readGeometryFromDicom(self._parameterNode)
             self.ui.statusLabel.text = " ".join(["Geometry read from the DICOM tags."] + notes)
 
@@ -292,6 +366,24 @@ class SDFCARWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
             self.ui.statusLabel.text = f"Done: '{context['name']}' is in the scene (files in {context['jobDir']})."
 
 
+def parameterWidgets(ui):
+    """{parameter name: widget} of the widgets of ``ui`` (childWidgetVariables) that carry the
+    SlicerParameterName property.
+
+    The module connects this mapping with connectParametersToGui, which returns the tag that
+    disconnectGui needs on every Slicer version. connectGui(ui) returns None before Slicer 5.10,
+    so disconnectGui(None) left the old connectors live: the next connection rebuilt the combo
+    boxes and the old connectors wrote the last, then the first choice into the parameter node
+    (a scene saved with preset "paper" came back as "fast").
+    """
+    mapping = {}
+    for widget in vars(ui).values():
+        name = widget.property("SlicerParameterName") if hasattr(widget, "property") else None
+        if name:
+            mapping[str(name)] = widget
+    return mapping
+
+
 def describeProgress(info):
     """One status line from a job progress dict (step, total, loss, ETA, device)."""
     phase = info.get("phase")
@@ -320,9 +412,21 @@ class SDFCARLogic(ScriptedLoadableModuleLogic):
     # --- dependencies -----------------------------------------------------------------------------
     @staticmethod
     def missingDependencies(names=None):
+        """The import names of ``names`` (default: all of REQUIREMENTS) that cannot be imported."""
         import importlib.util
 
+        # find_spec trusts the import system's directory caches: without this, a package pip
+        # installed while Slicer runs can look missing until the next start.
+        importlib.invalidate_caches()
         return [name for name in (names or list(REQUIREMENTS)) if importlib.util.find_spec(name) is None]
+
+    @staticmethod
+    def dependencyError(missing):
+        """What to tell the user when the packages ``missing`` (import names) cannot be imported."""
+        requirements = [REQUIREMENTS.get(name, name) for name in missing]
+        return (f"SDFCAR needs these Python packages, which are not installed: {', '.join(requirements)}. "
+                "Install them with the SDFCAR module (Apply or Sample Data asks to), or in Slicer's Python console: "
+                f"slicer.util.pip_install({' '.join(requirements)!r}); then restart Slicer if they still look missing.")
 
     def ensureDependencies(self, names=None):
         """Offer to install missing packages (after confirmation); True when all are importable."""
@@ -350,7 +454,12 @@ class SDFCARLogic(ScriptedLoadableModuleLogic):
                 slicer.util.pip_install(requirements)
             else:
                 packaging.pip_ensure(requirements, prompt_install=False, requester="SDFCAR")
-        return not self.missingDependencies(names)
+        stillMissing = self.missingDependencies(names)
+        if stillMissing:
+            slicer.util.errorDisplay("The installation did not make every package importable. " + self.dependencyError(stillMissing),
+                                     windowTitle="SDFCAR dependencies")
+            return False
+        return True
 
     # --- inputs -----------------------------------------------------------------------------------
     @staticmethod
@@ -469,7 +578,12 @@ class SDFCARLogic(ScriptedLoadableModuleLogic):
         notes = []
         for n in (1, 2):
             uid, fileFrame = mrml.dicom_frame_reference(slicer.mrmlScene, getattr(p, f"frame{n}"), getattr(p, f"frame{n}Index"))
-            path = slicer.dicomDatabase.fileForInstance(uid) if uid and slicer.dicomDatabase else None
+            # slicer.dicomDatabase does not exist while the DICOM module is disabled.
+            database = getattr(slicer, "dicomDatabase", None)
+            if uid and not database:
+                raise ValueError(f"frame {n} came from a DICOM file but the DICOM database is not available: enable the "
+                                 "DICOM module (Edit > Application Settings > Modules) or type the geometry instead")
+            path = database.fileForInstance(uid) if uid else None
             if not path:
                 raise ValueError(f"frame {n} was not loaded from the DICOM database, so there are no tags to read; "
                                  "type the angles, distances and pixel spacing instead")
@@ -564,6 +678,9 @@ class SDFCARLogic(ScriptedLoadableModuleLogic):
     # --- sample data and self-test ----------------------------------------------------------------
     def loadSampleCase(self):
         """Load the bundled two-view case: its masks (as frames and masks), geometry and ground truth."""
+        missing = self.missingDependencies(SAMPLE_REQUIREMENTS)
+        if missing:  # the case's files are PNG and NRRD: say so rather than fail inside the reader
+            raise RuntimeError(self.dependencyError(missing))
         from SDFCARLib import mrml
         from SDFCARLib.sample_data import load_sample_case
 
@@ -598,14 +715,46 @@ class SDFCARTest(ScriptedLoadableModuleTest):
     def runTest(self):
         self.setUp()
         self.test_SelfTestScenario()
+        self.setUp()
+        self.test_WorkerReconstruction()
+
+    def _skipWithoutDependencies(self, logic):
+        # A build machine without torch cannot run these: a skip, not a failure of the ctest.
+        missing = logic.missingDependencies()
+        if missing:
+            self.skipTest(logic.dependencyError(missing))
 
     def test_SelfTestScenario(self):
         """The scenario the headless test runs (SDFCARLib.selftest), in Slicer's own scene."""
         self.delayDisplay("Starting the SDFCAR self-test")
         logic = SDFCARLogic()
-        missing = logic.missingDependencies()
-        if missing:
-            self.fail(f"missing Python packages: {', '.join(missing)}; press Apply in the module once to install them")
+        self._skipWithoutDependencies(logic)
         result = logic.runSelfTest(log=self.delayDisplay)
         self.assertIsNotNone(slicer.mrmlScene.GetFirstNodeByName("SDFCAR self-test"))
         self.delayDisplay(f"Self-test passed: {result.metrics}")
+
+    def test_WorkerReconstruction(self):
+        """The Apply path: the worker process (PythonSlicer) reconstructs and writes the result
+        files, the module loads them. The self-test above runs in-process and never reaches the
+        worker's own imports (writing NRRD) or its interpreter."""
+        from SDFCARLib.jobs import JobFailed
+        from SDFCARLib.selftest import SETTINGS, selftest_case
+
+        self.delayDisplay("Starting the SDFCAR worker test")
+        logic = SDFCARLogic()
+        self._skipWithoutDependencies(logic)
+        case = selftest_case()
+        name = "SDFCAR worker test"
+        jobDir = Path(slicer.app.temporaryPath) / "SDFCAR" / f"worker-test-{time.strftime('%Y%m%d-%H%M%S')}"
+        job = logic._startJob(jobDir, case.geometry, case.masks, dict(SETTINGS, steps=20), name)
+        if job.wait(600) == "running":
+            job.cancel()
+        try:
+            files = job.result()
+        except JobFailed as exc:
+            self.fail(f"the worker failed: {exc.message}\n{exc.traceback_text}")
+        context = {"name": name, "geometry": case.geometry, "frames": case.frames(), "jobDir": str(jobDir),
+                   "includeOccupancy": False, "showCArm": False}
+        logic.addResults(files, context)
+        self.assertIsNotNone(slicer.mrmlScene.GetFirstNodeByName(name))
+        self.delayDisplay("Worker test passed")

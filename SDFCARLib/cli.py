@@ -35,7 +35,8 @@ from .cli_types import positive_int as _positive_int
 from .dicom import add_dicom_arguments, cli_geometry_from_args, write_geometry_json
 from .geometry import VIEW_PAIRS
 from .io import write_text_atomically
-from .settings import DEFAULT_MODE, GROUND_TRUTH_METRICS, METRICS, MODES, make_settings, parse_setting_overrides, setting_help
+from .settings import (DEFAULT_MODE, GROUND_TRUTH_METRICS, MASK_THRESHOLD_MM, METRICS, MODES, PAPER_DETECTOR_SPACING_MM,
+                       make_settings, parse_setting_overrides, setting_help)
 
 EXIT_OK, EXIT_FAILURE, EXIT_BAD_INPUT, EXIT_CANCELLED = 0, 1, 2, 130
 
@@ -157,7 +158,6 @@ def _settings(args: argparse.Namespace):
 def _read_targets(args: argparse.Namespace, geometry) -> Tuple[List[np.ndarray], str, List[np.ndarray]]:
     """The per-view targets, their kind, and the views' masks (for the visual-hull baseline)."""
     from .io import read_line_integral, read_mask
-    from .phantoms import DEFAULT_MASK_THRESHOLD_MM
 
     masks_given = [args.mask1, args.mask2]
     lineints_given = [args.lineint1, args.lineint2]
@@ -180,7 +180,7 @@ def _read_targets(args: argparse.Namespace, geometry) -> Tuple[List[np.ndarray],
                    for n, (path, view) in enumerate(zip(chosen, geometry.views), start=1)]
         return targets, kind, targets
     targets = [read_line_integral(path, view.detector_shape) for path, view in zip(chosen, geometry.views)]
-    return targets, kind, [t > DEFAULT_MASK_THRESHOLD_MM for t in targets]
+    return targets, kind, [t > MASK_THRESHOLD_MM for t in targets]
 
 
 def _absolute(path: Optional[str]) -> Optional[str]:
@@ -532,7 +532,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--label", required=True, help="label volume or centreline")
     p.add_argument("--geometry", required=True, help="GEOM.json")
     p.add_argument("--out", required=True, help="output folder")
-    p.add_argument("--mask-threshold-mm", type=float, default=0.2, help="mask = line integral > this (default 0.2 mm)")
+    p.add_argument("--mask-threshold-mm", type=float, default=MASK_THRESHOLD_MM,
+                   help=f"mask = line integral > this (default {MASK_THRESHOLD_MM} mm)")
     p.add_argument("--overwrite", action="store_true", help="replace files the output folder already holds")
     p.set_defaults(func=cmd_simulate)
 
@@ -566,7 +567,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--center-mm", type=float, nargs=3, default=[0.0, 0.0, 0.0], metavar=("X", "Y", "Z"),
                    help="volume centre in LPS mm (isocenter = 0 0 0)")
     p.add_argument("--detector-shape", type=_positive_int, nargs=2, default=[512, 512], metavar=("ROWS", "COLS"))
-    p.add_argument("--detector-spacing-mm", type=float, default=0.278)
+    p.add_argument("--detector-spacing-mm", type=float, default=PAPER_DETECTOR_SPACING_MM)
     p.add_argument("--overwrite", action="store_true", help="replace an existing file")
     p.set_defaults(func=cmd_geometry_template)
 

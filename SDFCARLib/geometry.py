@@ -37,6 +37,8 @@ from typing import Any, Dict, List, Optional, Sequence, Tuple, Union
 
 import numpy as np
 
+from .settings import PAPER_DETECTOR_SHAPE, PAPER_DETECTOR_SPACING_MM, PAPER_SPACING_MM, PAPER_VOLUME_SHAPE
+
 PathLike = Union[str, Path]
 
 
@@ -407,10 +409,6 @@ class Geometry:
         text = json.dumps(self.to_dict(), sort_keys=True)
         return hashlib.sha256(text.encode()).hexdigest()[:16]
 
-    def with_views(self, views: Sequence[CArmView]) -> "Geometry":
-        return Geometry(volume=self.volume, views=tuple(views))
-
-
 # --- standard acquisition protocols -------------------------------------------------------------
 
 #: Named view pairs: (primary, secondary, SID, SOD) per view. "paper" is the NeCA/SDF-CAR
@@ -424,11 +422,11 @@ VIEW_PAIRS: Dict[str, List[Tuple[float, float, float, float]]] = {
 
 def standard_geometry(
     view_pair: str = "paper",
-    volume_shape: Sequence[int] = (128, 128, 128),
-    spacing_mm: float = 0.8,
+    volume_shape: Sequence[int] = PAPER_VOLUME_SHAPE,
+    spacing_mm: float = PAPER_SPACING_MM,
     center_mm: Sequence[float] = (0.0, 0.0, 0.0),
-    detector_shape: Sequence[int] = (512, 512),
-    detector_spacing_mm: float = 0.278,
+    detector_shape: Sequence[int] = PAPER_DETECTOR_SHAPE,
+    detector_spacing_mm: float = PAPER_DETECTOR_SPACING_MM,
 ) -> Geometry:
     """Geometry of a named protocol (``VIEW_PAIRS``) with the paper's default grid and detector."""
     if view_pair not in VIEW_PAIRS:

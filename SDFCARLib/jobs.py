@@ -138,10 +138,11 @@ def run_job(job_dir: PathLike, progress: Optional[Callable[[Dict[str, Any]], Non
     job_dir = Path(job_dir)
     (job_dir / "INCOMPLETE").touch()
     cancel_flag = job_dir / "cancel"
-    progress_file = open(job_dir / "progress.jsonl", "a", encoding="utf-8")
+    # Binary: text mode on Windows would write "\r\n", and the reader counts bytes.
+    progress_file = open(job_dir / "progress.jsonl", "ab")
 
     def on_progress(info: Dict[str, Any]) -> None:
-        progress_file.write(json.dumps(info) + "\n")
+        progress_file.write((json.dumps(info) + "\n").encode("utf-8"))
         progress_file.flush()
         if progress is not None:
             progress(info)
@@ -187,6 +188,31 @@ def _worker_main(job_dir: str) -> int:
 
 
 # --- parent side --------------------------------------------------------------------------------------
+# Windows process-creation flags (winbase.h), spelled out because subprocess only defines them on Windows.
+CREATE_NEW_PROCESS_GROUP = 0x00000200
+CREATE_NO_WINDOW = 0x08000000
+STARTF_USESHOWWINDOW = 0x00000001
+SW_HIDE = 0
+
+
+def worker_process_options(windows: bool) -> Dict[str, Any]:
+    """Popen options for the worker: its own process group, and on Windows no console window.
+
+    Inside Slicer the worker is PythonSlicer.exe, a console program: without CREATE_NO_WINDOW
+    (and a hidden STARTUPINFO, as slicer.util.launchConsoleProcess does) Windows opens a console
+    window for the whole reconstruction.
+    """
+    if not windows:
+        return {"start_new_session": True}  # own process group: cancel reaches every child
+    options: Dict[str, Any] = {"creationflags": CREATE_NEW_PROCESS_GROUP | CREATE_NO_WINDOW}
+    if hasattr(subprocess, "STARTUPINFO"):  # pragma: no cover - Windows only
+        info = subprocess.STARTUPINFO()
+        info.dwFlags |= STARTF_USESHOWWINDOW
+        info.wShowWindow = SW_HIDE
+        options["startupinfo"] = info
+    return options
+
+
 class ReconstructionJob:
     """Handle on a worker process running one job folder (see module docstring)."""
 
@@ -219,10 +245,7 @@ class ReconstructionJob:
         env["PYTHONUNBUFFERED"] = "1"
         log = open(job_dir / "worker.log", "ab")
         kwargs: Dict[str, Any] = {"stdout": log, "stderr": subprocess.STDOUT, "stdin": subprocess.DEVNULL, "env": env}
-        if os.name == "posix":
-            kwargs["start_new_session"] = True  # own process group: cancel reaches every child
-        else:  # pragma: no cover - Windows
-            kwargs["creationflags"] = subprocess.CREATE_NEW_PROCESS_GROUP  # type: ignore[attr-defined]
+        kwargs.update(worker_process_options(os.name == "nt"))
         process = subprocess.Popen([python or sys.executable, "-m", "SDFCARLib.jobs", "worker", str(job_dir)], **kwargs)
         job = cls(job_dir, process)
         job._log = log
@@ -246,20 +269,22 @@ class ReconstructionJob:
         path = self.job_dir / "progress.jsonl"
         if not path.is_file():
             return []
-        with open(path, "r", encoding="utf-8") as handle:
+        # Bytes, so the offset is exact whatever the line endings ("\r\n" from a text-mode writer
+        # on Windows) and whatever the characters.
+        with open(path, "rb") as handle:
             handle.seek(self._offset)
             chunk = handle.read()
         # Keep a partly written last line for the next call.
-        complete, _, _ = chunk.rpartition("\n")
-        if not complete:
+        end = chunk.rfind(b"\n")
+        if end < 0:
             return []
-        self._offset += len(complete.encode("utf-8")) + 1
+        self._offset += end + 1
         out = []
-        for line in complete.split("\n"):
+        for line in chunk[:end].split(b"\n"):
             if line.strip():
                 try:
-                    out.append(json.loads(line))
-                except json.JSONDecodeError:
+                    out.append(json.loads(line.decode("utf-8")))
+                except (UnicodeDecodeError, json.JSONDecodeError):
                     continue
         if out:
             self._latest = out[-1]

@@ -25,12 +25,13 @@ Undefined values (for example Chamfer distance of an empty prediction) are NaN, 
 
 from __future__ import annotations
 
-from typing import Dict, List, Optional, Sequence
+from typing import Dict, Optional, Sequence
 
 import numpy as np
 from scipy import ndimage
 
 from .geometry import CArmView, VolumeGrid
+from .settings import MASK_THRESHOLD_MM
 
 NAN = float("nan")
 
@@ -128,7 +129,7 @@ def reprojection_metrics(
     grid: VolumeGrid,
     views: Sequence[CArmView],
     masks: Optional[Sequence[np.ndarray]] = None,
-    mask_threshold_mm: float = 0.2,
+    mask_threshold_mm: float = MASK_THRESHOLD_MM,
 ) -> Dict[str, object]:
     """Projection metrics of ``pred`` against ``label`` (re_error, re_mse) and ``masks`` (Dice per view).
 
@@ -171,5 +172,3 @@ def evaluate(
         result.update(reprojection_metrics(pred, label, grid, views, masks))
     return result
 
-
-METRIC_NAMES: List[str] = ["cldice", "skeleton_dice", "dice", "iou", "chamfer_l2_mm", "re_error", "re_mse"]

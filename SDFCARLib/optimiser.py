@@ -46,17 +46,7 @@ from .masks import MaskError, binarise_mask
 from .metrics import mask_dice
 from .projector import ConeBeamProjector, project_volume
 from .pruning import PruneSettings, prune_redundant_branches, removal_zone
-from .settings import (  # noqa: F401  (re-exported: the engine's public names)
-    MASK_THRESHOLD_MM,
-    MODES,
-    PRESETS,
-    TARGET_KINDS,
-    ReconstructionError,
-    Settings,
-    make_settings,
-    parse_setting_overrides,
-    typed_setting_value,
-)
+from .settings import MASK_THRESHOLD_MM, TARGET_KINDS, ReconstructionError, Settings, make_settings
 
 Progress = Optional[Callable[[Dict[str, Any]], None]]
 Cancel = Optional[Callable[[], bool]]

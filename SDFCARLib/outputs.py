@@ -33,6 +33,7 @@ import numpy as np
 
 from .geometry import VolumeGrid
 from .io import write_json, write_segmentation_nrrd, write_surface_vtk, write_volume_nrrd
+from .settings import MASK_THRESHOLD_MM
 
 PathLike = Union[str, Path]
 
@@ -166,7 +167,7 @@ def ground_truth_metrics(prediction: np.ndarray, label: np.ndarray, grid: Volume
     """
     from .hull import visual_hull
     from .metrics import evaluate
-    from .phantoms import DEFAULT_MASK_THRESHOLD_MM, simulate_views
+    from .phantoms import simulate_views
 
     label = np.asarray(label).astype(bool)
     if label.shape != tuple(grid.shape):
@@ -176,7 +177,7 @@ def ground_truth_metrics(prediction: np.ndarray, label: np.ndarray, grid: Volume
     out: Dict[str, Any] = {"prediction": evaluate(prediction, label, grid, views, masks)}
     if views:
         if masks is None and label.any():
-            _, masks = simulate_views(label, grid, views, DEFAULT_MASK_THRESHOLD_MM)
+            _, masks = simulate_views(label, grid, views, MASK_THRESHOLD_MM)
         if masks is not None:
             hull = visual_hull([np.asarray(m, bool) for m in masks], views, grid)
             out["visual_hull"] = evaluate(hull, label, grid, views, masks)

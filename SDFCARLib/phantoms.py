@@ -33,6 +33,7 @@ import numpy as np
 
 from .geometry import CArmView, Geometry, VolumeGrid
 from .projector import project_volume
+from .settings import MASK_THRESHOLD_MM
 
 PathLike = Union[str, Path]
 
@@ -261,9 +262,6 @@ def lad_tree(seed: int = 0) -> CenterlineTree:
 
 
 # --- simulation -------------------------------------------------------------------------------------
-DEFAULT_MASK_THRESHOLD_MM = 0.2
-
-
 @dataclass
 class SimulatedCase:
     """A ground-truth label and its simulated views on a geometry."""
@@ -280,7 +278,7 @@ def simulate_views(
     label: np.ndarray,
     label_grid: VolumeGrid,
     views: Sequence[CArmView],
-    mask_threshold_mm: float = DEFAULT_MASK_THRESHOLD_MM,
+    mask_threshold_mm: float = MASK_THRESHOLD_MM,
     device: str = "cpu",
 ) -> Tuple[List[np.ndarray], List[np.ndarray]]:
     """Line-integral images (mm) and binary masks of a label volume for each view."""
@@ -297,7 +295,7 @@ def simulate_views(
 def make_case(
     tree: CenterlineTree,
     geometry: Geometry,
-    mask_threshold_mm: float = DEFAULT_MASK_THRESHOLD_MM,
+    mask_threshold_mm: float = MASK_THRESHOLD_MM,
     name: Optional[str] = None,
 ) -> SimulatedCase:
     """Voxelise ``tree`` on the geometry's grid and simulate every view."""

@@ -22,16 +22,17 @@ from typing import Dict, List, Optional, Sequence, Union
 import numpy as np
 
 from .geometry import Geometry, standard_geometry
+from .settings import PAPER_DETECTOR_SHAPE, PAPER_DETECTOR_SPACING_MM, PAPER_SPACING_MM, PAPER_VOLUME_SHAPE
 
 PathLike = Union[str, Path]
 
 SAMPLE_DIR = Path(__file__).resolve().parent / "data" / "sample_case"
 TREE_SEED = 7
 VIEW_PAIR = "lao30-rao30"
-VOLUME_SHAPE = (128, 128, 128)
-SPACING_MM = 0.8
-DETECTOR_SHAPE = (512, 512)
-DETECTOR_SPACING_MM = 0.278
+VOLUME_SHAPE = PAPER_VOLUME_SHAPE
+SPACING_MM = PAPER_SPACING_MM
+DETECTOR_SHAPE = PAPER_DETECTOR_SHAPE
+DETECTOR_SPACING_MM = PAPER_DETECTOR_SPACING_MM
 
 FILES = {
     "geometry": "geometry.json",

@@ -34,6 +34,7 @@ import numpy as np
 from . import mrml
 from .geometry import Geometry, standard_geometry
 from .phantoms import Branch, CenterlineTree, beer_lambert_counts, lad_tree, make_case
+from .settings import MASK_THRESHOLD_MM, make_settings
 
 #: Floors the short reconstruction must reach. Measured with SETTINGS (CPU, seed 0): Dice 0.62,
 #: clDice 0.65, reprojection Dice 0.995 and 0.999; a result mirrored along x (a lost LPS→RAS flip)
@@ -77,15 +78,14 @@ class SelfTestCase:
 def selftest_case(radius_scale: float = 2.0) -> SelfTestCase:
     """The small case of the self-test (see the module docstring); deterministic, about 2 s."""
     from .sample_data import TREE_SEED, VIEW_PAIR
-    from .phantoms import DEFAULT_MASK_THRESHOLD_MM
 
     tree = lad_tree(seed=TREE_SEED)
     tree = CenterlineTree([Branch(b.points, b.radii * radius_scale, b.name) for b in tree.branches], tree.name)
     geometry = standard_geometry(VIEW_PAIR, volume_shape=(40, 40, 40), spacing_mm=2.4,
                                  detector_shape=(96, 96), detector_spacing_mm=1.5)
-    case = make_case(tree, geometry, DEFAULT_MASK_THRESHOLD_MM, name="SDFCAR self-test")
+    case = make_case(tree, geometry, MASK_THRESHOLD_MM, name="SDFCAR self-test")
     return SelfTestCase(geometry, tree, case.label, case.line_integrals, [np.asarray(m, bool) for m in case.masks],
-                        DEFAULT_MASK_THRESHOLD_MM)
+                        MASK_THRESHOLD_MM)
 
 
 @dataclass
@@ -115,7 +115,7 @@ def run_selftest(
     ``FLOORS``. With ``keep_nodes`` False every node the test added is removed at the end.
     """
     from .metrics import cldice, dice
-    from .optimiser import make_settings, reconstruct
+    from .optimiser import reconstruct  # torch: only when the scenario runs
 
     floors = dict(FLOORS, **(floors or {}))
     options = dict(SETTINGS, **(settings or {}))

@@ -214,8 +214,7 @@ class Settings:
 
 # --- presets ----------------------------------------------------------------------------------------
 #: preset → the settings that differ from the published recipe (the defaults above)
-PRESETS: Dict[str, Dict[str, Any]] = {
-    "paper": {},
+PRESETS: Dict[str, Dict[str, Any]] = {  # the default first: lists offer it first
     "fast": dict(
         # the field only where both masks see vessel (elsewhere the masks already demand 0)
         support="hull",
@@ -228,6 +227,7 @@ PRESETS: Dict[str, Dict[str, Any]] = {
         # two views cannot rule out ghost branches: drop the pieces no mask pixel needs
         prune=True,
     ),
+    "paper": {},
 }
 DEFAULT_PRESET = "fast"
 

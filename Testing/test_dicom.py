@@ -458,7 +458,8 @@ def test_written_object_is_a_valid_multiframe_xa(tmp_path):
 
 # --- round trip through DICOM and the reconstruction -----------------------------------------------
 def test_round_trip_phantom_dicom_geometry_reconstruction(tmp_path):
-    from SDFCARLib.optimiser import make_settings, reconstruct
+    from SDFCARLib.optimiser import reconstruct
+    from SDFCARLib.settings import make_settings
     from SDFCARLib.phantoms import Branch, CenterlineTree, lad_tree, make_case
 
     tree = lad_tree(0)

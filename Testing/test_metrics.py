@@ -12,8 +12,8 @@ from SDFCARLib.io import json_compatible
 from scipy.spatial import cKDTree
 
 from SDFCARLib.geometry import CArmView, VolumeGrid
+from SDFCARLib.settings import GROUND_TRUTH_METRICS
 from SDFCARLib.metrics import (
-    METRIC_NAMES,
     chamfer_l2_mm,
     cldice,
     dice,
@@ -224,7 +224,7 @@ def test_reprojection_dice_against_given_masks(projection_case):
 def test_evaluate_reports_every_metric_as_strict_json(projection_case):
     grid, views, label = projection_case
     result = evaluate(np.zeros_like(label), label, grid, views)
-    assert set(METRIC_NAMES) <= set(result)
+    assert set(GROUND_TRUTH_METRICS) <= set(result)
     text = json.dumps(json_compatible(result), allow_nan=False)  # NaN (empty Chamfer) → null
     assert json.loads(text)["chamfer_l2_mm"] is None
     assert json_compatible({"a": [np.float32(1.5), float("inf")], "b": np.int64(3)}) == {"a": [1.5, None], "b": 3}

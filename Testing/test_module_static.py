@@ -53,8 +53,11 @@ def wrapper_parameters():
 
 
 # --- Python ------------------------------------------------------------------------------------------
-@pytest.mark.parametrize("path", [SCRIPT, *sorted((LIBRARY / "mrml").glob("*.py")), LIBRARY / "selftest.py"],
-                         ids=lambda p: p.relative_to(ROOT).as_posix())
+# Slicer 5.4–5.8 run Python 3.9, and everything in SDFCAR/ and SDFCARLib/ is installed into Slicer.
+SLICER_PYTHON_FILES = sorted(p for p in [*MODULE.rglob("*.py"), *LIBRARY.rglob("*.py")] if "__pycache__" not in p.parts)
+
+
+@pytest.mark.parametrize("path", SLICER_PYTHON_FILES, ids=lambda p: p.relative_to(ROOT).as_posix())
 def test_python_39_grammar(path):
     tree = ast.parse(source(path), filename=str(path), feature_version=(3, 9))
     future_annotations = any(isinstance(n, ast.ImportFrom) and n.module == "__future__" and
@@ -66,6 +69,39 @@ def test_python_39_grammar(path):
             if annotation is not None:
                 assert not any(isinstance(n, ast.BinOp) and isinstance(n.op, ast.BitOr) for n in ast.walk(annotation)), \
                     f"{path.name}:{node.lineno}: 'X | Y' annotation needs Python 3.10"
+
+
+def _python39():
+    """A Python 3.9 interpreter on this machine (pyenv's included), or None."""
+    import shutil
+    import subprocess
+
+    candidates = [shutil.which("python3.9")] + sorted(str(p) for p in Path.home().glob(".pyenv/versions/3.9*/bin/python3.9"))
+    for candidate in filter(None, candidates):
+        try:
+            out = subprocess.run([candidate, "-c", "import sys; print(sys.version_info[:2] == (3, 9))"],
+                                 capture_output=True, text=True, timeout=30)
+        except (OSError, subprocess.SubprocessError):
+            continue
+        if out.stdout.strip() == "True":
+            return candidate
+    return None
+
+
+def test_python_39_compiles_everything_slicer_imports():
+    """The real 3.9 compiler where one is installed: ast's feature_version misses some newer syntax
+    (e.g. parenthesised context managers) and every newer builtin-generic or library call."""
+    import subprocess
+
+    python39 = _python39()
+    if python39 is None:
+        pytest.skip("no Python 3.9 interpreter here (test_python_39_grammar still checks the grammar)")
+    script = ("import sys\nbad = []\nfor path in sys.argv[1:]:\n"
+              "    try:\n        compile(open(path, encoding='utf-8').read(), path, 'exec')\n"
+              "    except SyntaxError as exc:\n        bad.append(f'{path}:{exc.lineno}: {exc.msg}')\n"
+              "print('\\n'.join(bad))\nsys.exit(1 if bad else 0)\n")
+    out = subprocess.run([python39, "-c", script, *map(str, SLICER_PYTHON_FILES)], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, f"Python 3.9 cannot compile:\n{out.stdout}{out.stderr}"
 
 
 def test_every_ui_widget_the_code_uses_exists():
@@ -85,16 +121,41 @@ def test_every_slicer_parameter_name_maps_to_a_parameter_and_back():
     assert set(parameters) - set(bound) == set(), "parameters without a widget (invisible to the user)"
 
 
-# Widget classes Slicer's GUI connectors accept for each parameter type
-# (slicer/parameterNodeWrapper/guiConnectors.py).
-CONNECTORS = {
-    "bool": {"QCheckBox", "ctkCheckBox", "QPushButton", "ctkCheckablePushButton"},
-    "int": {"QSpinBox", "QSlider", "QDoubleSpinBox", "ctkSliderWidget", "ctkDoubleSpinBox", "qMRMLSpinBox", "ctkDoubleSlider", "qMRMLSliderWidget"},
-    "float": {"QDoubleSpinBox", "ctkSliderWidget", "ctkDoubleSpinBox", "qMRMLSpinBox", "ctkDoubleSlider", "qMRMLSliderWidget"},
-    "str": {"QLineEdit", "QLabel", "QTextEdit"},
-    "choice": {"QComboBox", "ctkComboBox"},
+# The oldest Slicer the module supports: parameterNodeWrapper first ships in 5.4.0. README,
+# the top-level CMakeLists.txt (find_package) and this table must agree (test below).
+OLDEST_SLICER = "5.4.0"
+
+# Widget classes the GUI connectors of each Slicer version accept per parameter type: the
+# canRepresent() methods of Base/Python/slicer/parameterNodeWrapper/guiConnectors.py at each
+# tag. They compare type(widget) exactly, so a subclass (ctkDoubleSpinBox is no QDoubleSpinBox
+# here) is refused, and connectGui raises in the module's setup(). "choice" is a str with Choice.
+_CONNECTORS_5_4 = {
+    "bool": {"QCheckBox", "QPushButton"},
+    "int": {"QSlider", "QSpinBox"},
+    "float": {"QDoubleSpinBox", "ctkSliderWidget"},
+    "str": {"QLineEdit", "QTextEdit"},
+    "choice": {"QComboBox"},
     "node": {"qMRMLNodeComboBox"},
     "Path": {"ctkPathLineEdit", "ctkDirectoryButton"},
+}
+_CONNECTORS_5_6 = dict(_CONNECTORS_5_4, float=_CONNECTORS_5_4["float"] | {"qMRMLSliderWidget"})
+_CONNECTORS_5_8 = dict(
+    _CONNECTORS_5_6,
+    bool=_CONNECTORS_5_6["bool"] | {"ctkCheckBox"},
+    float=_CONNECTORS_5_6["float"] | {"ctkDoubleSlider", "ctkDoubleSpinBox", "qMRMLSpinBox"},
+    str=_CONNECTORS_5_6["str"] | {"QLabel"},
+    choice=_CONNECTORS_5_6["choice"] | {"ctkComboBox"},
+)
+# 5.10.0: floats' widgets also take ints (QDoubleSpinBoxCtkSliderWidgetToFloatIntConnector).
+_CONNECTORS_5_10 = dict(_CONNECTORS_5_8, bool=_CONNECTORS_5_8["bool"] | {"ctkCheckablePushButton"},
+                        int=_CONNECTORS_5_8["int"] | _CONNECTORS_5_8["float"])
+CONNECTORS_BY_SLICER = {
+    "5.4.0": _CONNECTORS_5_4,    # tag v5.4.0
+    "5.6.2": _CONNECTORS_5_6,    # tag v5.6.2 (same as v5.6.0)
+    "5.8.1": _CONNECTORS_5_8,    # tags v5.8.0, v5.8.1
+    "5.10.0": _CONNECTORS_5_10,  # tag v5.10.0 and branch 5.10
+    "5.12.3": _CONNECTORS_5_10,  # tag v5.12.3: unchanged
+    "main": _CONNECTORS_5_10,    # main, 2026-11: unchanged
 }
 
 
@@ -107,13 +168,25 @@ def kind_of(annotation: str) -> str:
     return base
 
 
-def test_widget_kinds_match_parameter_types():
+def test_connector_table_only_grows():
+    versions = list(CONNECTORS_BY_SLICER)
+    assert versions[0] == OLDEST_SLICER
+    for older, newer in zip(versions, versions[1:]):
+        for kind, classes in CONNECTORS_BY_SLICER[older].items():
+            assert classes <= CONNECTORS_BY_SLICER[newer][kind], (older, newer, kind)
+
+
+@pytest.mark.parametrize("slicer_version", list(CONNECTORS_BY_SLICER))
+def test_widget_kinds_match_parameter_types(slicer_version):
+    """Every bound widget is of a class the connectors of each supported Slicer accept."""
+    connectors = CONNECTORS_BY_SLICER[slicer_version]
     parameters = wrapper_parameters()
-    for name, (cls, parameter, element) in ui_widgets().items():
-        if not parameter:
-            continue
+    bound = [(name, cls, parameter, element) for name, (cls, parameter, element) in ui_widgets().items() if parameter]
+    assert len(bound) == len(parameters)
+    for name, cls, parameter, element in bound:
         kind = kind_of(parameters[parameter])
-        assert cls in CONNECTORS[kind], f"{name} ({cls}) cannot show parameter {parameter} of type {parameters[parameter]}"
+        assert cls in connectors[kind], \
+            f"{name} ({cls}) cannot show parameter {parameter} ({parameters[parameter]}) in Slicer {slicer_version}: use one of {sorted(connectors[kind])}"
         if kind == "node":
             types = [s.text for p in element.findall("property") if p.get("name") == "nodeTypes" for s in p.iter("string")]
             assert types and all(t in parameters[parameter] for t in types), f"{name} offers {types}, {parameter} takes {parameters[parameter]}"
@@ -139,11 +212,14 @@ def test_widget_names_are_unique_and_custom_widgets_declared():
 
 def test_import_time_rules():
     # The module must load without the heavy packages: they are offered for install on first Apply.
+    # Of the library it imports at load time only the settings (torch-free: test_settings.py).
     heavy = {"torch", "kornia", "skimage", "pydicom", "scipy"}
     for node in ast.parse(source(SCRIPT)).body:
         if isinstance(node, (ast.Import, ast.ImportFrom)):
             names = [a.name for a in node.names] if isinstance(node, ast.Import) else [node.module or ""]
-            assert not any(n.split(".")[0] in heavy | {"SDFCARLib"} for n in names), ast.unparse(node)
+            library = [n for n in names if n.split(".")[0] == "SDFCARLib"]
+            assert not any(n.split(".")[0] in heavy for n in names), ast.unparse(node)
+            assert all(n == "SDFCARLib.settings" for n in library), ast.unparse(node)
     # "import slicer.x" inside a function makes "slicer" local to it: earlier uses then fail.
     for node in ast.walk(ast.parse(source(SCRIPT))):
         if isinstance(node, (ast.FunctionDef, ast.Lambda)):
@@ -205,10 +281,22 @@ def test_top_level_cmake_follows_the_extension_template():
         assert re.search(rf"set\(EXTENSION_{key}\s+\S", text), key
     assert re.search(r'set\(EXTENSION_ICONURL\s*"https://[^"]+\.png"\s*\)', text)
     assert re.search(r'set\(EXTENSION_SCREENSHOTURLS\s*"https://[^"]+"\)', text)
-    order = ["find_package(Slicer REQUIRED)", "include(${Slicer_USE_FILE})", "add_subdirectory(SDFCAR)",
+    order = ["find_package(Slicer ", "include(${Slicer_USE_FILE})", "add_subdirectory(SDFCAR)",
              "include(${Slicer_EXTENSION_GENERATE_CONFIG})", "include(${Slicer_EXTENSION_CPACK})"]
     positions = [text.find(s) for s in order]
     assert all(p >= 0 for p in positions) and positions == sorted(positions), dict(zip(order, positions))
+
+
+def test_supported_slicer_versions_are_stated_alike():
+    """README, CMake and the connector table name the same oldest Slicer."""
+    major_minor = ".".join(OLDEST_SLICER.split(".")[:2])
+    cmake = cmake_words(ROOT / "CMakeLists.txt")
+    assert re.search(rf"find_package\(Slicer {re.escape(major_minor)} REQUIRED\)", cmake), "CMakeLists.txt: find_package(Slicer X.Y REQUIRED)"
+    readme = source(ROOT / "README.md")
+    stated = re.findall(r"3D Slicer (\d+\.\d+) or newer", readme)
+    assert stated and set(stated) == {major_minor}, f"README states {stated}, the checks assume {major_minor}"
+    # The Extensions Index entry has no version field (schema v1.0.2 allows no extra keys): the
+    # Index picks Slicer versions by its branches, so SDFCAR.json cannot state it.
 
 
 def test_icon_is_a_128_pixel_png():

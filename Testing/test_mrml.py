@@ -20,7 +20,8 @@ slicer = pytest.importorskip("slicer", reason="the MRML bridge tests need the sl
 from SDFCARLib import mrml  # noqa: E402
 from SDFCARLib.geometry import CArmView, Geometry, VolumeGrid  # noqa: E402
 from SDFCARLib.masks import MaskError  # noqa: E402
-from SDFCARLib.optimiser import Reconstruction, make_settings  # noqa: E402
+from SDFCARLib.optimiser import Reconstruction  # noqa: E402
+from SDFCARLib.settings import make_settings  # noqa: E402
 
 
 # --- fixtures ---------------------------------------------------------------------------------------

@@ -23,7 +23,8 @@ def _sphere_occupancy(grid: VolumeGrid, centre=CENTRE, radius=RADIUS, width_mm=1
 
 
 def _reconstruction(geometry, occupancy: np.ndarray):
-    from SDFCARLib.optimiser import Reconstruction, make_settings
+    from SDFCARLib.optimiser import Reconstruction
+    from SDFCARLib.settings import make_settings
 
     settings = make_settings("fast", steps=1)
     report = {"method": "test", "settings": settings.to_dict(), "seed": settings.run.seed, "reprojection_dice": [1.0, 1.0]}

@@ -78,7 +78,8 @@ def worker(spec: dict) -> dict:
     import torch
 
     from SDFCARLib import metrics
-    from SDFCARLib.optimiser import make_settings, reconstruct
+    from SDFCARLib.optimiser import reconstruct
+    from SDFCARLib.settings import make_settings
 
     torch.set_num_threads(spec["threads"])
     case = make_case(spec["case"], spec["protocol"])

@@ -59,8 +59,9 @@ from .cases import (FOLDER_SPACING_MM, PROCEDURAL_SUITES, SUITE_HELP, VOLUME_SUF
 from .cli import add_benchmark_command, cmd_benchmark, config_from_args
 from .config import DEFAULT_MODES, HARNESS_VERSION, BenchmarkConfig, build_cases, check_config, parse_overrides
 from .errors import BenchmarkError
-from .registry import (HULL, METRIC_COLUMNS, MODE_NAMES, PAPER_DETECTOR_SHAPE, PAPER_DETECTOR_SPACING_MM,
-                       PAPER_METRICS, PAPER_SPACING_MM, PAPER_VOLUME_SHAPE, PROTOCOLS, TABLE_METRICS, mode_title)
+from .registry import HULL, METRIC_COLUMNS, MODE_NAMES, TABLE_METRICS, mode_title
+from ..settings import (PAPER_DETECTOR_SHAPE, PAPER_DETECTOR_SPACING_MM, PAPER_METRICS, PAPER_SPACING_MM,
+                        PAPER_VOLUME_SHAPE, PROTOCOLS)
 from .report import _table_markdown  # noqa: F401 (used by the tests)
 from .report import all_versions, machine_info, ordering_lines, summary_tables, write_box_plots, write_summary
 from .run import BenchmarkOutcome, prepare_task, run_benchmark, run_task, task_options

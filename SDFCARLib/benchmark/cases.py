@@ -16,8 +16,10 @@ import numpy as np
 
 from ..geometry import Geometry, VolumeGrid, standard_geometry
 from ..io import read_label
+from ..settings import (MASK_THRESHOLD_MM, PAPER_DETECTOR_SHAPE, PAPER_DETECTOR_SPACING_MM, PAPER_SPACING_MM,
+                        PAPER_VOLUME_SHAPE, PROTOCOLS)
 from .errors import BenchmarkError
-from .registry import PAPER_DETECTOR_SHAPE, PAPER_DETECTOR_SPACING_MM, PAPER_SPACING_MM, PAPER_VOLUME_SHAPE, PROTOCOLS
+
 
 PathLike = Union[str, Path]
 
@@ -217,7 +219,7 @@ class PreparedCase:
 
 def prepare_case(spec: CaseSpec, protocol: str, grid: Optional[GridOptions] = None) -> PreparedCase:
     """Build the case's label on its geometry and simulate the two views."""
-    from ..phantoms import DEFAULT_MASK_THRESHOLD_MM, lad_tree, load_centerline_vtk, rca_tree, simulate_views, voxelize
+    from ..phantoms import lad_tree, load_centerline_vtk, rca_tree, simulate_views, voxelize
 
     t0 = time.perf_counter()
     kind, _ = parse_suite(spec.suite)
@@ -234,7 +236,7 @@ def prepare_case(spec: CaseSpec, protocol: str, grid: Optional[GridOptions] = No
         label, _, info = trees[spec.component]
     if not label.any():
         raise BenchmarkError(f"case {spec.name}: the vessel tree does not reach the volume grid")
-    line_integrals, masks = simulate_views(label, geometry.volume, geometry.views, DEFAULT_MASK_THRESHOLD_MM)
+    line_integrals, masks = simulate_views(label, geometry.volume, geometry.views, MASK_THRESHOLD_MM)
     for n, (mask, view) in enumerate(zip(masks, geometry.views), start=1):
         if not mask.any() or mask.all():
             raise BenchmarkError(f"case {spec.name}: view {n} ({view.describe()}) sees {'no' if not mask.any() else 'only'} "

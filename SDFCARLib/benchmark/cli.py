@@ -11,7 +11,7 @@ from ..cli_types import positive_float, positive_int
 from .cases import SUITE_HELP, GridOptions
 from .config import DEFAULT_MODES, BenchmarkConfig, parse_overrides
 from .errors import BenchmarkError
-from .registry import PROTOCOLS
+from ..settings import PROTOCOLS
 from .run import run_benchmark
 
 

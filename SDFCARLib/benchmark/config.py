@@ -14,8 +14,8 @@ from .. import __version__
 from .cases import (PROCEDURAL_SUITES, CaseSpec, GridOptions, default_centreline, label_volume_files, parse_suite,
                     protocol_geometry, volume_stem)
 from .errors import BenchmarkError
-from .registry import HULL, PROTOCOLS
-from ..settings import MODES, ReconstructionError, make_settings, parse_setting_overrides
+from .registry import HULL
+from ..settings import MODES, PROTOCOLS, ReconstructionError, make_settings, parse_setting_overrides
 
 # Bump when a change to this harness changes what a row means; it enters the config hash.
 HARNESS_VERSION = 1

@@ -5,16 +5,7 @@ from __future__ import annotations
 
 from typing import List, Tuple
 
-from ..settings import (  # noqa: F401  (re-exported for the benchmark's modules)
-    METRICS,
-    MODES,
-    PAPER_DETECTOR_SHAPE,
-    PAPER_DETECTOR_SPACING_MM,
-    PAPER_METRICS,
-    PAPER_SPACING_MM,
-    PAPER_VOLUME_SHAPE,
-    PROTOCOLS,
-)
+from ..settings import METRICS, MODES, PAPER_METRICS
 
 # The baseline row: the visual hull of the masks, no optimiser.
 HULL = "hull"

@@ -24,10 +24,10 @@ from ..io import write_text_atomically
 from .cases import CaseSpec, GridOptions, PreparedCase, prepare_case
 from .config import BenchmarkConfig, check_config
 from .errors import BenchmarkError
-from .registry import HULL, METRIC_COLUMNS, PROTOCOLS
+from .registry import HULL, METRIC_COLUMNS
 from .report import all_versions, machine_info, write_box_plots, write_summary
 from .store import ResultsFile, safe_name, update_run_record, latest_rows
-from ..settings import make_settings
+from ..settings import PROTOCOLS, make_settings
 
 
 # --- one task: a case × mode ------------------------------------------------------------------------

@@ -47,11 +47,12 @@ from typing import Any, Dict, List, Optional, Tuple, Union
 from .. import __version__
 from ..geometry import CArmView, Geometry, GeometryError, VolumeGrid
 from ..io import json_compatible, write_text_atomically
+from ..settings import PAPER_SPACING_MM, PAPER_VOLUME_SHAPE
 from .frames import choose_frame
 from .read import DicomInputError, PathLike, XARun, load_xa, tag_floats, tag_label
 
 #: The reconstruction grid when none is given: 128³ voxels of 0.8 mm centred at the isocenter.
-DEFAULT_VOLUME = VolumeGrid((128, 128, 128), (0.8, 0.8, 0.8), (0.0, 0.0, 0.0))
+DEFAULT_VOLUME = VolumeGrid(PAPER_VOLUME_SHAPE, (PAPER_SPACING_MM,) * 3, (0.0, 0.0, 0.0))
 
 
 # --- overrides -------------------------------------------------------------------------------------

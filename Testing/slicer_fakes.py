@@ -1,0 +1,327 @@
+"""Just enough of the Slicer application to import SDFCAR/SDFCAR.py and drive its widget and logic headless.
+
+The parameter-node wrapper here copies the behaviour of Slicer 5.4–5.8 that matters to the
+module (Base/Python/slicer/parameterNodeWrapper/wrapper.py and guiConnectors.py at v5.6.2):
+
+- ``connectGui(gui)`` connects and returns None (``_connectGui`` drops the tag before 5.10.0);
+  ``connectParametersToGui(mapping)`` returns the tag; ``disconnectGui(tag)`` ignores an unknown tag;
+- a ``QComboBox`` connector fills its combo box in its constructor (``clear()`` then ``addItem``
+  per choice) and reads ``choices[currentIndex]``, so a connector still connected when another
+  one is built writes ``choices[-1]`` (clear: index -1), then ``choices[0]`` (first item).
+
+Everything else is a no-op recorder. Use ``install(monkeypatch)``; it returns the loaded module.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import sys
+import types
+import typing
+import unittest
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+SCRIPT = ROOT / "SDFCAR" / "SDFCAR.py"
+
+
+# --- Qt --------------------------------------------------------------------------------------------
+class Signal:
+    def __init__(self):
+        self._slots = []
+
+    def connect(self, slot):
+        self._slots.append(slot)
+
+    def disconnect(self, slot):
+        self._slots.remove(slot)
+
+    def emit(self, *args):
+        for slot in list(self._slots):
+            slot(*args)
+
+
+class Widget:
+    def __init__(self, name, parameter=None):
+        self.name = name
+        self._properties = {"SlicerParameterName": parameter}
+        self.enabled = True
+        self.toolTip = ""
+        self.text = ""
+
+    def property(self, key):
+        return self._properties.get(key)
+
+    def connect(self, signal, slot):
+        pass
+
+
+class ComboBox(Widget):
+    """QComboBox as the connectors see it: currentIndexChanged fires when the index changes."""
+
+    def __init__(self, name, parameter=None):
+        super().__init__(name, parameter)
+        self.items = []
+        self._index = -1
+        self.currentIndexChanged = Signal()
+
+    @property
+    def currentIndex(self):
+        return self._index
+
+    @currentIndex.setter
+    def currentIndex(self, index):
+        if index != self._index:
+            self._index = index
+            self.currentIndexChanged.emit(index)
+
+    def clear(self):
+        self.items = []
+        self.currentIndex = -1
+
+    def addItem(self, text):
+        self.items.append(text)
+        if self._index == -1:
+            self.currentIndex = 0
+
+
+class Timer:
+    def __init__(self):
+        self.timeout = Signal()
+
+    def setInterval(self, ms):
+        pass
+
+    def start(self):
+        pass
+
+    def stop(self):
+        pass
+
+
+# --- parameter-node wrapper (5.4–5.8 behaviour) ----------------------------------------------------
+class Choice:
+    def __init__(self, choices):
+        self.choices = list(choices)
+
+
+class WithinRange:
+    def __init__(self, minimum, maximum):
+        self.minimum, self.maximum = minimum, maximum
+
+
+class ComboConnector:
+    def __init__(self, widget, choices):
+        self._widget, self._choices, self._callback = widget, choices, None
+        widget.clear()
+        for choice in choices:
+            widget.addItem(str(choice))
+
+    def _changed(self, index):
+        if self._callback:
+            self._callback()
+
+    def onChanged(self, callback):
+        self._callback = callback
+        if callback is None:
+            self._widget.currentIndexChanged.disconnect(self._changed)
+        else:
+            self._widget.currentIndexChanged.connect(self._changed)
+
+    def read(self):
+        return self._choices[self._widget.currentIndex]
+
+    def write(self, value):
+        self._widget.currentIndex = self._choices.index(value)
+
+
+class OtherConnector:
+    def __init__(self, widget, datatype):
+        self._widget = widget
+
+    def onChanged(self, callback):
+        pass
+
+    def write(self, value):
+        pass
+
+
+class ParameterNode:
+    """The MRML parameter node: values shared by every wrapper made on it."""
+
+    def __init__(self):
+        self.values = {}
+
+
+def parameterNodeWrapper(cls):
+    hints = typing.get_type_hints(cls, include_extras=True)
+    defaults = {name: getattr(cls, name, None) for name in hints}
+
+    class Wrapper:
+        allParameters = hints
+
+        def __init__(self, node):
+            object.__setattr__(self, "parameterNode", node)
+            object.__setattr__(self, "_parameterGUIs", {})
+            object.__setattr__(self, "_nextTag", 0)
+            for name, default in defaults.items():
+                node.values.setdefault(name, default)
+
+        def __getattr__(self, name):
+            if name in hints:
+                return self.parameterNode.values[name]
+            raise AttributeError(name)
+
+        def __setattr__(self, name, value):
+            if name not in hints:
+                raise AttributeError(name)
+            self.parameterNode.values[name] = value
+
+        def _choices(self, name):
+            for extra in getattr(hints[name], "__metadata__", ()):
+                if isinstance(extra, Choice):
+                    return extra.choices
+            return None
+
+        def connectParametersToGui(self, mapping):
+            connectors = {}
+            for name, widget in mapping.items():
+                choices = self._choices(name)
+                connectors[name] = ComboConnector(widget, choices) if isinstance(widget, ComboBox) else OtherConnector(widget, hints[name])
+            tag = self._nextTag
+            object.__setattr__(self, "_nextTag", tag + 1)
+            self._parameterGUIs[tag] = connectors
+            for name, connector in connectors.items():
+                connector.write(getattr(self, name))
+                connector.onChanged(self._callback(name, connector))
+            return tag
+
+        def _callback(self, name, connector):
+            return lambda: setattr(self, name, connector.read())
+
+        def connectGui(self, gui):
+            mapping = {w.property("SlicerParameterName"): w for w in vars(gui).values()
+                       if hasattr(w, "property") and w.property("SlicerParameterName")}
+            self.connectParametersToGui(mapping)  # 5.4–5.8: the tag is not returned
+
+        def disconnectGui(self, tag):
+            if tag in self._parameterGUIs:
+                for connector in self._parameterGUIs[tag].values():
+                    connector.onChanged(None)
+                del self._parameterGUIs[tag]
+
+    Wrapper.__name__ = cls.__name__
+    return Wrapper
+
+
+# --- ScriptedLoadableModule, util ----------------------------------------------------------------------
+class ScriptedLoadableModule:
+    def __init__(self, parent):
+        self.parent = parent
+
+
+class ScriptedLoadableModuleWidget:
+    def __init__(self, parent=None):
+        self.parent = parent
+
+
+class ScriptedLoadableModuleLogic:
+    _node = None  # one parameter node per module, as Slicer keeps it in the scene
+
+    def getParameterNode(self):
+        if ScriptedLoadableModuleLogic._node is None:
+            ScriptedLoadableModuleLogic._node = ParameterNode()
+        return ScriptedLoadableModuleLogic._node
+
+
+class ScriptedLoadableModuleTest(unittest.TestCase):  # as in Slicer: a unittest.TestCase
+    def delayDisplay(self, message, *args, **kwargs):
+        pass
+
+
+class VTKObservationMixin:
+    def __init__(self):
+        pass
+
+    def addObserver(self, *args):
+        pass
+
+    def removeObserver(self, *args):
+        pass
+
+    def removeObservers(self, *args):
+        pass
+
+
+class _Recorder:
+    def __init__(self):
+        self.errors = []
+        self.confirm = True
+        self.pipInstalls = []
+
+    def errorDisplay(self, text, **kwargs):
+        self.errors.append(text)
+
+    def confirmOkCancelDisplay(self, text, **kwargs):
+        return self.confirm
+
+    def pip_install(self, requirements):
+        self.pipInstalls.append(requirements)
+
+
+def _module(name, **attributes):
+    module = types.ModuleType(name)
+    module.__dict__.update(attributes)
+    return module
+
+
+def install(monkeypatch):
+    """Put the fakes in sys.modules (undone after the test) and load SDFCAR.py; returns the module."""
+    import contextlib
+
+    recorder = _Recorder()
+
+    @contextlib.contextmanager
+    def tryWithErrorDisplay(message=None, show=True, waitCursor=False):
+        try:
+            yield
+        except Exception as exc:
+            recorder.errors.append(f"{message}\n\n{exc}")
+            raise
+
+    node_classes = {n: type(n, (), {}) for n in ("vtkMRMLLabelMapVolumeNode", "vtkMRMLScalarVolumeNode", "vtkMRMLSegmentationNode")}
+    util = _module("slicer.util", VTKObservationMixin=VTKObservationMixin, tryWithErrorDisplay=tryWithErrorDisplay,
+                   errorDisplay=recorder.errorDisplay, confirmOkCancelDisplay=recorder.confirmOkCancelDisplay,
+                   pip_install=recorder.pip_install)
+    slicer = _module("slicer", util=util, app=types.SimpleNamespace(connect=lambda *a: None, temporaryPath="/tmp"),
+                     mrmlScene=types.SimpleNamespace(Clear=lambda *a: None), **node_classes)
+    slicer.__path__ = []  # a package, so "from slicer import packaging" looks for a submodule (absent before 5.12)
+    slicer.parameterNodeWrapper = _module("slicer.parameterNodeWrapper", Choice=Choice, WithinRange=WithinRange,
+                                          parameterNodeWrapper=parameterNodeWrapper)
+    slicer.ScriptedLoadableModule = _module(
+        "slicer.ScriptedLoadableModule", ScriptedLoadableModule=ScriptedLoadableModule,
+        ScriptedLoadableModuleWidget=ScriptedLoadableModuleWidget, ScriptedLoadableModuleLogic=ScriptedLoadableModuleLogic,
+        ScriptedLoadableModuleTest=ScriptedLoadableModuleTest)
+    for name, module in {"slicer": slicer, "slicer.util": util, "slicer.parameterNodeWrapper": slicer.parameterNodeWrapper,
+                         "slicer.ScriptedLoadableModule": slicer.ScriptedLoadableModule,
+                         "qt": _module("qt", QTimer=Timer, QWidget=Widget)}.items():
+        monkeypatch.setitem(sys.modules, name, module)
+    monkeypatch.delitem(sys.modules, "slicer.packaging", raising=False)
+    ScriptedLoadableModuleLogic._node = None
+    spec = importlib.util.spec_from_file_location("SDFCAR_under_test", SCRIPT)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    module.recorder = recorder
+    return module
+
+
+def module_ui(module):
+    """The widgets SDFCARWidget touches, with the parameter names of the .ui for the combo boxes."""
+    ui = types.SimpleNamespace()
+    for name in ("editMask1Button", "editMask2Button", "vesselness1Button", "vesselness2Button", "applyButton",
+                 "readGeometryButton", "showCArmButton", "statusLabel", "progressBar"):
+        setattr(ui, name, Widget(name))
+    for name, parameter in (("presetComboBox", "preset"), ("modeComboBox", "mode"), ("deviceComboBox", "device")):
+        setattr(ui, name, ComboBox(name, parameter))
+    ui.outputNameLineEdit = Widget("outputNameLineEdit", "outputName")
+    return ui
