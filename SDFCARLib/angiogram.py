@@ -35,6 +35,7 @@ roughly 20–50 %).
 
 from __future__ import annotations
 
+import inspect
 from dataclasses import asdict, dataclass
 from typing import Any, Dict, Optional, Sequence, Tuple, Union
 
@@ -46,7 +47,7 @@ from .phantoms import beer_lambert_counts
 __all__ = ["AngiogramSettings", "simulate_angiogram"]
 
 # μ of phantoms.beer_lambert_counts (its default): one vessel attenuation across SDFCARLib.
-_DEFAULT_MU = float(beer_lambert_counts.__defaults__[0])
+_DEFAULT_MU = float(inspect.signature(beer_lambert_counts).parameters["mu_per_mm"].default)
 
 
 @dataclass(frozen=True)
