@@ -4,11 +4,13 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from scipy import ndimage
 from skimage.measure import label as connected_components
 
 from SDFCARLib.geometry import CArmView, Geometry, VolumeGrid
 from SDFCARLib.io import InputError, read_mask
-from SDFCARLib.masks import MaskError, binarise_mask, vesselness_mask
+from SDFCARLib.masks import (AngioMaskSettings, MaskError, angiogram_mask, binarise_mask, segment_angiogram,
+                             vesselness_mask)
 from SDFCARLib.metrics import mask_dice
 
 
@@ -130,3 +132,128 @@ def test_vesselness_bad_input():
         vesselness_mask(np.random.default_rng(0).random((16, 16)), sigmas=(0, 1))
     with pytest.raises(MaskError, match="the frame is flat"):
         vesselness_mask(np.ones((16, 16)))
+
+
+# --- angiogram mask pipeline ---------------------------------------------------------------------------
+ISO_MM = 0.3  # isocenter pixel of these tests: 0.39 mm detector pixels, magnification 1.3
+SPACING, MAGNIFICATION = 0.39, 1.3
+
+
+def _tubes(shape, segments):
+    """Line integral (mm) of cylinders: ``segments`` = [((r0, c0), (r1, c1), radius_mm, mm_scale)]."""
+    from skimage.draw import line
+
+    total = np.zeros(shape)
+    for (r0, c0), (r1, c1), radius_mm, scale in segments:
+        centre = np.ones(shape, bool)
+        rr, cc = line(r0, c0, r1, c1)
+        centre[rr, cc] = False
+        d = ndimage.distance_transform_edt(centre) * ISO_MM
+        total = np.maximum(total, scale * 2.0 * np.sqrt(np.maximum(radius_mm**2 - d**2, 0.0)))
+    return total
+
+
+def _frame(line_integral, seed=0, **settings):
+    from SDFCARLib.angiogram import AngiogramSettings, simulate_angiogram
+
+    base = dict(ribs=1, snr=25.0, psf_sigma_mm=0.3)
+    frame, info = simulate_angiogram(line_integral, ISO_MM, seed, AngiogramSettings(**{**base, **settings}))
+    return frame, info
+
+
+def _segment(frame, **settings):
+    return segment_angiogram(frame, SPACING, MAGNIFICATION, AngioMaskSettings(**settings))
+
+
+def _components(mask):
+    return int(connected_components(mask, connectivity=2).max())
+
+
+def test_border_is_detected_and_never_vessel():
+    line_integral = _tubes((160, 160), [((10, 20), (150, 140), 1.5, 1.0)])  # runs into the shutter
+    frame, info = _frame(line_integral, collimator_fraction=0.12)
+    result = _segment(frame)
+    shutter = info["collimator"]
+    assert result.border[shutter].mean() > 0.99  # the whole collimator is border…
+    assert result.border[60:100, 60:100].sum() == 0  # …and the centre is not
+    assert not np.any(result.mask & result.border) and result.mask[60:100, 60:100].any()
+    assert result.parameters["shutter_fraction"] == pytest.approx(shutter.mean(), abs=0.05)
+    assert _components(result.mask) == 1
+    # Without a collimator only the image edge (the filters' margin) is border.
+    open_result = _segment(_frame(line_integral)[0])
+    assert open_result.parameters["shutter_fraction"] == 0.0
+    margin = open_result.parameters["border_margin_px"]
+    assert open_result.border.sum() == 160 * 160 - (160 - 2 * margin) ** 2
+
+
+def test_hysteresis_keeps_a_faint_branch_connected_to_the_tree():
+    trunk = ((20, 20), (140, 140), 1.5, 1.0)
+    faint_branch = ((80, 80), (20, 140), 0.8, 0.35)  # starts on the trunk
+    faint_alone = ((110, 15), (150, 60), 0.8, 0.35)  # same contrast, not connected
+    frame, _ = _frame(_tubes((160, 160), [trunk, faint_branch, faint_alone]))
+    result = _segment(frame)
+    mask = result.mask
+    assert mask[78:82, 78:82].any() and mask[35:45, 120:130].any()  # trunk-side and far end of the branch
+    branch_pixels = _tubes((160, 160), [faint_branch])[:70] > 0
+    assert mask[:70][branch_pixels].mean() > 0.5
+    assert not mask[115:145, 20:55].any()  # the unconnected faint segment is only noise-level seeds
+    # Seeds alone (low = high) lose the branch: the growth through the low level is what keeps it.
+    seeds_only = _segment(frame, low_noise_units=result.parameters["high_noise_units"]).mask
+    assert seeds_only[:70][branch_pixels].mean() < mask[:70][branch_pixels].mean() - 0.2
+
+
+def test_specks_are_removed_by_size_and_elongation():
+    line_integral = _tubes((160, 160), [((20, 30), (140, 130), 1.2, 1.0)])
+    yy, xx = np.mgrid[:160, :160]
+    for r, c in [(30, 120), (120, 40), (70, 130), (140, 70)]:  # round blobs, as dark as the vessel
+        line_integral = np.maximum(line_integral, 2.0 * np.sqrt(np.maximum(2.0**2 - ((yy - r) ** 2 + (xx - c) ** 2) * ISO_MM**2, 0)))
+    frame, _ = _frame(line_integral)
+    result = _segment(frame)
+    p = result.parameters
+    assert p["components_before_cleaning"] >= 5 and p["components"] == 1
+    assert _components(result.mask) == 1 and result.mask[80, 80]
+    assert not result.mask[26:35, 116:125].any()
+    # Without the cleaning the blobs (and noise specks) stay; either criterion alone removes these.
+    assert _segment(frame, min_elongation=0.0, min_length_mm=0.0).parameters["components"] >= 5
+    assert _segment(frame, min_length_mm=0.0).parameters["components"] == 1  # elongation only
+    assert _segment(frame, min_elongation=0.0).parameters["components"] == 1  # length only
+
+
+def test_scales_follow_the_physical_vessel_size_and_parameters_are_reported():
+    frame, _ = _frame(_tubes((128, 128), [((10, 64), (120, 64), 1.5, 1.0)]))
+    fine = segment_angiogram(frame, 0.2, 1.0).parameters
+    coarse = segment_angiogram(frame, 0.4, 1.0).parameters
+    assert fine["isocenter_pixel_mm"] == pytest.approx(0.2) and coarse["isocenter_pixel_mm"] == pytest.approx(0.4)
+    assert max(fine["sigmas_px"]) == pytest.approx(2 * max(coarse["sigmas_px"]), rel=0.02)
+    assert min(coarse["sigmas_px"]) >= 1.0
+    default = segment_angiogram(frame).parameters
+    assert default["pixel_spacing_source"].startswith("default") and default["magnification_source"].startswith("default")
+    for key in ("method", "sigmas_px", "hysteresis_high", "hysteresis_low", "silhouette_level", "min_length_px",
+                "border_fraction", "components", "vessel_fraction"):
+        assert key in default
+    mask, parameters = angiogram_mask(frame, SPACING, MAGNIFICATION)
+    assert mask.dtype == bool and parameters["vessel_fraction"] == pytest.approx(mask.mean())
+
+
+def test_bad_frames_are_refused_with_the_problem_named():
+    vessel = _tubes((128, 128), [((10, 20), (120, 100), 1.5, 1.0)])
+    with pytest.raises(MaskError, match="flat"):
+        _segment(np.full((128, 128), 700.0))
+    with pytest.raises(MaskError, match="no vessel found"):
+        _segment(_frame(np.zeros((128, 128)))[0])
+    with pytest.raises(MaskError, match="exposed field is only"):
+        _segment(_frame(vessel, collimator_fraction=0.33)[0])
+    frame, _ = _frame(vessel)
+    colour = np.dstack([frame, frame // 2, frame])
+    with pytest.raises(MaskError, match="colour image"):
+        _segment(colour)
+    grey_as_rgb = np.dstack([frame, frame, frame])
+    assert np.array_equal(_segment(grey_as_rgb).mask, _segment(frame).mask)
+    with pytest.raises(MaskError, match="one 2-D image"):
+        _segment(np.stack([frame, frame]))
+    with pytest.raises(MaskError, match="NaN"):
+        _segment(np.where(np.eye(128, dtype=bool), np.nan, frame.astype(float)))
+    with pytest.raises(MaskError, match="pixel spacing must be positive"):
+        segment_angiogram(frame, -0.3)
+    with pytest.raises(MaskError, match="method must be one of"):
+        _segment(frame, method="hessian")
