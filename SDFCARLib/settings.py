@@ -209,10 +209,11 @@ class Settings:
         if not r.prune_piece_mm > 0 or not 0 <= r.prune_tolerance < 1:
             raise ReconstructionError("prune_piece_mm must be positive and prune_tolerance in [0, 1)")
         if not r.reconnect_max_gap_mm > 0:
-            raise ReconstructionError(f"reconnect_max_gap_mm must be a positive length in mm, got {r.reconnect_max_gap_mm}")
+            raise ReconstructionError(f"reconnect_max_gap_mm must be a positive length in mm (default 4), got "
+                                      f"{r.reconnect_max_gap_mm}; or turn reconnection off with reconnect=false")
         if not 0 < r.reconnect_min_occupancy < 1:
             raise ReconstructionError(
-                f"reconnect_min_occupancy must be between 0 and 1 (an occupancy), got {r.reconnect_min_occupancy}")
+                f"reconnect_min_occupancy must be an occupancy between 0 and 1 (default 0.1), got {r.reconnect_min_occupancy}")
         if not 0 < r.threshold < 1:
             raise ReconstructionError(f"threshold must be between 0 and 1, got {r.threshold}")
         if run.device not in DEVICES and not str(run.device).startswith("cuda:"):

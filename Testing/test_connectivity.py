@@ -112,9 +112,9 @@ def test_field_values_invert_the_occupancy():
 
 
 @pytest.mark.parametrize("values, fragment", [
-    ({"reconnect_max_gap_mm": 0.0}, "reconnect_max_gap_mm must be a positive length in mm, got 0.0"),
-    ({"reconnect_min_occupancy": 1.5}, "reconnect_min_occupancy must be between 0 and 1"),
-    ({"reconnect_min_occupancy": 0.0}, "reconnect_min_occupancy must be between 0 and 1"),
+    ({"reconnect_max_gap_mm": 0.0}, "reconnect_max_gap_mm must be a positive length in mm (default 4), got 0.0"),
+    ({"reconnect_min_occupancy": 1.5}, "reconnect_min_occupancy must be an occupancy between 0 and 1"),
+    ({"reconnect_min_occupancy": 0.0}, "reconnect_min_occupancy must be an occupancy between 0 and 1"),
 ])
 def test_reconnect_settings_are_validated(values, fragment):
     with pytest.raises(ReconstructionError) as info:
