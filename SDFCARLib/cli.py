@@ -71,6 +71,8 @@ class ProgressBar:
             print("evaluating the field on the grid…", file=self.stream)
         elif phase == "prune":
             print("pruning the branches that no mask pixel needs…", file=self.stream)
+        elif phase == "warning":
+            print(f"warning: {info.get('message', '')}", file=self.stream)
 
     def close(self) -> None:
         if self.bar is not None:
