@@ -17,7 +17,7 @@ Method (``locate_region``)
     4. The bounding box of what remains, plus ``margin_mm`` on every side (the coarse voxels'
        rounding, and the vessel ends that one view sees beyond where the masks meet), at the
        requested voxel size: ``shape = ceil(extent / spacing)``, centred on the box.
-    5. A box larger than ``max_shape`` voxels on an axis is refused with a ``RegionError`` that
+    5. A box of more than ``max_voxels`` (256³) voxels is refused with a ``RegionError`` that
        says why it happens (inconsistent views, noisy masks) and what to do (clean the masks,
        a larger voxel, or give the volume).
 
@@ -51,7 +51,7 @@ SEARCH_MM = 320.0
 SEARCH_SPACING_MM = 2.5
 DILATE_MM = 2.0
 MARGIN_MM = 10.0
-MAX_SHAPE = 256
+MAX_VOXELS = 256**3  # 16.8 M voxels: 67 MB per float volume; beyond it, something is wrong with the input
 MIN_PIECE_FRACTION = 0.01
 
 Spacing = Union[float, Sequence[float]]
@@ -87,6 +87,11 @@ class Placement:
         }
 
 
+def _cube(count: int) -> str:
+    side = round(count ** (1 / 3))
+    return f"{side}³" if side**3 == count else str(count)
+
+
 def _spacing3(spacing_mm: Spacing) -> Tuple[float, float, float]:
     values = [float(spacing_mm)] * 3 if np.ndim(spacing_mm) == 0 else [float(v) for v in spacing_mm]
     if len(values) != 3 or not all(math.isfinite(v) and v > 0 for v in values):
@@ -99,7 +104,7 @@ def locate_region(
     masks: Sequence[np.ndarray],
     spacing_mm: Spacing = PAPER_SPACING_MM,
     margin_mm: float = MARGIN_MM,
-    max_shape: int = MAX_SHAPE,
+    max_voxels: int = MAX_VOXELS,
     search_mm: float = SEARCH_MM,
     search_spacing_mm: float = SEARCH_SPACING_MM,
     dilate_mm: float = DILATE_MM,
@@ -141,11 +146,11 @@ def locate_region(
     centre = (low + high) / 2
     extent = (high - low) + 2 * float(margin_mm)
     shape = tuple(int(math.ceil(e / s - 1e-6)) for e, s in zip(extent, spacing))
-    if max(shape) > max_shape:
+    if int(np.prod(shape)) > max_voxels:
         raise RegionError(
             f"the masks meet in a region of {' × '.join(f'{e:.0f}' for e in extent)} mm (margin included), which "
             f"at {'/'.join(f'{s:g}' for s in spacing)} mm voxels needs {' × '.join(map(str, shape))} voxels, more than "
-            f"{max_shape} per axis: implausibly large for a coronary tree. Usual causes: masks full of noise or a "
+            f"{_cube(max_voxels)}: implausibly large for a coronary tree. Usual causes: masks full of noise or a "
             "segmented collimator edge (see the mask warnings), or views whose geometry does not match the images "
             "(wrong angles, swapped masks). Clean the masks, check the geometry, or give the volume explicitly "
             "(--volume-shape/--volume-center, or GEOM.json's volume) or a larger voxel size")
@@ -159,10 +164,10 @@ def place_volume(
     masks: Sequence[np.ndarray],
     spacing_mm: Spacing = PAPER_SPACING_MM,
     margin_mm: float = MARGIN_MM,
-    max_shape: int = MAX_SHAPE,
+    max_voxels: int = MAX_VOXELS,
 ) -> VolumeGrid:
     """The reconstruction grid on the masks' region, at ``spacing_mm`` voxels (see ``locate_region``)."""
-    return locate_region(views, masks, spacing_mm, margin_mm, max_shape).grid
+    return locate_region(views, masks, spacing_mm, margin_mm, max_voxels).grid
 
 
 def mask_coverage(masks: Sequence[np.ndarray], views: Sequence[CArmView], grid: VolumeGrid) -> List[float]:

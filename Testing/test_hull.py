@@ -146,7 +146,9 @@ def test_a_vessel_leaving_one_detector_stays_in_the_support(cropped_case):
     # off view 2's detector the support is view 1's back-projection (its mask's cone), not the whole slab
     cone = visual_hull(masks[:1], views[:1], grid, margin_px=0.5 * views[0].magnification / 0.5, include_footprint=True)
     off = np.abs(z) > 12
-    assert np.array_equal(support & off, cone & off) and support[off].mean() < 0.5
+    unbounded = support_mask(masks, views, grid, margin_mm=0.5, one_view_reach_mm=None)
+    assert np.array_equal(unbounded & off, cone & off) and unbounded[off].mean() < 0.5
+    assert not np.any(support & ~unbounded)
 
 
 def test_a_collimated_border_does_not_constrain(cropped_case):
@@ -177,3 +179,14 @@ def test_voxels_no_view_sees_are_left_out():
         r, c, _ = view.project(centres)
         seen |= (np.rint(r) >= 0) & (np.rint(r) < 64) & (np.rint(c) >= 0) & (np.rint(c) < 64)
     assert np.array_equal(hull.reshape(-1), seen) and not seen.all()
+
+
+def test_the_one_view_reach_bounds_the_support(cropped_case):
+    grid, views, label, masks = cropped_case
+    z = grid.voxel_centers()[:, 2].reshape(grid.shape)
+    unbounded = support_mask(masks, views, grid, one_view_reach_mm=None)
+    short = support_mask(masks, views, grid, one_view_reach_mm=4.0)
+    assert not np.any(short & ~unbounded)
+    # view 2 sees |z| ≲ 9 mm: with a 4 mm reach nothing beyond about 13 mm is left, unbounded it is
+    assert not short[np.abs(z) > 15].any() and unbounded[np.abs(z) > 15].any()
+    assert np.array_equal(short[np.abs(z) < 6], unbounded[np.abs(z) < 6])
