@@ -6,8 +6,10 @@ on real runs the tree lies off-centre and the box cuts it. ``place_volume`` puts
 masks instead, keeping the voxel size the user or the protocol asked for.
 
 Method (``locate_region``)
-    1. A coarse search grid: a cube of ``search_mm`` (320 mm, larger than any chest's field)
-       centred on the isocenter at ``search_spacing_mm`` (2.5 mm: 128³ voxels, about a second).
+    1. A coarse search grid: a cube of ``search_mm`` (400 mm: larger than a chest, and than the
+       depth over which two views' ghosts can meet — 240 mm on the real phantom pair of
+       bench/RESULTS.md) centred on the isocenter at ``search_spacing_mm`` (3.125 mm: 128³ voxels,
+       about a second).
     2. The strict visual hull there (``hull.visual_hull``, ``fov_aware=False``: every view sees
        the voxel and its centre falls on every mask), with each mask widened by ``dilate_mm``
        plus a coarse voxel's half diagonal (both referred to the isocenter), so that thin vessels
@@ -47,8 +49,8 @@ from .hull import visual_hull
 from .projector import footprint_radius_px
 from .settings import PAPER_SPACING_MM, PAPER_VOLUME_SHAPE, ReconstructionError
 
-SEARCH_MM = 320.0
-SEARCH_SPACING_MM = 2.5
+SEARCH_MM = 400.0
+SEARCH_SPACING_MM = 3.125
 DILATE_MM = 2.0
 MARGIN_MM = 10.0
 MAX_VOXELS = 256**3  # 16.8 M voxels: 67 MB per float volume; beyond it, something is wrong with the input
