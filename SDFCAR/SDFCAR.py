@@ -304,10 +304,12 @@ class SDFCARWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
                 return
             p = self._parameterNode
             segmentation, parameters = self.logic.vesselnessMask(
-                getattr(p, f"frame{n}"), getattr(p, f"frame{n}Index"), getattr(p, f"mask{n}"))
+                getattr(p, f"frame{n}"), getattr(p, f"frame{n}Index"), getattr(p, f"mask{n}"),
+                pixelSpacingMm=(getattr(p, f"pixelSpacingRow{n}"), getattr(p, f"pixelSpacingCol{n}")),
+                magnification=getattr(p, f"sid{n}") / getattr(p, f"sod{n}"))
             setattr(p, f"mask{n}", segmentation)
-            self.ui.statusLabel.text = (f"Vesselness marked {100 * parameters['vessel_fraction']:.1f} % of frame {n} "
-                                        "as vessel; refine the mask with Edit.")
+            self.ui.statusLabel.text = (f"Vessel mask: {100 * parameters['vessel_fraction']:.1f} % of frame {n} in "
+                                        f"{parameters['components']} piece(s), collimator excluded; refine it with Edit.")
 
     def onReadGeometry(self):
         with slicer.util.tryWithErrorDisplay("Could not read the C-arm geometry from the DICOM tags.", waitCursor=True):
@@ -541,12 +543,14 @@ class SDFCARLogic(ScriptedLoadableModuleLogic):
         editor.setSegmentationNode(segmentation)
         editor.setSourceVolumeNode(frameNode)
 
-    def vesselnessMask(self, frameNode, index=-1, maskNode=None):
-        """Seed a frame's vessel segmentation with the vesselness mask; returns (segmentation, parameters)."""
+    def vesselnessMask(self, frameNode, index=-1, maskNode=None, pixelSpacingMm=None, magnification=None):
+        """Seed a frame's vessel segmentation with the angiogram mask pipeline (the command line's
+        ``segment``); returns (segmentation, parameters). Pixel spacing (mm) and magnification
+        (SID/SOD) set the physical vessel scales; without them typical values are assumed and reported."""
         from SDFCARLib import mrml
-        from SDFCARLib.masks import vesselness_mask
+        from SDFCARLib.masks import angiogram_mask
 
-        mask, parameters = vesselness_mask(self.frameArray(frameNode, index))
+        mask, parameters = angiogram_mask(self.frameArray(frameNode, index), pixelSpacingMm, magnification)
         with mrml.scene_transaction(slicer.mrmlScene):
             segmentation = self.maskSegmentation(frameNode, maskNode)
             mrml.set_segment_mask(segmentation, mask, frameNode, "Vessels")

@@ -7,6 +7,7 @@ Commands
     demo               reconstruct the bundled sample case and compare with its ground truth
     geometry-template  write a GEOM.json for a standard view pair, as a starting point
     geometry           two XA DICOM runs → GEOM.json, every value with its source tag
+    segment            one XA DICOM frame (or a plain image) → vessel mask, frame and overlay PNGs
     benchmark          many simulated cases × modes → results.csv, summary.md (the paper's tables)
 
 Exit status: 0 success; 2 bad input (one line ``error: …`` on stderr, no traceback unless
@@ -299,12 +300,34 @@ def cmd_geometry(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def _auto_masks(args: argparse.Namespace, geometry, provenance) -> List[Tuple[Dict[str, Any], np.ndarray, Any]]:
+    """--auto-masks: the segment pipeline on the frame of each DICOM view the geometry was read from."""
+    from .dicom import load_xa
+    from .masks import segment_angiogram
+
+    if not (args.dicom1 and args.dicom2):
+        raise ValueError("--auto-masks segments the frames of --dicom1 and --dicom2; give both (or give --mask1/--mask2)")
+    if any([args.mask1, args.mask2, args.lineint1, args.lineint2]):
+        raise ValueError("--auto-masks makes the masks itself; remove --mask1/--mask2 (or --lineint1/--lineint2)")
+    auto = []
+    for n, (view, info) in enumerate(zip(geometry.views, provenance["views"]), start=1):
+        frame_info = info["frame"]
+        frame = load_xa(getattr(args, f"dicom{n}")).frames[int(frame_info["index"])]
+        auto.append((frame_info, frame, segment_angiogram(frame, view.pixel_spacing_mm, view.sid_mm / view.sod_mm)))
+        p = auto[-1][2].parameters
+        print(f"view {n}: auto mask of frame {frame_info['index']}: {p['components']} component(s), "
+              f"{100 * p['vessel_fraction']:.1f}% of the frame", file=sys.stderr)
+    return auto
+
+
 def cmd_reconstruct(args: argparse.Namespace) -> int:
     from .io import align_to_grid, read_label
     from .outputs import RESULT_FILES, check_destination, write_reconstruction
 
     geometry, provenance, request = _geometry_for_reconstruct(args)
-    targets, kind, masks = _read_targets(args, geometry)
+    auto = _auto_masks(args, geometry, provenance) if args.auto_masks else None
+    targets, kind, masks = ([a.mask for _, _, a in auto], "mask", [a.mask for _, _, a in auto]) if auto \
+        else _read_targets(args, geometry)
     placement = None
     if request is not None:
         geometry, placement, source = _place_grid(geometry, masks, request, provenance)
@@ -325,9 +348,62 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
               "dicom": [_absolute(args.dicom1), _absolute(args.dicom2)] if args.dicom1 else None,
               "geometry_provenance": provenance,
               "targets": [_absolute(p) for p in ([args.mask1, args.mask2] if kind == "mask" else [args.lineint1, args.lineint2])]}
+    if auto:
+        inputs["targets"] = [f"auto_mask{n}.png" for n in (1, 2)]
+        inputs["auto_masks"] = [dict(a.parameters, frame=f) for f, _, a in auto]
     files = write_reconstruction(result, args.out, name=args.name, label=label, masks=masks, overwrite=args.overwrite,
                                  extra={"inputs": inputs, "grid": grid_record})
+    if auto:
+        from .masks import write_segmentation
+
+        for n, (f, frame, a) in enumerate(auto, start=1):
+            write_segmentation(Path(args.out) / f"auto_mask{n}.png", frame, a,
+                               {"dicom": _absolute(getattr(args, f"dicom{n}")), "frame": f}, overwrite=True)
+        print(f"masks made by the segment pipeline (--auto-masks): {args.out}/auto_mask1.png, auto_mask2.png "
+              "(overlays beside them; check them by eye)")
     _summarise(files)
+    return EXIT_OK
+
+
+def cmd_segment(args: argparse.Namespace) -> int:
+    from .masks import AngioMaskSettings, segment_angiogram, segmentation_paths, write_segmentation
+
+    spacing, magnification = args.pixel_spacing, args.magnification
+    if bool(args.dicom) == bool(args.image):
+        raise ValueError("give one input: --dicom RUN.dcm (with --frame N) or --image FRAME.png")
+    segmentation_paths(args.out)  # a wrong --out fails before the work
+    if args.dicom:
+        from .dicom import DicomInputError, choose_frame, load_xa, view_from_dicom
+
+        run = load_xa(args.dicom)
+        choice = choose_frame(run, args.frame)
+        frame = run.frames[choice.index]
+        source = {"dicom": _absolute(args.dicom), "frame": choice.to_dict()}
+        try:
+            view, _ = view_from_dicom(run, choice.index)
+            spacing = spacing or list(view.pixel_spacing_mm)
+            magnification = magnification or view.sid_mm / view.sod_mm
+            source["geometry"] = "pixel spacing and SID/SOD from the DICOM tags unless given"
+        except DicomInputError as exc:
+            source["geometry"] = f"not read from the tags ({exc})"
+        print(f"frame {choice.index} (0-based): {choice.reason}", file=sys.stderr)
+    else:
+        if args.frame is not None:
+            raise ValueError("--frame picks a frame of a --dicom run; an --image is one frame")
+        from .io import read_image
+
+        frame = read_image(args.image, what="frame")
+        source = {"image": _absolute(args.image)}
+    settings = AngioMaskSettings(**({"method": args.method} if args.method else {}),
+                                 **({"vessel_radius_mm": tuple(args.vessel_radius_mm)} if args.vessel_radius_mm else {}))
+    result = segment_angiogram(frame, spacing, magnification, settings)
+    paths = write_segmentation(args.out, frame, result, source, overwrite=args.overwrite)
+    p = result.parameters
+    print(f"mask: {p['components']} component(s), {100 * p['vessel_fraction']:.1f}% of the frame, border "
+          f"{100 * p['border_fraction']:.0f}% excluded, σ {p['sigmas_px']} px at {p['isocenter_pixel_mm']:.3f} mm/px "
+          f"(pixel spacing {p['pixel_spacing_source']}, magnification {p['magnification_source']}), {p['seconds']:.1f} s")
+    for path in paths.values():
+        print(f"wrote {path}")
     return EXIT_OK
 
 
@@ -489,6 +565,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--mask2", help="vessel mask of view 2")
     p.add_argument("--lineint1", help="line-integral image of view 1 (mm; NRRD/TIFF), instead of --mask1")
     p.add_argument("--lineint2", help="line-integral image of view 2, instead of --mask2")
+    p.add_argument("--auto-masks", action="store_true",
+                   help="with --dicom1/--dicom2: make the masks with the segment pipeline (written as auto_maskN*.png "
+                        "in --out, their parameters in report.json) instead of --mask1/--mask2")
     p.add_argument("--target-kind", choices=("mask", "line_integral"), default=None,
                    help="what the view images are (default: from which options are given)")
     p.add_argument("--label", help="optional ground truth (volume, .seg.nrrd or centreline) for metrics in report.json")
@@ -511,6 +590,25 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, help="GEOM.json to write")
     p.add_argument("--overwrite", action="store_true", help="replace an existing file")
     p.set_defaults(func=cmd_geometry)
+
+    p = commands.add_parser("segment", parents=[common], help="vessel mask of one XA DICOM frame or a plain image",
+                            description="Segment the contrast-filled vessels of one X-ray angiography frame (collimator "
+                                        "and border excluded, specks removed) and write the mask (0/255 PNG), the frame "
+                                        "used (NAME_frame.png), an overlay to check by eye (NAME_overlay.png) and every "
+                                        "parameter (NAME.json). Vessel sizes are physical: the pixel spacing and "
+                                        "magnification come from the DICOM tags, the options, or typical values.")
+    p.add_argument("--dicom", help="XA DICOM run")
+    p.add_argument("--frame", type=int, default=None, help="0-based frame of the run (default: chosen automatically)")
+    p.add_argument("--image", help="a plain frame instead (PNG/TIFF/NRRD, grey, vessels dark)")
+    p.add_argument("--pixel-spacing", type=float, nargs=2, metavar=("ROW", "COL"), default=None,
+                   help="detector pixel size in mm (default: the DICOM tags, else 0.39)")
+    p.add_argument("--magnification", type=float, default=None, help="SID/SOD (default: the DICOM tags, else 1.3)")
+    p.add_argument("--vessel-radius-mm", type=float, nargs=2, metavar=("MIN", "MAX"), default=None,
+                   help="vessel radii to detect, mm at the isocenter (default 0.5 2.5)")
+    p.add_argument("--method", choices=("sato", "frangi", "meijering"), default=None, help="ridge filter (default sato)")
+    p.add_argument("--out", required=True, help="mask PNG to write (NAME.png; the other files are named after it)")
+    p.add_argument("--overwrite", action="store_true", help="replace existing files")
+    p.set_defaults(func=cmd_segment)
 
     p = commands.add_parser("simulate", parents=[common], help="simulate the views of a label volume or centreline",
                             description="Project a label (NRRD/NIfTI volume with its own spacing and origin, or a "

@@ -28,6 +28,7 @@ from typing import List
 
 import torch
 from torch import nn
+from torch.utils.checkpoint import checkpoint
 
 from .sparse import SparseOperator
 
@@ -188,7 +189,6 @@ class ImplicitField(nn.Module):
         features = self.encoding(x)
         n = features.shape[0]
         if checkpoint_points and n > checkpoint_points and torch.is_grad_enabled():
-            from torch.utils.checkpoint import checkpoint
 
             out = torch.cat([checkpoint(self.mlp, features[i:i + checkpoint_points], use_reentrant=False)
                              for i in range(0, n, checkpoint_points)])

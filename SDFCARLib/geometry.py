@@ -15,6 +15,15 @@ C-arm view (primary angle α: LAO +, RAO −; secondary angle β: CRA +, CAU −
     At AP (0°, 0°) the detector is anterior, the patient's left is on the image's right and the
     head at the top.
 
+Object motion between acquisitions (optional, per view)
+    Views are acquired seconds apart and table, patient and heart move in between. A view may
+    carry the rigid motion of the object at its acquisition relative to the reference frame (the
+    first view's): a reference point x sits at R·x + t when this view is acquired, R the rotation
+    by the vector ``object_rotation_deg`` (axis × angle, degrees, LPS), t ``object_translation_mm``.
+    The view's frame is then expressed in the reference frame — source R⁻¹(S − t), detector centre
+    R⁻¹(C − t), directions R⁻¹d, R⁻¹u, R⁻¹v — so every projection and ray of SDFCAR sees the
+    object where this view saw it. Zero motion (the default) is the nominal C-arm pose.
+
 Pixel coordinates
     (row, col), continuous; the centre of pixel (0, 0) — the top-left pixel — is at (0.0, 0.0).
     The principal point (foot of the perpendicular from the source onto the detector) defaults
@@ -28,6 +37,7 @@ Volume grid
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import json
 import math
@@ -83,6 +93,17 @@ def _int_list(value: Any, length: int, where: str) -> Tuple[int, ...]:
     return tuple(out)
 
 
+def rotation_matrix(rotation_deg: Sequence[float]) -> np.ndarray:
+    """Rotation matrix of a rotation vector (axis × angle, degrees): Rodrigues' formula."""
+    vector = np.radians(np.asarray(rotation_deg, dtype=np.float64))
+    angle = float(np.linalg.norm(vector))
+    if angle == 0.0:
+        return np.eye(3)
+    k = vector / angle
+    cross = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
+    return np.eye(3) + math.sin(angle) * cross + (1.0 - math.cos(angle)) * cross @ cross
+
+
 @dataclass(frozen=True)
 class CArmView:
     """One C-arm acquisition: angles, distances and detector (see module docstring)."""
@@ -94,6 +115,8 @@ class CArmView:
     pixel_spacing_mm: Tuple[float, float]  # (row, col)
     detector_shape: Tuple[int, int]  # (rows, cols)
     principal_point_px: Optional[Tuple[float, float]] = None  # (row, col)
+    object_rotation_deg: Tuple[float, float, float] = (0.0, 0.0, 0.0)  # see "Object motion" above
+    object_translation_mm: Tuple[float, float, float] = (0.0, 0.0, 0.0)
 
     def __post_init__(self) -> None:
         self.validate("view")
@@ -124,19 +147,36 @@ class CArmView:
         _int_list(self.detector_shape, 2, f"{where}.detector_shape")
         if self.principal_point_px is not None:
             _number_list(self.principal_point_px, 2, f"{where}.principal_point_px")
+        _number_list(self.object_rotation_deg, 3, f"{where}.object_rotation_deg")
+        _number_list(self.object_translation_mm, 3, f"{where}.object_translation_mm")
 
     # --- frame -------------------------------------------------------------------------------
     @property
-    def detector_direction(self) -> np.ndarray:
-        """Unit vector d from the isocenter towards the detector."""
+    def has_object_motion(self) -> bool:
+        return any(float(v) != 0.0 for v in (*self.object_rotation_deg, *self.object_translation_mm))
+
+    def _nominal_detector_direction(self) -> np.ndarray:
         a, b = math.radians(self.primary_deg), math.radians(self.secondary_deg)
         return np.array([math.sin(a) * math.cos(b), -math.cos(a) * math.cos(b), math.sin(b)])
+
+    def _to_reference(self, vector: np.ndarray, point: bool) -> np.ndarray:
+        """A nominal C-arm vector (or point) in the reference frame: R⁻¹v (or R⁻¹(p − t))."""
+        if not self.has_object_motion:
+            return vector
+        if point:
+            vector = vector - np.asarray(self.object_translation_mm, dtype=np.float64)
+        return rotation_matrix(self.object_rotation_deg).T @ vector
+
+    @property
+    def detector_direction(self) -> np.ndarray:
+        """Unit vector d from the isocenter towards the detector."""
+        return self._to_reference(self._nominal_detector_direction(), False)
 
     @property
     def column_direction(self) -> np.ndarray:
         """Unit vector u along increasing image columns."""
         a = math.radians(self.primary_deg)
-        return np.array([math.cos(a), math.sin(a), 0.0])
+        return self._to_reference(np.array([math.cos(a), math.sin(a), 0.0]), False)
 
     @property
     def row_direction(self) -> np.ndarray:
@@ -145,11 +185,16 @@ class CArmView:
 
     @property
     def source_position(self) -> np.ndarray:
-        return -self.sod_mm * self.detector_direction
+        return self._to_reference(-self.sod_mm * self._nominal_detector_direction(), True)
 
     @property
     def detector_center(self) -> np.ndarray:
-        return (self.sid_mm - self.sod_mm) * self.detector_direction
+        return self._to_reference((self.sid_mm - self.sod_mm) * self._nominal_detector_direction(), True)
+
+    def with_object_motion(self, rotation_deg: Sequence[float], translation_mm: Sequence[float]) -> "CArmView":
+        """This view with the object's motion at its acquisition set (replacing any before)."""
+        return dataclasses.replace(self, object_rotation_deg=tuple(float(v) for v in rotation_deg),
+                                   object_translation_mm=tuple(float(v) for v in translation_mm))
 
     @property
     def principal_point(self) -> Tuple[float, float]:
@@ -220,6 +265,9 @@ class CArmView:
         }
         if self.principal_point_px is not None:
             out["principal_point_px"] = [float(v) for v in self.principal_point_px]
+        if self.has_object_motion:  # absent when zero, so nominal geometries keep their digest
+            out["object_rotation_deg"] = [float(v) for v in self.object_rotation_deg]
+            out["object_translation_mm"] = [float(v) for v in self.object_translation_mm]
         return out
 
     @classmethod
@@ -228,7 +276,7 @@ class CArmView:
         required = ["primary_deg", "secondary_deg", "sid_mm", "sod_mm", "pixel_spacing_mm", "detector_shape"]
         missing = [k for k in required if k not in data]
         _require(not missing, f"{where} is missing required field(s): {', '.join(missing)}")
-        known = set(required) | {"principal_point_px", "provenance"}
+        known = set(required) | {"principal_point_px", "object_rotation_deg", "object_translation_mm", "provenance"}
         unknown = sorted(set(data) - known)
         _require(not unknown, f"{where} has unknown field(s): {', '.join(unknown)} (allowed: {', '.join(sorted(known))})")
         pp = data.get("principal_point_px")
@@ -241,6 +289,10 @@ class CArmView:
                 pixel_spacing_mm=_number_list(data["pixel_spacing_mm"], 2, f"{where}.pixel_spacing_mm"),
                 detector_shape=_int_list(data["detector_shape"], 2, f"{where}.detector_shape"),
                 principal_point_px=None if pp is None else _number_list(pp, 2, f"{where}.principal_point_px"),
+                object_rotation_deg=_number_list(data.get("object_rotation_deg", (0.0, 0.0, 0.0)), 3,
+                                                 f"{where}.object_rotation_deg"),
+                object_translation_mm=_number_list(data.get("object_translation_mm", (0.0, 0.0, 0.0)), 3,
+                                                   f"{where}.object_translation_mm"),
             )
         except GeometryError as exc:
             # Range checks in validate() speak of "view"; give the caller's field path instead.

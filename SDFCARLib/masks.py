@@ -1,4 +1,4 @@
-"""Vessel masks of the views: binarising label images, and a vesselness helper to start from.
+"""Vessel masks of the views: binarising label images, and segmenting X-ray angiography frames.
 
 Binarising (``binarise_mask``)
     The one mask rule of the package (the file reader, the engine and the MRML bridge call it):
@@ -10,25 +10,48 @@ Binarising (``binarise_mask``)
     fix the input. An RGB(A) image is accepted only when its colour channels are equal (a grey
     image saved as colour).
 
-Vesselness (``vesselness_mask``), for when no mask exists — the user edits the result
-    Multi-scale Hessian ridge filter of scikit-image (``frangi`` or ``sato``) on the frame scaled
-    to [0, 1] by its 1st–99th percentiles, dark ridges by default (contrast-filled vessels are dark
-    in X-ray intensity), then a threshold on the response and removal of connected components
-    (8-connected) smaller than ``min_component_px``. The default threshold is Otsu's, computed on
-    the pixels with a non-negligible response (above 1e-3 of the maximum) so that the large flat
-    background does not drag it to zero; for ``frangi`` on the logarithm of the response, which
-    spans several decades (on simulated angiograms Otsu on the raw Frangi response kept only the
-    vessel cores, Dice ≈ 0.5 against ≈ 0.8 on its logarithm; Sato's response is closer to linear
-    and Otsu applies to it directly, Dice ≈ 0.7–0.85). The parameters used are returned next to
-    the mask so that the choice can be reported and repeated.
+Angiogram masks (``segment_angiogram`` / ``angiogram_mask``), for when no mask exists
+    One frame (intensity, vessels dark), its detector pixel spacing and magnification SID/SOD
+    (typical values when unknown, reported as such) → a mask of the vessel tree, the border that
+    was excluded, and every parameter used. All sizes are physical (``AngioMaskSettings``, mm at
+    the isocenter) and converted to pixels with the frame's geometry. Steps:
+
+    1. ``−log I`` (Beer–Lambert: proportional to the iodine path; exposure and the tissue in
+       front only add to it).
+    2. Collimator and image border: the regions wider than the thinnest vessels whose intensity
+       differs from the centre of the image by more than ``shutter_ratio`` and that run along the
+       image edge for more than twice the widest vessel (a vessel leaving the field touches it over
+       its width only); widened, with the image edge, by the filters' reach (2 × the largest σ).
+       They are filled with the nearest field values before filtering, and are never vessel.
+       A frame whose field is under ``min_field_fraction`` is refused.
+    3. Background: grey opening (a window wider than the widest vessel) of the log image, box
+       smoothed and subtracted (a top-hat): soft tissue, ribs, diaphragm and exposure go.
+    4. Ridge filter (Sato by default; Frangi and Meijering selectable) at σ = r/√3 for radii
+       geometric between the smallest and largest vessel radius, at least one pixel.
+    5. Hysteresis on the response in noise units (median and robust spread, 1.4826 × MAD, of the
+       field): seeds above ``high_noise_units``, grown through ``low_noise_units``, so faint
+       vessels connected to the tree are kept and isolated noise is not.
+    6. Silhouette: of those, the pixels whose top-hat (σ = 1 pixel smoothed) stands
+       ``silhouette_noise_units`` above its own noise (the ridge response is wider than the vessel).
+    7. Specks: 8-connected components shorter than ``min_length_mm`` along their skeleton, or
+       less elongated than ``min_elongation`` (length² / area, i.e. length over mean width), go.
+
+    A frame where nothing is left (no contrast, a wrong frame) or where half the image would be
+    vessel is refused with a ``MaskError`` that names the problem.
+
+The first helper of the project, a plain Frangi filter with an Otsu threshold, was replaced by this
+pipeline (bench/RESULTS.md compares them; the benchmark keeps it as its baseline, bench/masks.py).
 """
 
 from __future__ import annotations
 
+import time
+from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Any, Dict, Optional, Sequence, Tuple, Union
+from typing import Any, Dict, List, Optional, Sequence, Tuple, Union
 
 import numpy as np
+from scipy import ndimage
 
 PathLike = Union[str, Path]
 
@@ -94,81 +117,365 @@ def binarise_mask(
     return mask
 
 
-def _normalise(frame: np.ndarray) -> np.ndarray:
-    lo, hi = np.percentile(frame, [1.0, 99.0])
-    if not hi > lo:
-        raise MaskError("the frame is flat (no contrast between its 1st and 99th percentiles): nothing to segment")
-    return np.clip((frame - lo) / (hi - lo), 0.0, 1.0)
+# --- angiogram mask pipeline -----------------------------------------------------------------------------
+# Defaults when the frame's geometry is unknown: a 512² detector of about 20 cm and a magnification
+# SID/SOD of 1.3 (a typical cardiac C-arm), i.e. about 0.3 mm per pixel at the isocenter.
+DEFAULT_DETECTOR_SPACING_MM = 0.39
+DEFAULT_MAGNIFICATION = 1.3
+RIDGE_METHODS = ("sato", "frangi", "meijering")
 
 
-def vesselness_mask(
-    frame: Any,
-    sigmas: Sequence[float] = (1.0, 2.0, 3.0, 4.0),
-    method: str = "frangi",
-    black_ridges: bool = True,
-    threshold: Optional[float] = None,
-    min_component_px: int = 30,
-) -> Tuple[np.ndarray, Dict[str, Any]]:
-    """Vessel mask of one frame by a ridge filter, threshold and small-component removal.
+@dataclass(frozen=True)
+class AngioMaskSettings:
+    """Parameters of ``angiogram_mask``; lengths in mm at the isocenter (the patient's scale)."""
 
-    Returns ``(mask, parameters)``; ``parameters`` holds every value used (the Otsu threshold
-    when ``threshold`` is None) and the fraction of the image marked vessel.
-    """
-    from skimage.filters import frangi, sato, threshold_otsu
-    from skimage.morphology import remove_small_objects
+    vessel_radius_mm: Tuple[float, float] = (0.5, 2.5)  # smallest and largest vessel radius to detect
+    scales: int = 5  # ridge-filter scales, geometric between the two radii
+    method: str = "sato"
+    shutter_ratio: float = 4.0  # intensity ratio to the field beyond which an edge region is collimator
+    high_noise_units: float = 6.0  # hysteresis: seeds above median + this × robust spread of the response
+    low_noise_units: float = 2.0  # ... grown through pixels above median + this × spread
+    silhouette_noise_units: float = 2.0  # vessel pixels: top-hat above median + this × its robust spread
+    min_length_mm: float = 6.0  # a component's centreline must be at least this long
+    min_elongation: float = 3.0  # and length / mean width at least this (specks are round)
+    min_field_fraction: float = 0.25  # refuse frames whose exposed field is smaller than this
 
-    image = np.asarray(frame, dtype=np.float64)
-    if image.ndim != 2:
-        raise MaskError(f"vesselness works on one 2-D frame, got shape {image.shape}; pick a frame first")
+    def check(self) -> None:
+        r0, r1 = (float(v) for v in self.vessel_radius_mm)
+        if not 0 < r0 <= r1:
+            raise MaskError(f"vessel_radius_mm must be (smallest, largest) positive radii, got {self.vessel_radius_mm}")
+        if self.method not in RIDGE_METHODS:
+            raise MaskError(f"method must be one of {', '.join(RIDGE_METHODS)}, got {self.method!r}")
+        if int(self.scales) < 1:
+            raise MaskError(f"scales must be 1 or more, got {self.scales}")
+        if not self.shutter_ratio > 1:
+            raise MaskError(f"shutter_ratio must be above 1, got {self.shutter_ratio}")
+        if not 0 < self.low_noise_units <= self.high_noise_units:
+            raise MaskError("hysteresis levels must satisfy 0 < low_noise_units <= high_noise_units, got "
+                            f"{self.low_noise_units} and {self.high_noise_units}")
+        if self.min_length_mm < 0 or self.min_elongation < 0:
+            raise MaskError("min_length_mm and min_elongation must be 0 or more")
+
+
+@dataclass
+class AngioMask:
+    """Result of ``segment_angiogram``: the mask and what it was made from."""
+
+    mask: np.ndarray  # bool, vessel
+    border: np.ndarray  # bool, collimator/shutter and image edge (never vessel)
+    response: np.ndarray  # ridge response in noise units (0 in the border)
+    parameters: Dict[str, Any]
+
+
+def _frame_array(frame: Any) -> np.ndarray:
+    a = np.asarray(frame)
+    if a.dtype == object or not (np.issubdtype(a.dtype, np.number) or a.dtype == bool):
+        raise MaskError(f"the frame has data type {a.dtype}, not numbers; give a grey-level X-ray frame")
+    if a.ndim == 3 and a.shape[-1] in (3, 4):
+        colour = a[..., :3]
+        if not (np.array_equal(colour[..., 0], colour[..., 1]) and np.array_equal(colour[..., 0], colour[..., 2])):
+            raise MaskError(f"the frame is a colour image ({a.shape[-1]} channels that differ); X-ray frames are "
+                            "grey: give the original grey-level frame (DICOM or a single-channel PNG/TIFF)")
+        a = colour[..., 0]
+    if a.ndim == 3 and 1 in (a.shape[0], a.shape[-1]):
+        a = a.reshape(a.shape[1:] if a.shape[0] == 1 else a.shape[:-1])
+    if a.ndim != 2:
+        raise MaskError(f"a frame is one 2-D image (rows, cols), got shape {a.shape}; pick one frame of the run")
+    if min(a.shape) < 32:
+        raise MaskError(f"the frame is {a.shape[0]}×{a.shape[1]} pixels, too small for vessel detection (32 or more a side)")
+    image = a.astype(np.float64)
     if not np.all(np.isfinite(image)):
-        raise MaskError("the frame contains NaN or infinite values")
-    sigmas = tuple(float(s) for s in sigmas)
-    if not sigmas or any(s <= 0 for s in sigmas):
-        raise MaskError(f"sigmas must be positive scales in pixels (about the vessel radius), got {sigmas}")
-    if method not in ("frangi", "sato"):
-        raise MaskError(f"method must be 'frangi' or 'sato', got {method!r}")
-    if int(min_component_px) < 0:
-        raise MaskError(f"min_component_px must be 0 or more, got {min_component_px}")
-    scaled = _normalise(image)
+        raise MaskError("the frame contains NaN or infinite values; fix the image")
+    return image
+
+
+def _scales_px(settings: AngioMaskSettings, pixel_spacing_mm: Optional[Sequence[float]],
+               magnification: Optional[float]) -> Tuple[float, List[float], Dict[str, Any]]:
+    """Pixel size at the isocenter and the ridge-filter σ (pixels) from the physical radii."""
+    notes = {}
+    if pixel_spacing_mm is None:
+        spacing, notes["pixel_spacing_source"] = DEFAULT_DETECTOR_SPACING_MM, "default (not given)"
+    else:
+        values = np.broadcast_to(np.asarray(pixel_spacing_mm, dtype=float), (2,))
+        if not np.all(np.isfinite(values)) or np.any(values <= 0):
+            raise MaskError(f"pixel spacing must be positive mm (row, col), got {pixel_spacing_mm}")
+        spacing, notes["pixel_spacing_source"] = float(np.mean(values)), "given"
+    if magnification is None:
+        m, notes["magnification_source"] = DEFAULT_MAGNIFICATION, "default (not given)"
+    else:
+        m = float(magnification)
+        if not (np.isfinite(m) and 1.0 <= m < 5.0):
+            raise MaskError(f"magnification SID/SOD must be between 1 and 5, got {magnification}")
+        notes["magnification_source"] = "given"
+    iso_px_mm = spacing / m
+    r0, r1 = (float(v) / iso_px_mm for v in settings.vessel_radius_mm)
+    # A cylinder of radius r answers a Hessian filter best at σ ≈ r/√3 (Sato et al. 1998);
+    # below one pixel the Hessian only sees noise.
+    radii = np.geomspace(r0, r1, int(settings.scales)) if settings.scales > 1 else np.array([r0])
+    sigmas = sorted({float(round(max(1.0, float(r) / np.sqrt(3.0)), 2)) for r in radii})
+    notes.update({"detector_pixel_spacing_mm": spacing, "magnification": m, "isocenter_pixel_mm": iso_px_mm,
+                  "vessel_radius_px": [r0, r1]})
+    return iso_px_mm, sigmas, notes
+
+
+def _border(log_image: np.ndarray, settings: AngioMaskSettings, opening_px: int, margin_px: int,
+            min_contact_px: int) -> Tuple[np.ndarray, np.ndarray, Dict[str, Any]]:
+    """(border, shutter) masks. The shutter is the part of the image, connected to its edge and
+    wider than any vessel, whose intensity differs from the exposed field's by more than
+    ``shutter_ratio`` (lead blades are dark, an overexposed or inverted edge bright) and that runs
+    along the image edge; the border is
+    the shutter and the image edge, widened by ``margin_px`` where the filters see the edge."""
+    from skimage.measure import label as label_components
+
+    smooth = ndimage.gaussian_filter(log_image, 2.0)
+    rows, cols = smooth.shape
+    # Collimators close around the centre of the image, which is always exposed.
+    centre = smooth[3 * rows // 8: rows - 3 * rows // 8, 3 * cols // 8: cols - 3 * cols // 8]
+    field_level = float(np.median(centre))
+    off = np.abs(smooth - field_level) > np.log(settings.shutter_ratio)
+    off = ndimage.binary_opening(off, structure=np.ones((2 * opening_px + 1,) * 2, bool))  # no thin vessels
+    labels = label_components(off, connectivity=1)
+    # A blade or iris lies along the image edge; a vessel leaving the field touches it only over its
+    # width, so a region counts as shutter when it runs along the edge for more than
+    # ``min_contact_px`` (twice the widest vessel).
+    edge = np.concatenate([labels[0], labels[-1], labels[:, 0], labels[:, -1]])
+    contact = np.bincount(edge, minlength=labels.max() + 1)
+    contact[0] = 0
+    shutter = (contact >= min_contact_px)[labels]
+    shutter = ndimage.binary_closing(shutter, structure=np.ones((3, 3), bool), iterations=2) | shutter
+    border = ndimage.binary_dilation(shutter, structure=np.ones((2 * margin_px + 1,) * 2, bool)) if shutter.any() \
+        else shutter.copy()
+    border[:margin_px], border[-margin_px:], border[:, :margin_px], border[:, -margin_px:] = True, True, True, True
+    info = {"shutter_fraction": float(shutter.mean()), "border_fraction": float(border.mean()),
+            "border_margin_px": int(margin_px), "field_log_level": field_level}
+    return border, shutter, info
+
+
+def _local_noise(image: np.ndarray, field: np.ndarray, block: int = 32) -> np.ndarray:
+    """Smooth map of the noise standard deviation: robust (median) spread of the fine residual
+    in blocks of the field, interpolated; blocks without field take the nearest block's value."""
+    residual = np.abs(image - ndimage.gaussian_filter(image, 1.0)).astype(np.float64)
+    residual[~field] = np.nan
+    rows, cols = image.shape
+    nr, nc = -(-rows // block), -(-cols // block)
+    padded = np.full((nr * block, nc * block), np.nan)
+    padded[:rows, :cols] = residual
+    with np.errstate(all="ignore"):
+        import warnings
+
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN blocks (border) are filled below
+            level = np.nanmedian(padded.reshape(nr, block, nc, block).transpose(0, 2, 1, 3).reshape(nr, nc, -1), axis=2)
+    missing = ~np.isfinite(level) | (level <= 0)
+    if missing.all():
+        return np.ones_like(image, dtype=np.float64)
+    if missing.any():
+        _, (ri, ci) = ndimage.distance_transform_edt(missing, return_indices=True)
+        level = level[ri, ci]
+    level = ndimage.zoom(level, (rows / nr, cols / nc), order=1, mode="nearest", grid_mode=True)[:rows, :cols]
+    return np.maximum(level, 1e-6 * float(level.max()))
+
+
+def _disk_opening(image: np.ndarray, radius: int) -> np.ndarray:
+    """Grey opening by a disk: unlike a square it follows curved edges (diaphragm, heart border)."""
+    from skimage.morphology import disk, opening
+
+    try:
+        footprint = disk(radius, decomposition="crosses")  # scikit-image >= 0.20: fast
+    except TypeError:
+        footprint = disk(radius)
+    return opening(image, footprint)
+
+
+def _ridge(image: np.ndarray, sigmas: Sequence[float], method: str) -> np.ndarray:
+    from skimage.filters import frangi, meijering, sato
+
+    # Vessels are bright in the attenuation image (−log I): bright ridges.
+    if method == "sato":
+        return sato(image, sigmas=sigmas, black_ridges=False)
     if method == "frangi":
-        response = frangi(scaled, sigmas=sigmas, black_ridges=black_ridges)
-    else:
-        response = sato(scaled, sigmas=sigmas, black_ridges=black_ridges)
-    response = np.nan_to_num(response, nan=0.0)
-    if threshold is None:
-        # Otsu on the pixels that respond at all: the flat background would otherwise dominate.
-        active = response[response > 1e-3 * float(response.max())] if response.max() > 0 else response
-        if active.size < 2 or float(active.max()) == float(active.min()):
-            raise MaskError("the ridge filter found no vessel-like structure; check black_ridges and sigmas")
-        if method == "frangi":
-            # Frangi's response spans decades; on a linear scale Otsu keeps only the vessel cores.
-            value = float(np.exp(threshold_otsu(np.log(active))))
-            threshold_source = "Otsu on the logarithm of the non-negligible response"
-        else:
-            value, threshold_source = float(threshold_otsu(active)), "Otsu on the non-negligible response"
-    else:
-        value, threshold_source = float(threshold), "user"
-    mask = response > value
-    if min_component_px > 0:
-        mask = remove_small_objects(mask, max_size=int(min_component_px) - 1, connectivity=2) if _has_max_size() \
-            else remove_small_objects(mask, min_size=int(min_component_px), connectivity=2)
+        return frangi(image, sigmas=sigmas, black_ridges=False)
+    return meijering(image, sigmas=sigmas, black_ridges=False)
+
+
+def _component_shape(mask: np.ndarray) -> Tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Per 8-connected component: label image, area, centreline length (skeleton pixels), length²/area."""
+    from skimage.measure import label as label_components
+    from skimage.morphology import skeletonize
+
+    labels, n = label_components(mask, connectivity=2, return_num=True)
+    area = np.bincount(labels.ravel(), minlength=n + 1).astype(float)
+    length = np.bincount(labels[skeletonize(mask)].ravel(), minlength=n + 1).astype(float)
+    elongation = np.divide(length**2, area, out=np.zeros_like(area), where=area > 0)
+    return labels, area, length, elongation
+
+
+def segment_angiogram(
+    frame: Any,
+    pixel_spacing_mm: Optional[Union[float, Sequence[float]]] = None,
+    magnification: Optional[float] = None,
+    settings: Optional[AngioMaskSettings] = None,
+) -> AngioMask:
+    """Vessel mask of one X-ray angiography frame (intensity, vessels dark); see the module docstring.
+
+    ``pixel_spacing_mm``: detector pixel size (row, col) or one value; ``magnification``: SID/SOD.
+    Absent values take typical ones (reported in the parameters). Raises ``MaskError`` naming
+    the problem for frames it cannot segment (flat, mostly collimator, no vessel, colour…).
+    """
+    from skimage.filters import apply_hysteresis_threshold
+
+    s = settings if settings is not None else AngioMaskSettings()
+    s.check()
+    started = time.perf_counter()
+    image = _frame_array(frame)
+    iso_px_mm, sigmas, geometry = _scales_px(s, pixel_spacing_mm, magnification)
+    lo, hi = np.percentile(image, [0.5, 99.5])
+    if not hi > lo:
+        raise MaskError("the frame is flat (the same value almost everywhere): there is nothing to segment; "
+                        "check the frame index and that the run holds images")
+    # Beer–Lambert: −log I is proportional to the path through iodine, and a change of exposure
+    # or of the tissue in front only adds to it, which the background removal takes away.
+    floor = max(1e-6 * max(abs(hi), 1.0), float(np.percentile(image, 50)) * 1e-3)
+    log_image = -np.log(np.maximum(image - min(float(image.min()), 0.0), floor))
+    r_max_px = float(geometry["vessel_radius_px"][1])
+    margin_px = int(np.ceil(2.0 * max(sigmas))) + 2
+    border, _, border_info = _border(-log_image, s, max(1, int(round(0.5 * r_max_px))), margin_px,
+                                           int(np.ceil(4.0 * r_max_px)))
+    field = ~border
+    if field.mean() < s.min_field_fraction:
+        raise MaskError(f"the exposed field is only {100 * field.mean():.0f}% of the frame (the rest is collimator or "
+                        f"image edge, less than {100 * s.min_field_fraction:.0f}% is left): open the collimator or "
+                        "choose another frame/run")
+    # Fill the border with the nearest field values so the filters see no shutter edge.
+    _, (ri, ci) = ndimage.distance_transform_edt(border, return_indices=True)
+    filled = log_image[ri, ci]
+    # Background: grey opening by a disk wider than the widest vessel (vessels are bright in −log I)
+    # of the lightly smoothed image; subtracting it removes tissue, ribs, diaphragm and exposure.
+    # Only the opening's blockiness is smoothed away: a window-wide smoothing bends at kinks
+    # (the field's edge) and made false ridges there.
+    window = 2 * int(np.ceil(1.5 * r_max_px)) + 3
+    base = _disk_opening(ndimage.gaussian_filter(filled, 1.0), window // 2)
+    background = ndimage.gaussian_filter(base, 2.0)
+    # Quantum noise is larger in −log I where fewer photons arrive (behind the diaphragm, the
+    # spine): the top-hat is divided by a local noise level so that thresholds mean the same
+    # everywhere.
+    noise = _local_noise(filled, field)
+    tophat = (filled - background) / noise
+    response = np.nan_to_num(_ridge(tophat, sigmas, s.method), nan=0.0)
+    values = response[field]
+    median = float(np.median(values))
+    spread = 1.4826 * float(np.median(np.abs(values - median)))
+    if not spread > 0:
+        spread = float(np.std(values))
+    if not spread > 0:
+        raise MaskError("the ridge filter gives the same response everywhere in the field: the frame holds no "
+                        "vessel-like structure (flat or saturated frame?)")
+    normalised = np.where(field, (response - median) / spread, 0.0)
+    high, low = s.high_noise_units, s.low_noise_units
+    raw = apply_hysteresis_threshold(normalised, low, high) & field
+    # The ridge response spreads beyond the vessel at the large scales: the silhouette is where
+    # the (lightly smoothed) top-hat itself stands out of its noise.
+    contrast = ndimage.gaussian_filter(tophat, 1.0)
+    c_values = contrast[field]
+    c_median = float(np.median(c_values))
+    c_spread = 1.4826 * float(np.median(np.abs(c_values - c_median))) or float(np.std(c_values)) or 1.0
+    raw &= (contrast - c_median) / c_spread > s.silhouette_noise_units
+    labels, area, length, elongation = _component_shape(raw)
+    min_length_px = s.min_length_mm / iso_px_mm
+    keep = (length >= min_length_px) & (elongation >= s.min_elongation)
+    keep[0] = False
+    mask = keep[labels]
+    if not mask.any():
+        raise MaskError("no vessel found: no elongated structure of at least "
+                        f"{s.min_length_mm:g} mm stands out of the noise (a frame without contrast, or a wrong "
+                        "frame index?); choose the frame with contrast, or lower high_noise_units")
+    if mask.mean() > 0.5:
+        raise MaskError(f"{100 * mask.mean():.0f}% of the frame was marked vessel, which is not a vessel tree; "
+                        "check that vessels are dark in this image (an inverted frame?)")
+    kept = np.flatnonzero(keep)
     parameters = {
-        "method": method,
-        "sigmas": list(sigmas),
-        "black_ridges": bool(black_ridges),
-        "threshold": value,
-        "threshold_source": threshold_source,
-        "response_max": float(response.max()),
-        "min_component_px": int(min_component_px),
+        "pipeline": "angiogram_mask",
+        **{k: (list(v) if isinstance(v, tuple) else v) for k, v in asdict(s).items()},
+        **geometry,
+        "sigmas_px": list(sigmas),
+        **border_info,
+        "background_window_px": int(window),
+        "response_median": median,
+        "response_spread": spread,
+        "hysteresis_high": median + high * spread,
+        "hysteresis_low": median + low * spread,
+        "silhouette_level": c_median + s.silhouette_noise_units * c_spread,
+        "min_length_px": float(min_length_px),
+        "components_before_cleaning": int(area.size - 1),
+        "components": int(kept.size),
+        "component_lengths_mm": [round(float(length[k] * iso_px_mm), 1) for k in kept],
         "vessel_fraction": float(mask.mean()),
+        "seconds": round(time.perf_counter() - started, 3),
     }
-    return mask, parameters
+    return AngioMask(mask, border, normalised.astype(np.float32), parameters)
 
 
-def _has_max_size() -> bool:
-    """scikit-image ≥ 0.26 names the size limit ``max_size`` (objects up to it are removed)."""
-    import inspect
+def angiogram_mask(
+    frame: Any,
+    pixel_spacing_mm: Optional[Union[float, Sequence[float]]] = None,
+    magnification: Optional[float] = None,
+    settings: Optional[AngioMaskSettings] = None,
+) -> Tuple[np.ndarray, Dict[str, Any]]:
+    """``(mask, parameters)`` of ``segment_angiogram`` ."""
+    result = segment_angiogram(frame, pixel_spacing_mm, magnification, settings)
+    return result.mask, result.parameters
 
-    from skimage.morphology import remove_small_objects
 
-    return "max_size" in inspect.signature(remove_small_objects).parameters
+# --- pictures and files of a segmentation --------------------------------------------------------------
+def display_frame(frame: Any) -> np.ndarray:
+    """8-bit grey picture of a frame, scaled between its 1st and 99th percentiles."""
+    image = np.asarray(frame, dtype=np.float64)
+    lo, hi = np.percentile(image, [1.0, 99.0])
+    scale = (hi - lo) if hi > lo else 1.0
+    return np.rint(255.0 * np.clip((image - lo) / scale, 0.0, 1.0)).astype(np.uint8)
+
+
+def overlay_rgb(frame: Any, mask: np.ndarray, border: Optional[np.ndarray] = None) -> np.ndarray:
+    """RGB picture of the frame with the mask's outline in red and the border's outline in blue."""
+    from skimage.segmentation import find_boundaries
+
+    grey = display_frame(frame)
+    rgb = np.dstack([grey, grey, grey])
+    if border is not None and border.any():
+        rgb[find_boundaries(border, mode="inner")] = (40, 120, 255)
+    rgb[find_boundaries(mask, mode="inner")] = (255, 30, 30)
+    return rgb
+
+
+def segmentation_paths(out: PathLike) -> Dict[str, Path]:
+    """The files ``write_segmentation`` writes for ``out`` = ``NAME.png``."""
+    out = Path(out)
+    if out.suffix.lower() != ".png":
+        raise MaskError(f"--out {out}: the mask is written as PNG; give a name ending in .png")
+    stem = out.with_suffix("")
+    return {"mask": out, "frame": Path(f"{stem}_frame.png"), "overlay": Path(f"{stem}_overlay.png"),
+            "parameters": Path(f"{stem}.json")}
+
+
+def write_segmentation(out: PathLike, frame: Any, result: AngioMask, source: Dict[str, Any],
+                       overwrite: bool = False) -> Dict[str, Path]:
+    """Mask (0/255 PNG), the frame used (16-bit PNG of its values when they are whole numbers in
+    range, else its 8-bit picture), the overlay PNG and a JSON of the parameters and the source."""
+    import imageio.v3 as iio
+
+    from .io import write_json, write_mask_png
+
+    paths = segmentation_paths(out)
+    existing = [str(p) for p in paths.values() if p.exists()]
+    if existing and not overwrite:
+        raise MaskError(f"{', '.join(existing)} exist(s); choose another --out or add --overwrite")
+    paths["mask"].parent.mkdir(parents=True, exist_ok=True)
+    image = np.asarray(frame, dtype=np.float64)
+    exact = bool(np.all(image == np.rint(image)) and image.min() >= 0 and image.max() <= 65535)
+    stored = image.astype(np.uint16) if exact else display_frame(image)
+    write_mask_png(paths["mask"], result.mask)
+    iio.imwrite(paths["frame"], stored, extension=".png")
+    iio.imwrite(paths["overlay"], overlay_rgb(image, result.mask, result.border), extension=".png")
+    write_json(paths["parameters"], {"source": source, "frame_png": "frame values" if exact else "8-bit picture",
+                                     "parameters": result.parameters})
+    return paths

@@ -21,6 +21,7 @@ from typing import Optional
 
 import numpy as np
 import torch
+from scipy import ndimage
 
 from .geometry import CArmView, VolumeGrid
 from .sparse import SparseOperator
@@ -37,7 +38,6 @@ def footprint_radius_px(view: CArmView, grid: VolumeGrid) -> float:
 
 def pixels_reached(view: CArmView, grid: VolumeGrid, voxels: np.ndarray) -> np.ndarray:
     """Flat pixel indices whose rays can pass through (the interpolation support of) ``voxels``."""
-    from scipy import ndimage
 
     rows, cols = view.detector_shape
     r, c, _ = view.project(grid.voxel_centers(voxels))

@@ -31,6 +31,10 @@ from typing import Any, Dict, Optional, Sequence, Tuple
 
 import numpy as np
 import torch
+from scipy import ndimage
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components, dijkstra
+from skimage.morphology import skeletonize
 
 from .geometry import Geometry
 from .projector import ConeBeamProjector
@@ -45,8 +49,6 @@ class PruneSettings:
 
 def skeleton_pieces(segmentation: np.ndarray, spacing_mm: Sequence[float], max_piece_mm: float) -> Tuple[np.ndarray, int]:
     """Label volume (0 = background, 1..n) of the pieces of ``segmentation`` and their number n."""
-    from scipy import ndimage
-    from skimage.morphology import skeletonize
 
     segmentation = np.asarray(segmentation, dtype=bool)
     spacing = np.asarray(spacing_mm, dtype=float)
@@ -84,8 +86,6 @@ def skeleton_pieces(segmentation: np.ndarray, spacing_mm: Sequence[float], max_p
 
 def _pieces_of_skeleton(points: np.ndarray, shape: Tuple[int, ...], spacing: np.ndarray, max_piece_mm: float) -> Tuple[np.ndarray, int]:
     """Piece label (1..; 0 for junction voxels) of each skeleton voxel, and the next free label."""
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components, dijkstra
 
     # 26-neighbour graph of skeleton voxels, edge weights in mm.
     index = -np.ones(shape, np.int64)
@@ -191,7 +191,6 @@ def removal_zone(segmentation: np.ndarray, kept: np.ndarray, spacing_mm: Sequenc
     The removed voxels plus the one-voxel shell around them that is nearer to them than to what is
     kept: the partial occupancy there would otherwise put a thin skin of the ghost into the surface.
     """
-    from scipy import ndimage
 
     removed = np.asarray(segmentation, bool) & ~np.asarray(kept, bool)
     if not removed.any():

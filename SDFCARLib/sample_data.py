@@ -22,6 +22,8 @@ from typing import Dict, List, Optional, Sequence, Union
 import numpy as np
 
 from .geometry import Geometry, standard_geometry
+from .io import align_to_grid, read_label, read_mask, write_json, write_mask_png, write_segmentation_nrrd
+from .outputs import staged_directory
 from .settings import PAPER_DETECTOR_SHAPE, PAPER_DETECTOR_SPACING_MM, PAPER_SPACING_MM, PAPER_VOLUME_SHAPE
 
 PathLike = Union[str, Path]
@@ -97,9 +99,6 @@ def make_sample_case() -> SampleCase:
 
 def write_sample_case(out_dir: PathLike, overwrite: bool = False, case: Optional[SampleCase] = None) -> Dict[str, Path]:
     """Write the sample case's files into ``out_dir`` (all or nothing); return their paths."""
-    from .io import write_mask_png, write_segmentation_nrrd
-    from .io import write_json
-    from .outputs import staged_directory
 
     case = case or make_sample_case()
     out_dir = Path(out_dir)
@@ -115,7 +114,6 @@ def write_sample_case(out_dir: PathLike, overwrite: bool = False, case: Optional
 
 def load_sample_case(directory: Optional[PathLike] = None) -> SampleCase:
     """Read the sample case (default: the copy installed with the package)."""
-    from .io import align_to_grid, read_label, read_mask
 
     directory = Path(directory) if directory is not None else SAMPLE_DIR
     missing = [name for name in FILES.values() if not (directory / name).is_file()]

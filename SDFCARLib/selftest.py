@@ -33,7 +33,9 @@ import numpy as np
 
 from . import mrml
 from .geometry import Geometry, standard_geometry
+from .metrics import cldice, dice
 from .phantoms import Branch, CenterlineTree, beer_lambert_counts, lad_tree, make_case
+from .sample_data import TREE_SEED, VIEW_PAIR
 from .settings import MASK_THRESHOLD_MM, make_settings
 
 #: Floors the short reconstruction must reach. Measured with SETTINGS (CPU, seed 0): Dice 0.62,
@@ -77,7 +79,6 @@ class SelfTestCase:
 
 def selftest_case(radius_scale: float = 2.0) -> SelfTestCase:
     """The small case of the self-test (see the module docstring); deterministic, about 2 s."""
-    from .sample_data import TREE_SEED, VIEW_PAIR
 
     tree = lad_tree(seed=TREE_SEED)
     tree = CenterlineTree([Branch(b.points, b.radii * radius_scale, b.name) for b in tree.branches], tree.name)
@@ -114,7 +115,6 @@ def run_selftest(
     ``settings`` override ``SETTINGS`` (e.g. ``{"device": "cuda"}``), ``floors`` override
     ``FLOORS``. With ``keep_nodes`` False every node the test added is removed at the end.
     """
-    from .metrics import cldice, dice
     from .optimiser import reconstruct  # torch: only when the scenario runs
 
     floors = dict(FLOORS, **(floors or {}))

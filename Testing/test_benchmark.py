@@ -307,10 +307,10 @@ def test_overrides_are_typed_from_the_settings():
 
 def test_retuned_preset_changes_the_configuration(monkeypatch):
     """Rows made with a preset's old values are not resumed once the preset changes."""
-    from SDFCARLib import optimiser
+    from SDFCARLib import settings
 
     before = bm.BenchmarkConfig("rca", Path("x")).config_id()
-    monkeypatch.setitem(optimiser.PRESETS, "fast", dict(optimiser.PRESETS["fast"], learning_rate=0.123))
+    monkeypatch.setitem(settings.PRESETS, "fast", dict(settings.PRESETS["fast"], learning_rate=0.123))
     assert bm.BenchmarkConfig("rca", Path("x")).config_id() != before
 
 

@@ -408,3 +408,45 @@ def test_geometry_dict_is_not_modified_by_validation():
     before = copy.deepcopy(data)
     Geometry.from_dict(data)
     assert data == before
+
+
+# --- object motion between acquisitions -----------------------------------------------------------------
+def test_object_motion_projects_the_moved_object():
+    from SDFCARLib.geometry import rotation_matrix
+
+    nominal = CArmView(-30.0, 20.0, 1000.0, 757.0, (0.3, 0.3), (400, 500), (190.0, 260.0))
+    moved = nominal.with_object_motion((1.0, -2.0, 0.5), (2.0, -1.0, 3.0))
+    points = np.random.default_rng(0).uniform(-40, 40, (50, 3))
+    rotation = rotation_matrix((1.0, -2.0, 0.5))
+    expected = nominal.project(points @ rotation.T + np.array([2.0, -1.0, 3.0]))
+    for got, want in zip(moved.project(points), expected):
+        np.testing.assert_allclose(got, want, atol=1e-9)
+    # rays and pixel positions agree with the projection in the reference frame
+    row, col, _ = moved.project(points)
+    origin, direction = moved.rays(row, col)
+    along = np.einsum("ij,ij->i", points - origin, direction)
+    np.testing.assert_allclose(origin + along[:, None] * direction, points, atol=1e-6)
+    np.testing.assert_allclose(np.linalg.norm(moved.row_direction), 1.0)
+
+
+def test_rotation_matrix_is_rodrigues():
+    from SDFCARLib.geometry import rotation_matrix
+
+    np.testing.assert_allclose(rotation_matrix((0.0, 0.0, 90.0)) @ [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], atol=1e-12)
+    r = rotation_matrix((3.0, -4.0, 12.0))
+    np.testing.assert_allclose(r @ r.T, np.eye(3), atol=1e-12)
+    assert np.linalg.det(r) == pytest.approx(1.0)
+    np.testing.assert_allclose(r @ np.array([3.0, -4.0, 12.0]), [3.0, -4.0, 12.0], atol=1e-12)  # the axis stays
+    assert math.degrees(math.acos((np.trace(r) - 1) / 2)) == pytest.approx(13.0)
+
+
+def test_object_motion_round_trips_and_zero_motion_keeps_the_digest():
+    view = CArmView(30.0, 0.0, 1000.0, 757.0, (0.278, 0.278), (512, 512))
+    grid = VolumeGrid((8, 8, 8), (1.0, 1.0, 1.0))
+    plain = Geometry(grid, (view,))
+    assert "object_rotation_deg" not in view.to_dict()
+    moved = Geometry(grid, (view.with_object_motion((0.0, 1.0, 0.0), (0.5, 0.0, 0.0)),))
+    assert Geometry.from_dict(moved.to_dict()) == moved and moved.digest() != plain.digest()
+    assert Geometry.from_dict(plain.to_dict()).digest() == plain.digest()
+    with pytest.raises(GeometryError, match=r"views\[0\]\.object_translation_mm must be a list of 3 numbers"):
+        Geometry.from_dict({**moved.to_dict(), "views": [{**view.to_dict(), "object_translation_mm": [1.0]}]})

@@ -1,15 +1,14 @@
-"""Vessel masks: binarising label images with the engine's checks, and the vesselness helper."""
+"""Vessel masks: the one mask rule for label images, and the angiogram mask pipeline."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
+from scipy import ndimage
 from skimage.measure import label as connected_components
 
-from SDFCARLib.geometry import CArmView, Geometry, VolumeGrid
 from SDFCARLib.io import InputError, read_mask
-from SDFCARLib.masks import MaskError, binarise_mask, vesselness_mask
-from SDFCARLib.metrics import mask_dice
+from SDFCARLib.masks import AngioMaskSettings, MaskError, angiogram_mask, binarise_mask, segment_angiogram
 
 
 # --- binarising --------------------------------------------------------------------------------------
@@ -77,56 +76,126 @@ def test_read_mask_takes_one_label_of_a_label_image(tmp_path):
         read_mask(path, (9, 11))
 
 
-# --- vesselness ----------------------------------------------------------------------------------------
-@pytest.fixture(scope="module")
-def angiogram():
-    """A simulated angiogram: phantom line integrals, Beer–Lambert, tissue background, noise."""
-    from SDFCARLib.phantoms import lad_tree, make_case
-
-    geometry = Geometry(VolumeGrid((64, 64, 64), (1.5, 1.5, 1.5)),
-                        (CArmView(30.0, 0.0, 1000.0, 757.0, (0.8, 0.8), (160, 160)),))
-    case = make_case(lad_tree(1), geometry)
-    line_integral, truth = case.line_integrals[0], case.masks[0]
-    yy, xx = np.mgrid[0:160, 0:160] / 160.0
-    tissue = 1.0 + 0.5 * xx + 0.3 * np.sin(3.0 * yy)  # attenuation of the soft tissue, smooth
-    counts = 3000.0 * np.exp(-0.25 * line_integral - tissue)
-    noisy = counts + np.random.default_rng(0).normal(0.0, 0.02 * 3000.0 * np.exp(-1.4), counts.shape)
-    return noisy, truth
+# --- angiogram mask pipeline ---------------------------------------------------------------------------
+ISO_MM = 0.3  # isocenter pixel of these tests: 0.39 mm detector pixels, magnification 1.3
+SPACING, MAGNIFICATION = 0.39, 1.3
 
 
-# Measured on this angiogram with the default parameters: Dice 0.785 (frangi), 0.801 (sato); floor 0.75.
-@pytest.mark.parametrize("method", ["frangi", "sato"])
-def test_vesselness_finds_the_vessels(angiogram, method):
-    frame, truth = angiogram
-    mask, parameters = vesselness_mask(frame, method=method)
-    assert mask.dtype == bool and mask.shape == truth.shape
-    assert mask_dice(mask, truth) > 0.75
-    assert parameters["method"] == method and parameters["sigmas"] == [1.0, 2.0, 3.0, 4.0]
-    assert parameters["threshold_source"].startswith("Otsu") and parameters["threshold"] > 0
-    assert parameters["vessel_fraction"] == pytest.approx(mask.mean())
+def _tubes(shape, segments):
+    """Line integral (mm) of cylinders: ``segments`` = [((r0, c0), (r1, c1), radius_mm, mm_scale)]."""
+    from skimage.draw import line
+
+    total = np.zeros(shape)
+    for (r0, c0), (r1, c1), radius_mm, scale in segments:
+        centre = np.ones(shape, bool)
+        rr, cc = line(r0, c0, r1, c1)
+        centre[rr, cc] = False
+        d = ndimage.distance_transform_edt(centre) * ISO_MM
+        total = np.maximum(total, scale * 2.0 * np.sqrt(np.maximum(radius_mm**2 - d**2, 0.0)))
+    return total
 
 
-def test_vesselness_parameters_are_used(angiogram):
-    frame, _ = angiogram
-    loose, p_loose = vesselness_mask(frame, method="sato", threshold=0.02, min_component_px=0)
-    strict, p_strict = vesselness_mask(frame, method="sato", threshold=0.2, min_component_px=0)
-    assert p_loose["threshold"] == 0.02 and p_loose["threshold_source"] == "user"
-    assert strict.sum() < loose.sum() and not np.any(strict & ~loose)  # a higher threshold keeps a subset
-    cleaned, _ = vesselness_mask(frame, method="sato", threshold=0.02, min_component_px=50)
-    sizes = np.bincount(connected_components(cleaned, connectivity=2).ravel())[1:]
-    assert sizes.min() >= 50 and not np.any(cleaned & ~loose)
-    # Dark ridges of an image are the bright ridges of its negative (the scaling mirrors exactly).
-    bright, _ = vesselness_mask(-frame, method="sato", black_ridges=False, threshold=0.05)
-    dark, _ = vesselness_mask(frame, method="sato", black_ridges=True, threshold=0.05)
-    assert np.array_equal(bright, dark)
+def _frame(line_integral, seed=0, **settings):
+    from SDFCARLib.angiogram import AngiogramSettings, simulate_angiogram
+
+    base = dict(ribs=1, snr=25.0, psf_sigma_mm=0.3)
+    frame, info = simulate_angiogram(line_integral, ISO_MM, seed, AngiogramSettings(**{**base, **settings}))
+    return frame, info
 
 
-def test_vesselness_bad_input():
-    with pytest.raises(MaskError, match="one 2-D frame"):
-        vesselness_mask(np.zeros((2, 8, 8)))
-    with pytest.raises(MaskError, match="method must be 'frangi' or 'sato'"):
-        vesselness_mask(np.random.default_rng(0).random((16, 16)), method="hessian")
-    with pytest.raises(MaskError, match="sigmas must be positive"):
-        vesselness_mask(np.random.default_rng(0).random((16, 16)), sigmas=(0, 1))
-    with pytest.raises(MaskError, match="the frame is flat"):
-        vesselness_mask(np.ones((16, 16)))
+def _segment(frame, **settings):
+    return segment_angiogram(frame, SPACING, MAGNIFICATION, AngioMaskSettings(**settings))
+
+
+def _components(mask):
+    return int(connected_components(mask, connectivity=2).max())
+
+
+def test_border_is_detected_and_never_vessel():
+    line_integral = _tubes((160, 160), [((10, 20), (150, 140), 1.5, 1.0)])  # runs into the shutter
+    frame, info = _frame(line_integral, collimator_fraction=0.12)
+    result = _segment(frame)
+    shutter = info["collimator"]
+    assert result.border[shutter].mean() > 0.99  # the whole collimator is border…
+    assert result.border[60:100, 60:100].sum() == 0  # …and the centre is not
+    assert not np.any(result.mask & result.border) and result.mask[60:100, 60:100].any()
+    assert result.parameters["shutter_fraction"] == pytest.approx(shutter.mean(), abs=0.05)
+    assert _components(result.mask) == 1
+    # Without a collimator only the image edge (the filters' margin) is border.
+    open_result = _segment(_frame(line_integral)[0])
+    assert open_result.parameters["shutter_fraction"] == 0.0
+    margin = open_result.parameters["border_margin_px"]
+    assert open_result.border.sum() == 160 * 160 - (160 - 2 * margin) ** 2
+
+
+def test_hysteresis_keeps_a_faint_branch_connected_to_the_tree():
+    trunk = ((20, 20), (140, 140), 1.5, 1.0)
+    faint_branch = ((80, 80), (20, 140), 0.8, 0.35)  # starts on the trunk
+    faint_alone = ((110, 15), (150, 60), 0.8, 0.35)  # same contrast, not connected
+    frame, _ = _frame(_tubes((160, 160), [trunk, faint_branch, faint_alone]))
+    result = _segment(frame)
+    mask = result.mask
+    assert mask[78:82, 78:82].any() and mask[35:45, 120:130].any()  # trunk-side and far end of the branch
+    branch_pixels = _tubes((160, 160), [faint_branch])[:70] > 0
+    assert mask[:70][branch_pixels].mean() > 0.5
+    assert not mask[115:145, 20:55].any()  # the unconnected faint segment is only noise-level seeds
+    # Seeds alone (low = high) lose the branch: the growth through the low level is what keeps it.
+    seeds_only = _segment(frame, low_noise_units=result.parameters["high_noise_units"]).mask
+    assert seeds_only[:70][branch_pixels].mean() < mask[:70][branch_pixels].mean() - 0.2
+
+
+def test_specks_are_removed_by_size_and_elongation():
+    line_integral = _tubes((160, 160), [((20, 30), (140, 130), 1.2, 1.0)])
+    yy, xx = np.mgrid[:160, :160]
+    for r, c in [(30, 120), (120, 40), (70, 130), (140, 70)]:  # round blobs, as dark as the vessel
+        line_integral = np.maximum(line_integral, 2.0 * np.sqrt(np.maximum(2.0**2 - ((yy - r) ** 2 + (xx - c) ** 2) * ISO_MM**2, 0)))
+    frame, _ = _frame(line_integral)
+    result = _segment(frame)
+    p = result.parameters
+    assert p["components_before_cleaning"] >= 5 and p["components"] == 1
+    assert _components(result.mask) == 1 and result.mask[80, 80]
+    assert not result.mask[26:35, 116:125].any()
+    # Without the cleaning the blobs (and noise specks) stay; either criterion alone removes these.
+    assert _segment(frame, min_elongation=0.0, min_length_mm=0.0).parameters["components"] >= 5
+    assert _segment(frame, min_length_mm=0.0).parameters["components"] == 1  # elongation only
+    assert _segment(frame, min_elongation=0.0).parameters["components"] == 1  # length only
+
+
+def test_scales_follow_the_physical_vessel_size_and_parameters_are_reported():
+    frame, _ = _frame(_tubes((128, 128), [((10, 64), (120, 64), 1.5, 1.0)]))
+    fine = segment_angiogram(frame, 0.2, 1.0).parameters
+    coarse = segment_angiogram(frame, 0.4, 1.0).parameters
+    assert fine["isocenter_pixel_mm"] == pytest.approx(0.2) and coarse["isocenter_pixel_mm"] == pytest.approx(0.4)
+    assert max(fine["sigmas_px"]) == pytest.approx(2 * max(coarse["sigmas_px"]), rel=0.02)
+    assert min(coarse["sigmas_px"]) >= 1.0
+    default = segment_angiogram(frame).parameters
+    assert default["pixel_spacing_source"].startswith("default") and default["magnification_source"].startswith("default")
+    for key in ("method", "sigmas_px", "hysteresis_high", "hysteresis_low", "silhouette_level", "min_length_px",
+                "border_fraction", "components", "vessel_fraction"):
+        assert key in default
+    mask, parameters = angiogram_mask(frame, SPACING, MAGNIFICATION)
+    assert mask.dtype == bool and parameters["vessel_fraction"] == pytest.approx(mask.mean())
+
+
+def test_bad_frames_are_refused_with_the_problem_named():
+    vessel = _tubes((128, 128), [((10, 20), (120, 100), 1.5, 1.0)])
+    with pytest.raises(MaskError, match="flat"):
+        _segment(np.full((128, 128), 700.0))
+    with pytest.raises(MaskError, match="no vessel found"):
+        _segment(_frame(np.zeros((128, 128)))[0])
+    with pytest.raises(MaskError, match="exposed field is only"):
+        _segment(_frame(vessel, collimator_fraction=0.33)[0])
+    frame, _ = _frame(vessel)
+    colour = np.dstack([frame, frame // 2, frame])
+    with pytest.raises(MaskError, match="colour image"):
+        _segment(colour)
+    grey_as_rgb = np.dstack([frame, frame, frame])
+    assert np.array_equal(_segment(grey_as_rgb).mask, _segment(frame).mask)
+    with pytest.raises(MaskError, match="one 2-D image"):
+        _segment(np.stack([frame, frame]))
+    with pytest.raises(MaskError, match="NaN"):
+        _segment(np.where(np.eye(128, dtype=bool), np.nan, frame.astype(float)))
+    with pytest.raises(MaskError, match="pixel spacing must be positive"):
+        segment_angiogram(frame, -0.3)
+    with pytest.raises(MaskError, match="method must be one of"):
+        _segment(frame, method="hessian")

@@ -247,11 +247,13 @@ def test_blocked_imports_the_modules_library_calls(tmp_path):
     out, blocked = _run_blocked(tmp_path, '''
         import numpy as np
         from SDFCARLib.sample_data import load_sample_case
-        from SDFCARLib.masks import vesselness_mask
+        from SDFCARLib.angiogram import simulate_angiogram
+        from SDFCARLib.masks import angiogram_mask
         from SDFCARLib.jobs import prepare_job
         import SDFCARLib.dicom, SDFCARLib.selftest, SDFCARLib.mrml
         case = load_sample_case()
-        vesselness_mask(case.masks[0].astype(np.float32)[::4, ::4])
+        frame, _ = simulate_angiogram(2.0 * case.masks[0], 0.278, 0)
+        angiogram_mask(frame, 0.278, 1.32)
         prepare_job(sys.argv[1], case.geometry, case.masks, {"steps": 1})
     ''', tmp_path / "job")
     assert not blocked, f"the module imports modules Slicer lacks: {blocked}"

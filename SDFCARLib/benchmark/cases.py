@@ -17,7 +17,7 @@ import numpy as np
 from ..geometry import Geometry, VolumeGrid, standard_geometry
 from ..io import read_label
 from ..settings import (MASK_THRESHOLD_MM, PAPER_DETECTOR_SHAPE, PAPER_DETECTOR_SPACING_MM, PAPER_SPACING_MM,
-                        PAPER_VOLUME_SHAPE, PROTOCOLS)
+                        PAPER_VOLUME_SHAPE, PROTOCOLS, REALISTIC_PROTOCOLS)
 from .errors import BenchmarkError
 
 
@@ -236,7 +236,15 @@ def prepare_case(spec: CaseSpec, protocol: str, grid: Optional[GridOptions] = No
         label, _, info = trees[spec.component]
     if not label.any():
         raise BenchmarkError(f"case {spec.name}: the vessel tree does not reach the volume grid")
-    line_integrals, masks = simulate_views(label, geometry.volume, geometry.views, MASK_THRESHOLD_MM)
+    if protocol in REALISTIC_PROTOCOLS:
+        # The masks a user would have: segmented from simulated angiograms of a moving heart.
+        from ..realistic import RealisticOptions, realistic_input
+
+        realistic = realistic_input(label, geometry, spec.seed, RealisticOptions(**REALISTIC_PROTOCOLS[protocol]))
+        line_integrals, masks = [], realistic.masks
+        info.update(realistic=realistic.info)
+    else:
+        line_integrals, masks = simulate_views(label, geometry.volume, geometry.views, MASK_THRESHOLD_MM)
     for n, (mask, view) in enumerate(zip(masks, geometry.views), start=1):
         if not mask.any() or mask.all():
             raise BenchmarkError(f"case {spec.name}: view {n} ({view.describe()}) sees {'no' if not mask.any() else 'only'} "

@@ -27,4 +27,5 @@ TABLE_METRICS: List[Tuple[str, str, float, int, bool]] = [
 
 # The metric columns of results.csv, in order.
 METRIC_COLUMNS = ["cldice", "tprec", "tsens", "skeleton_dice", "dice", "iou", "chamfer_l2_mm", "re_error", "re_mse",
-                  "reprojection_dice_view1", "reprojection_dice_view2", "voxels_predicted", "voxels_label"]
+                  "reprojection_dice_view1", "reprojection_dice_view2", "voxels_predicted", "voxels_label",
+                  "input_mask_cldice_view1", "input_mask_cldice_view2", "motion_mm", "motion_deg"]

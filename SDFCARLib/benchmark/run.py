@@ -113,6 +113,12 @@ def run_task(prepared: Dict[str, Any], spec: CaseSpec, mode: str, task: Dict[str
                 row[key] = metrics[key]
         for n, value in enumerate(metrics.get("reprojection_dice", []), start=1):
             row[f"reprojection_dice_view{n}"] = value
+        realistic = case.info.get("realistic")
+        if realistic:  # what the input masks lost, and how far the heart moved
+            for n, view in enumerate(realistic["views"], start=1):
+                row[f"input_mask_cldice_view{n}"] = view["mask_cldice"]
+            row["motion_mm"] = max(float(np.linalg.norm(m["translation_mm"])) for m in realistic["motion"])
+            row["motion_deg"] = max(float(np.linalg.norm(m["rotation_deg"])) for m in realistic["motion"])
         row["status"], row["error"] = "ok", ""
         out: Dict[str, Any] = {"row": row}
         if task.get("overlay"):

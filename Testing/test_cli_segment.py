@@ -1,0 +1,112 @@
+"""`python -m SDFCARLib segment`: a vessel mask from one XA DICOM frame or a plain image."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from skimage.draw import line
+
+from xa_writer import write_xa
+from SDFCARLib.angiogram import AngiogramSettings, simulate_angiogram
+from SDFCARLib.cli import main
+from SDFCARLib.geometry import CArmView
+from SDFCARLib.io import read_image
+
+
+def _vessel_line_integral(shape=(128, 128), spacing_mm=0.3, radius_mm=1.2):
+    from scipy import ndimage
+
+    centre = np.ones(shape, bool)
+    for (r0, c0), (r1, c1) in [((15, 20), (110, 100)), ((60, 60), (25, 110))]:
+        rr, cc = line(r0, c0, r1, c1)
+        centre[rr, cc] = False
+    d = ndimage.distance_transform_edt(centre) * spacing_mm
+    return 2.0 * np.sqrt(np.maximum(radius_mm**2 - d**2, 0.0))
+
+
+@pytest.fixture(scope="module")
+def run(tmp_path_factory):
+    """A 3-frame XA run: no contrast, full contrast, half contrast; 0.39 mm pixels, SID/SOD 1.3."""
+    line_integral = _vessel_line_integral()
+    settings = AngiogramSettings(collimator_fraction=0.06, ribs=1)
+    frames = np.stack([simulate_angiogram(c * line_integral, 0.3, 7, settings)[0] for c in (0.0, 1.0, 0.5)])
+    view = CArmView(30.0, 0.0, 975.0, 750.0, (0.39, 0.39), (128, 128))
+    folder = tmp_path_factory.mktemp("xa")
+    path = write_xa(folder / "run.dcm", frames, view, bits_stored=12)
+    other = CArmView(-30.0, 20.0, 975.0, 750.0, (0.39, 0.39), (128, 128))  # same frames: plumbing only
+    write_xa(folder / "run2.dcm", frames, other, bits_stored=12)
+    return path, line_integral > 0
+
+
+def test_segment_a_dicom_run(run, tmp_path, capsys):
+    path, truth = run
+    out = tmp_path / "masks" / "view1.png"
+    assert main(["segment", "--dicom", str(path), "--out", str(out)]) == 0
+    err = capsys.readouterr()
+    assert "frame 1 (0-based)" in err.err and "1 component(s)" in err.out
+    mask = read_image(out) > 0
+    inner = np.zeros_like(truth)
+    inner[20:108, 20:108] = True
+    assert (mask & truth).sum() > 0.7 * (truth & inner).sum() and (mask & ~truth).sum() < 0.3 * mask.sum()
+    for suffix in ("_frame.png", "_overlay.png"):
+        assert (tmp_path / "masks" / f"view1{suffix}").exists()
+    assert read_image(tmp_path / "masks" / "view1_frame.png").shape == (128, 128)
+    report = json.loads((tmp_path / "masks" / "view1.json").read_text())
+    assert report["source"]["frame"]["index"] == 1
+    assert report["parameters"]["magnification"] == pytest.approx(1.3)
+    assert report["parameters"]["pixel_spacing_source"] == "given"
+    # The frame written back segments the same way as a plain image with the same geometry.
+    again = tmp_path / "again.png"
+    assert main(["segment", "--image", str(tmp_path / "masks" / "view1_frame.png"), "--pixel-spacing", "0.39", "0.39",
+                 "--magnification", "1.3", "--out", str(again)]) == 0
+    assert np.array_equal(read_image(again) > 0, mask)
+    assert main(["segment", "--dicom", str(path), "--out", str(out)]) == 2  # exists, no --overwrite
+    assert "--overwrite" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("argv_tail, message", [
+    (["--frame", "5"], "frame 5 is out of range: this run has 3 frames"),
+    (["--frame", "0"], "no vessel found"),
+])
+def test_segment_bad_frames(run, tmp_path, capsys, argv_tail, message):
+    path, _ = run
+    out = tmp_path / "m.png"
+    assert main(["segment", "--dicom", str(path), "--out", str(out)] + argv_tail) == 2
+    assert message in capsys.readouterr().err and not out.exists()
+
+
+def test_segment_bad_images(tmp_path, capsys):
+    import imageio.v3 as iio
+
+    flat, colour = tmp_path / "flat.png", tmp_path / "colour.png"
+    iio.imwrite(flat, np.full((64, 64), 90, np.uint8))
+    iio.imwrite(colour, np.dstack([np.arange(64 * 64, dtype=np.uint8).reshape(64, 64), np.zeros((64, 64), np.uint8),
+                                   np.zeros((64, 64), np.uint8)]))
+    for image, message in [(flat, "the frame is flat"), (colour, "colour image")]:
+        assert main(["segment", "--image", str(image), "--out", str(tmp_path / "m.png")]) == 2
+        assert message in capsys.readouterr().err
+    assert main(["segment", "--image", str(flat), "--frame", "2", "--out", str(tmp_path / "m.png")]) == 2
+    assert "--frame picks a frame of a --dicom run" in capsys.readouterr().err
+    assert main(["segment", "--image", str(flat), "--out", str(tmp_path / "m.nrrd")]) == 2
+    assert "ending in .png" in capsys.readouterr().err
+
+
+def test_reconstruct_with_auto_masks(run, tmp_path, capsys):
+    path, _ = run
+    out = tmp_path / "result"
+    args = ["reconstruct", "--dicom1", str(path), "--dicom2", str(path.parent / "run2.dcm"), "--auto-masks",
+            "--volume-shape", "8", "8", "8", "--volume-spacing", "8", "--steps", "1", "--no-progress", "--out", str(out)]
+    assert main(args) == 0, capsys.readouterr().err
+    captured = capsys.readouterr()
+    assert "auto mask of frame 1" in captured.err and "--auto-masks" in captured.out
+    report = json.loads((out / "report.json").read_text())
+    auto = report["inputs"]["auto_masks"]
+    assert len(auto) == 2 and auto[0]["pipeline"] == "angiogram_mask" and auto[0]["frame"]["index"] == 1
+    assert report["inputs"]["targets"] == ["auto_mask1.png", "auto_mask2.png"]
+    assert main(["segment", "--dicom", str(path), "--out", str(tmp_path / "seg.png")]) == 0
+    assert np.array_equal(read_image(out / "auto_mask1.png"), read_image(tmp_path / "seg.png"))
+    assert (out / "auto_mask2_overlay.png").exists()
+    assert main(args[:-1] + [str(tmp_path / "r2"), "--mask1", "m.png"]) == 2
+    assert "remove --mask1/--mask2" in capsys.readouterr().err

@@ -1,0 +1,58 @@
+"""The epipolar consistency check: a correct pair agrees, a sign-flipped angle does not."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from SDFCARLib.consistency import ConsistencyOptions, consistency_warnings, view_consistency
+from SDFCARLib.geometry import CArmView, Geometry, VolumeGrid
+from SDFCARLib.phantoms import lad_tree, simulate_views, voxelize
+
+
+@pytest.fixture(scope="module")
+def case():
+    grid = VolumeGrid((64, 64, 64), (1.5, 1.5, 1.5))
+    views = (CArmView(50.0, 25.0, 1000.0, 757.0, (0.6, 0.6), (256, 256)),
+             CArmView(-50.0, 25.0, 1000.0, 757.0, (0.6, 0.6), (256, 256)))
+    label = voxelize(lad_tree(1), grid)
+    _, masks = simulate_views(label, grid, views)
+    return Geometry(grid, views), masks
+
+
+def _with_view2(geometry, **changes):
+    v = geometry.views[1]
+    values = dict(primary_deg=v.primary_deg, secondary_deg=v.secondary_deg, sid_mm=v.sid_mm, sod_mm=v.sod_mm,
+                  pixel_spacing_mm=v.pixel_spacing_mm, detector_shape=v.detector_shape)
+    values.update(changes)
+    return Geometry(geometry.volume, (geometry.views[0], CArmView(**values)))
+
+
+def test_a_correct_pair_is_consistent_and_not_flagged(case):
+    geometry, masks = case
+    consistency = view_consistency(geometry, masks)
+    assert len(consistency) == 2 and min(consistency) > 0.95
+    assert consistency_warnings(consistency) == []
+
+
+def test_a_sign_flipped_primary_angle_is_flagged(case):
+    geometry, masks = case
+    consistency = view_consistency(_with_view2(geometry, primary_deg=50.0), masks)
+    assert max(consistency) < 0.5
+    warnings = consistency_warnings(consistency)
+    assert len(warnings) == 2 and "view 2" in warnings[1] and "angle signs" in warnings[1]
+
+
+def test_a_sign_flipped_secondary_angle_lowers_the_consistency(case):
+    geometry, masks = case
+    correct = np.mean(view_consistency(geometry, masks))
+    flipped = np.mean(view_consistency(_with_view2(geometry, secondary_deg=-25.0), masks))
+    assert flipped < correct - 0.05
+
+
+def test_options_and_bad_input(case):
+    geometry, masks = case
+    assert consistency_warnings([0.9, 0.7], ConsistencyOptions(warn_below=0.8))[0].startswith("view 2")
+    assert view_consistency(geometry, [masks[0], np.zeros_like(masks[1])])[1] == 0.0
+    with pytest.raises(ValueError, match="1 masks for 2 views"):
+        view_consistency(geometry, masks[:1])

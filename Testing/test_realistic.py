@@ -1,0 +1,53 @@
+"""Realistic benchmark input: masks segmented from simulated angiograms, with motion between views."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from SDFCARLib.geometry import CArmView, Geometry, VolumeGrid
+from SDFCARLib.metrics import mask_dice
+from SDFCARLib.phantoms import lad_tree, simulate_views, voxelize
+from SDFCARLib.realistic import RealisticOptions, realistic_input
+from SDFCARLib.settings import PROTOCOLS, REALISTIC_PROTOCOLS
+
+
+@pytest.fixture(scope="module")
+def case():
+    grid = VolumeGrid((48, 48, 48), (2.0, 2.0, 2.0))
+    views = tuple(CArmView(a, 0.0, 1000.0, 757.0, (0.6, 0.6), (200, 200)) for a in (30.0, -30.0))
+    geometry = Geometry(grid, views)
+    return geometry, voxelize(lad_tree(2), grid)
+
+
+def test_masks_come_from_images_and_the_heart_moves_within_bounds(case):
+    geometry, label = case
+    result = realistic_input(label, geometry, seed=4)
+    _, nominal = simulate_views(label, geometry.volume, geometry.views)
+    assert len(result.masks) == 2 and all(m.dtype == bool and m.shape == (200, 200) for m in result.masks)
+    assert all(f.dtype == np.uint16 for f in result.frames)
+    # segmented, not copied from the truth: close to the moved silhouette but not equal to it
+    for mask, truth in zip(result.masks, result.true_masks):
+        assert 0.6 < mask_dice(mask, truth) < 1.0
+    motion = result.info["motion"]
+    assert motion[0] == {"rotation_deg": [0.0] * 3, "translation_mm": [0.0] * 3}
+    assert 0.5 * 3.0 <= np.linalg.norm(motion[1]["translation_mm"]) <= 3.0 + 1e-6
+    assert 0.5 * 2.0 <= np.linalg.norm(motion[1]["rotation_deg"]) <= 2.0 + 1e-6
+    assert result.true_views[1].has_object_motion and not result.geometry.views[1].has_object_motion
+    assert not np.array_equal(result.true_masks[1], nominal[1])  # view 2 saw the moved heart
+    assert {"mask_dice", "mask_cldice", "mask_components"} <= set(result.info["views"][0])
+
+
+def test_same_seed_same_input_and_static_has_no_motion(case):
+    geometry, label = case
+    a, b = realistic_input(label, geometry, seed=1), realistic_input(label, geometry, seed=1)
+    assert all(np.array_equal(x, y) for x, y in zip(a.masks, b.masks))
+    static = realistic_input(label, geometry, seed=1, options=RealisticOptions(0.0, 0.0))
+    assert not static.true_views[1].has_object_motion
+    with pytest.raises(ValueError, match="must not be negative"):
+        RealisticOptions(-1.0).check()
+
+
+def test_realistic_protocols_are_registered():
+    assert set(REALISTIC_PROTOCOLS) <= set(PROTOCOLS)
+    assert all(PROTOCOLS[p][1] == "mask" for p in REALISTIC_PROTOCOLS)
