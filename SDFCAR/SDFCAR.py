@@ -4,6 +4,7 @@ A thin GUI over SDFCARLib: every computation lives in the library (``SDFCARLib.m
 ``SDFCARLib.jobs`` for the background reconstruction); this file only wires widgets to it.
 """
 
+import json
 import logging
 import os
 import re
@@ -366,6 +367,11 @@ class SDFCARWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
         with slicer.util.tryWithErrorDisplay("The reconstruction finished but its results could not be loaded.", waitCursor=True):
             self.logic.addResults(files, context)
             self.ui.statusLabel.text = f"Done: '{context['name']}' is in the scene (files in {context['jobDir']})."
+        warnings = reportWarnings(files)
+        if warnings:
+            self.ui.statusLabel.text += f" {len(warnings)} warning(s)."
+            slicer.util.warningDisplay("The reconstruction finished with warnings:\n\n" + "\n\n".join(warnings),
+                                       windowTitle="SDFCAR")
 
 
 def parameterWidgets(ui):
@@ -386,9 +392,20 @@ def parameterWidgets(ui):
     return mapping
 
 
+def reportWarnings(files):
+    """The ``warnings`` of a finished job's report.json (mask checks, support, outputs); [] when none."""
+    try:
+        with open(files["report"], encoding="utf-8") as handle:
+            return [str(w) for w in json.load(handle).get("warnings", [])]
+    except (KeyError, OSError, ValueError, AttributeError):
+        return []
+
+
 def describeProgress(info):
     """One status line from a job progress dict (step, total, loss, ETA, device)."""
     phase = info.get("phase")
+    if phase == "warning":
+        return f"Warning: {info.get('message', '')}"
     if phase == "setup":
         return f"Preparing ({info.get('device', '')})…"
     if phase == "output":

@@ -72,6 +72,8 @@ class ProgressBar:
             print("evaluating the field on the grid…", file=self.stream)
         elif phase == "prune":
             print("pruning the branches that no mask pixel needs…", file=self.stream)
+        elif phase == "warning":
+            print(f"warning: {info.get('message', '')}", file=self.stream)
 
     def close(self) -> None:
         if self.bar is not None:
@@ -194,16 +196,66 @@ def _load_geometry(path: str):
 
 
 def _geometry_for_reconstruct(args: argparse.Namespace):
-    """GEOM.json, or the geometry read from the two DICOM files' tags (with its provenance)."""
+    """GEOM.json, or the geometry read from the two DICOM files' tags (with its provenance), and
+    the request to place the grid on the masks (``region.AutoVolume``) or None."""
+    from .region import AutoVolume, read_geometry
+
     if args.dicom1 or args.dicom2:
         if args.geometry:
             raise ValueError("give either --geometry or --dicom1/--dicom2, not both")
         geometry, provenance = cli_geometry_from_args(args)
         _print_provenance(provenance)
-        return geometry, provenance
+        return geometry, provenance, _dicom_volume_request(args)
     if not args.geometry:
         raise ValueError("missing --geometry: give a GEOM.json, or the two XA DICOM files with --dicom1 and --dicom2")
-    return _load_geometry(args.geometry), None
+    geometry, request = read_geometry(args.geometry)
+    if request is None and args.auto_volume:
+        request = AutoVolume(tuple(geometry.volume.spacing_mm))  # keep the user's voxel size
+    return geometry, None, request
+
+
+def _dicom_volume_request(args: argparse.Namespace):
+    """Without --volume-shape and --volume-center the grid is placed on the masks (at --volume-spacing)."""
+    from .region import AutoVolume
+    from .settings import PAPER_SPACING_MM
+
+    if (args.volume_shape is None and args.volume_center is None) or getattr(args, "auto_volume", False):
+        return AutoVolume((float(args.volume_spacing or PAPER_SPACING_MM),) * 3)
+    return None
+
+
+def _place_grid(geometry, masks, request, provenance: Optional[Dict[str, Any]]):
+    """The geometry on the grid placed on the masks' region, and the placement's record."""
+    from .geometry import Geometry
+    from .region import locate_region
+
+    placement = locate_region(geometry.views, masks, request.spacing_mm, request.margin_mm)
+    grid = placement.grid
+    for note in placement.notes:
+        print(f"warning: {note}", file=sys.stderr)
+    source = (f"placed on the masks' region (SDFCARLib.region): where their back-projections meet, plus "
+              f"{request.margin_mm:g} mm")
+    print(f"volume: {list(grid.shape)} voxels of {'/'.join(f'{v:g}' for v in grid.spacing_mm)} mm centred at "
+          f"{[round(c, 1) for c in grid.center_mm]} mm  [{source}]", file=sys.stderr)
+    if provenance is not None:
+        provenance["volume"] = {"value": grid.to_dict(), "source": source}
+    return Geometry(volume=grid, views=geometry.views), placement, source
+
+
+def _grid_record(geometry, masks, source: str, placement=None) -> Tuple[Dict[str, Any], List[str]]:
+    """report.json's ``grid`` entry (where the grid came from, how much of each mask its hull
+    explains) and the warnings for views it explains poorly; the warnings are printed at once."""
+    from .region import mask_coverage
+
+    coverage = mask_coverage(masks, geometry.views, geometry.volume)
+    warnings = [f"the grid's visual hull explains only {100 * c:.0f} % of view {n}'s mask pixels: the grid cuts the tree "
+                "(place it on the masks with --auto-volume, or move/enlarge the volume) or the geometry does not align "
+                "the views (check the angles, distances and pixel spacing)"
+                for n, c in enumerate(coverage, start=1) if c < 0.9]
+    for message in warnings:
+        print(f"warning: {message}", file=sys.stderr)
+    record = {"source": source, "mask_coverage": coverage, "placement": placement.to_dict() if placement else None}
+    return record, warnings
 
 
 def _print_provenance(provenance: Dict[str, Any]) -> None:
@@ -221,11 +273,28 @@ def _print_provenance(provenance: Dict[str, Any]) -> None:
 
 
 def cmd_geometry(args: argparse.Namespace) -> int:
+    from .io import read_mask
+
     out = Path(args.out)
     if out.exists() and not args.overwrite:
         raise ValueError(f"{out} exists; choose another --out or add --overwrite")
+    if bool(args.mask1) != bool(args.mask2):
+        raise ValueError("give both --mask1 and --mask2 (one vessel mask per view) to place the grid, or neither")
     geometry, provenance = cli_geometry_from_args(args)
     _print_provenance(provenance)
+    request = _dicom_volume_request(args)
+    if args.mask1:
+        masks = [read_mask(path, view.detector_shape, what=f"view {n} mask")
+                 for n, (path, view) in enumerate(zip([args.mask1, args.mask2], geometry.views), start=1)]
+        source = provenance["volume"]["source"]
+        if request is not None:
+            geometry, _, source = _place_grid(geometry, masks, request, provenance)
+        record, _ = _grid_record(geometry, masks, source)
+        provenance["volume"]["mask_coverage"] = record["mask_coverage"]
+    elif request is not None:
+        provenance["volume"]["source"] += ("; no masks were given, so the grid could not be placed on the vessels: "
+                                           "give --mask1/--mask2 here, or run reconstruct --auto-volume")
+        print(f"note: {provenance['volume']['source']}", file=sys.stderr)
     write_geometry_json(out, geometry, provenance)
     print(f"wrote {out}")
     return EXIT_OK
@@ -255,10 +324,18 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
     from .io import align_to_grid, read_label
     from .outputs import RESULT_FILES, check_destination, write_reconstruction
 
-    geometry, provenance = _geometry_for_reconstruct(args)
+    geometry, provenance, request = _geometry_for_reconstruct(args)
     auto = _auto_masks(args, geometry, provenance) if args.auto_masks else None
     targets, kind, masks = ([a.mask for _, _, a in auto], "mask", [a.mask for _, _, a in auto]) if auto \
         else _read_targets(args, geometry)
+    placement = None
+    if request is not None:
+        geometry, placement, source = _place_grid(geometry, masks, request, provenance)
+    elif provenance is not None:
+        source = provenance["volume"]["source"]
+    else:
+        source = f"user: {args.geometry}"
+    grid_record, grid_warnings = _grid_record(geometry, masks, source, placement)
     label = None
     if args.label:
         label, label_grid = read_label(args.label, grid=geometry.volume, what="ground-truth label")
@@ -266,6 +343,7 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
     settings = _settings(args)
     check_destination(args.out, list(RESULT_FILES.values()), args.overwrite)  # before minutes of work
     result = _run_reconstruction(geometry, targets, settings, kind, not args.no_progress)
+    result.report["warnings"] = grid_warnings + list(result.report.get("warnings", []))
     inputs = {"geometry": _absolute(args.geometry), "label": _absolute(args.label),
               "dicom": [_absolute(args.dicom1), _absolute(args.dicom2)] if args.dicom1 else None,
               "geometry_provenance": provenance,
@@ -274,7 +352,7 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
         inputs["targets"] = [f"auto_mask{n}.png" for n in (1, 2)]
         inputs["auto_masks"] = [dict(a.parameters, frame=f) for f, _, a in auto]
     files = write_reconstruction(result, args.out, name=args.name, label=label, masks=masks, overwrite=args.overwrite,
-                                 extra={"inputs": inputs})
+                                 extra={"inputs": inputs, "grid": grid_record})
     if auto:
         from .masks import write_segmentation
 
@@ -493,6 +571,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--target-kind", choices=("mask", "line_integral"), default=None,
                    help="what the view images are (default: from which options are given)")
     p.add_argument("--label", help="optional ground truth (volume, .seg.nrrd or centreline) for metrics in report.json")
+    p.add_argument("--auto-volume", action="store_true",
+                   help="place the grid on the region where the masks' back-projections meet (plus a margin), keeping "
+                        "the geometry's voxel size; the default when GEOM.json's volume is \"auto\" or absent, or "
+                        "when --dicom1/--dicom2 come without --volume-shape/--volume-center")
     p.add_argument("--out", required=True, help="output folder (created; existing results are kept unless --overwrite)")
     _add_optimiser_options(p)
     p.set_defaults(func=cmd_reconstruct)
@@ -502,6 +584,9 @@ def build_parser() -> argparse.ArgumentParser:
                                         "write GEOM.json, listing every value used and where it came from. Missing tags "
                                         "are errors that say which option supplies the value (e.g. --sod1).")
     add_dicom_arguments(p)
+    p.add_argument("--mask1", help="vessel mask of view 1: with --mask2 and no --volume-shape/--volume-center, the grid "
+                                   "is placed on where the masks' back-projections meet")
+    p.add_argument("--mask2", help="vessel mask of view 2")
     p.add_argument("--out", required=True, help="GEOM.json to write")
     p.add_argument("--overwrite", action="store_true", help="replace an existing file")
     p.set_defaults(func=cmd_geometry)

@@ -43,6 +43,7 @@ from .field import FieldConfig, ImplicitField
 from .geometry import Geometry
 from .hull import support_mask
 from .losses import DistanceSettings, GeometricLoss, ViewTarget, make_target, occupancy_loss
+from .mask_checks import mask_warnings, support_masks
 from .masks import MaskError, binarise_mask
 from .connectivity import ReconnectSettings, field_values, reconnect_fragments
 from .metrics import component_counts, mask_dice
@@ -137,6 +138,7 @@ class Problem:
     view_targets: List[ViewTarget]
     geometric: Optional[GeometricLoss]
     setup_s: float = 0.0
+    warnings: List[str] = field(default_factory=list)  # for report.json (mask checks, support)
 
 
 def _normalised_points(geometry: Geometry, flat: np.ndarray, device: torch.device) -> torch.Tensor:
@@ -169,8 +171,20 @@ def build_problem(geometry: Geometry, targets: Sequence[np.ndarray], settings: S
     _report(progress, phase="setup", step=0, total=settings.optimisation.steps, elapsed_s=0.0, eta_s=None,
             device=settings.run.device)
     grid = geometry.volume
+    pixels = vessel_pixels(arrays, target_kind)
+    warnings: List[str] = []
+    if target_kind == "mask":
+        for n, (mask, view) in enumerate(zip(pixels, geometry.views), start=1):
+            warnings += mask_warnings(mask, view.pixel_spacing_mm, source=f"view {n}")
     if settings.region.support == "hull":
-        support = support_mask(vessel_pixels(arrays, target_kind), geometry.views, grid, settings.region.support_margin_mm)
+        # Hundreds of specks would each add a cone to the support (and time to every step).
+        pixels, left_out = support_masks(pixels, geometry.views, grid)
+        warnings += left_out
+    for message in warnings:
+        _report(progress, phase="warning", message=message, step=0, total=settings.optimisation.steps,
+                elapsed_s=0.0, eta_s=None, device=settings.run.device)
+    if settings.region.support == "hull":
+        support = support_mask(pixels, geometry.views, grid, settings.region.support_margin_mm)
         voxels = np.flatnonzero(support.reshape(-1))
         if voxels.size == 0:
             raise ReconstructionError(
@@ -198,7 +212,7 @@ def build_problem(geometry: Geometry, targets: Sequence[np.ndarray], settings: S
             DistanceSettings(loss.dt_downsample, loss.dt_threshold, loss.dt_truncation_mm, loss.dt_kernel_size),
         )
     return Problem(geometry, settings, target_kind, arrays, support, voxels, device, device_reason, needed_bytes,
-                   projectors, view_targets, geometric, time.perf_counter() - t_start)
+                   projectors, view_targets, geometric, time.perf_counter() - t_start, warnings)
 
 
 def optimise(problem: Problem, model: ImplicitField, progress: Progress = None, cancel: Cancel = None,
@@ -302,6 +316,7 @@ def finish(problem: Problem, model: ImplicitField, history: List[Dict[str, float
         "reprojection_dice": reprojection,
         "timings_s": {"setup": problem.setup_s, "optimise": optimise_s, "output": output_s,
                       "total": time.perf_counter() - t_start, "per_step": optimise_s / steps},
+        "warnings": list(problem.warnings),
     }
     return Reconstruction(geometry, settings, occupancy_volume, field_volume, segmentation, problem.support, report, history)
 

@@ -380,3 +380,30 @@ def test_geometry_template_writes_a_valid_geometry(tmp_path, capsys):
     _assert_bad_input(code, err, "already exists")
     code, stdout, _ = run(capsys, "geometry-template", "--view-pair", "lao30-rao30")
     assert code == 0 and Geometry.from_dict(json.loads(stdout)).views[1].primary_deg == -30.0
+
+
+# --- the grid placed on the masks (region.py) -------------------------------------------------------------
+def test_reconstruct_places_the_grid_on_the_masks(tmp_path, mask_files, capsys):
+    data = tiny_geometry_dict()
+    data["volume"] = {"auto": True, "spacing_mm": 2.0}
+    geometry = write_json(tmp_path / "auto.json", data)
+    out = tmp_path / "auto"
+    args = ["reconstruct", "--mask1", str(mask_files[0]), "--mask2", str(mask_files[1]), "--steps", "2",
+            "--no-progress", "--threads", "1"]
+    assert main(args + ["--geometry", str(geometry), "--out", str(out)]) == 0, capsys.readouterr().err
+    report = json.loads((out / "report.json").read_text())
+    assert report["grid"]["source"].startswith("placed on the masks' region")
+    assert report["grid"]["placement"]["grid"] == report["geometry"]["volume"]
+    assert report["geometry"]["volume"]["spacing_mm"] == [2.0, 2.0, 2.0]
+    assert all(c > 0.95 for c in report["grid"]["mask_coverage"])
+    # --auto-volume on a geometry with a grid: the grid moves, its voxel size stays
+    plain = tmp_path / "geometry.json"
+    write_json(plain, tiny_geometry_dict())
+    assert main(args + ["--geometry", str(plain), "--auto-volume", "--out", str(tmp_path / "forced")]) == 0
+    forced = json.loads((tmp_path / "forced" / "report.json").read_text())
+    assert forced["grid"]["placement"] is not None and forced["geometry"]["volume"]["spacing_mm"] == [2.0, 2.0, 2.0]
+    # without it the user's grid is kept and its coverage recorded
+    assert main(args + ["--geometry", str(plain), "--out", str(tmp_path / "kept")]) == 0
+    kept = json.loads((tmp_path / "kept" / "report.json").read_text())
+    assert kept["grid"]["placement"] is None and kept["grid"]["source"].startswith("user")
+    assert kept["geometry"]["volume"] == tiny_geometry_dict()["volume"]

@@ -71,3 +71,24 @@ def test_reconstruct_from_dicom_files(dicom_pair, tmp_path, capsys):
     assert code == 2 and "not both" in capsys.readouterr().err and not (tmp_path / "b").exists()
     code = main(["reconstruct", "--mask1", str(masks[0]), "--mask2", str(masks[1]), "--out", str(tmp_path / "c")])
     assert code == 2 and "--dicom1" in capsys.readouterr().err
+
+
+def test_geometry_places_the_grid_on_the_masks_or_says_it_could_not(dicom_pair, tmp_path, capsys):
+    geometry, paths, masks = dicom_pair
+    base = ["geometry", "--dicom1", str(paths[0]), "--dicom2", str(paths[1]), "--pixel-spacing1", "1", "1",
+            "--volume-spacing", "2"]
+    out = tmp_path / "placed.json"
+    assert main(base + ["--mask1", str(masks[0]), "--mask2", str(masks[1]), "--out", str(out)]) == 0, \
+        capsys.readouterr().err
+    saved = json.loads(out.read_text())
+    volume = saved["provenance"]["volume"]
+    assert volume["source"].startswith("placed on the masks' region")
+    assert saved["volume"]["spacing_mm"] == [2.0, 2.0, 2.0] and saved["volume"]["shape"] != [128, 128, 128]
+    assert len(volume["mask_coverage"]) == 2 and min(volume["mask_coverage"]) > 0.95
+    out = tmp_path / "default.json"
+    assert main(base + ["--out", str(out)]) == 0
+    assert "could not be placed" in capsys.readouterr().err
+    saved = json.loads(out.read_text())
+    assert "give --mask1/--mask2" in saved["provenance"]["volume"]["source"] and saved["volume"]["shape"] == [128] * 3
+    assert main(base + ["--mask1", str(masks[0]), "--out", str(tmp_path / "x.json")]) == 2
+    assert "both --mask1 and --mask2" in capsys.readouterr().err

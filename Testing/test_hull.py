@@ -114,3 +114,79 @@ def test_empty_mask_gives_empty_hull(tube_case):
     grid, views, _, masks = tube_case
     hull = visual_hull([np.zeros_like(masks[0]), masks[1]], views, grid)
     assert not hull.any()
+
+
+# --- field of view ---------------------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def cropped_case():
+    """A tube that runs out of view 2's small detector but stays on view 1's."""
+    grid = VolumeGrid((24, 24, 40), (1.0, 1.0, 1.0))
+    views = [CArmView(0.0, 0.0, 1000.0, 750.0, (0.5, 0.5), (128, 128)),
+             CArmView(90.0, 0.0, 1000.0, 750.0, (0.5, 0.5), (48, 128))]  # view 2 sees |z| ≲ 9 mm only
+    tree = CenterlineTree([Branch(np.array([[-8.0, 0.0, -18.0], [0.0, 2.0, 0.0], [8.0, -2.0, 18.0]]),
+                                  np.array([1.5, 1.5, 1.5]))])
+    label = voxelize(tree, grid)
+    _, masks = simulate_views(label, grid, views)
+    return grid, views, label, masks
+
+
+def test_a_vessel_leaving_one_detector_stays_in_the_support(cropped_case):
+    grid, views, label, masks = cropped_case
+    z = grid.voxel_centers()[:, 2].reshape(grid.shape)
+    outside_view2 = label & (np.abs(z) > 12)
+    assert outside_view2.sum() > 50  # the case does what it says
+    strict = visual_hull(masks, views, grid, include_footprint=True, fov_aware=False)
+    assert np.any(outside_view2 & ~strict)  # the old rule cut the tree at view 2's detector edge
+    support = support_mask(masks, views, grid, margin_mm=0.5)
+    assert not np.any(label & ~support)
+    # where both views see, view 2 still constrains: the support is the strict hull there
+    both_see = np.abs(z) < 6
+    assert np.array_equal(support & both_see, visual_hull(masks, views, grid, margin_px=[
+        0.5 * v.magnification / 0.5 for v in views], include_footprint=True, fov_aware=False) & both_see)
+    # off view 2's detector the support is view 1's back-projection (its mask's cone), not the whole slab
+    cone = visual_hull(masks[:1], views[:1], grid, margin_px=0.5 * views[0].magnification / 0.5, include_footprint=True)
+    off = np.abs(z) > 12
+    unbounded = support_mask(masks, views, grid, margin_mm=0.5, one_view_reach_mm=None)
+    assert np.array_equal(unbounded & off, cone & off) and unbounded[off].mean() < 0.5
+    assert not np.any(support & ~unbounded)
+
+
+def test_a_collimated_border_does_not_constrain(cropped_case):
+    grid, views, label, masks = cropped_case
+    view1 = views[0]
+    fov = np.ones(view1.detector_shape, dtype=bool)
+    fov[:, :60] = False  # a collimator leaf over the left columns of view 1
+    clipped = [masks[0] & fov, masks[1]]
+    assert clipped[0].sum() < masks[0].sum()
+    without = support_mask(clipped, views, grid)
+    with_fov = support_mask(clipped, views, grid, fields_of_view=[fov, None])
+    covered = label & (np.abs(grid.voxel_centers()[:, 2].reshape(grid.shape)) < 8)  # view 2 sees this part
+    assert np.any(covered & ~without)
+    assert not np.any(covered & ~with_fov)
+    with pytest.raises(ValueError, match="field-of-view image shape"):
+        support_mask(clipped, views, grid, fields_of_view=[fov[:10], None])
+
+
+def test_voxels_no_view_sees_are_left_out():
+    grid = VolumeGrid((20, 20, 20), (4.0, 4.0, 4.0))  # 80 mm: larger than either detector's view
+    views = [CArmView(0.0, 0.0, 1000.0, 750.0, (0.5, 0.5), (64, 64)),
+             CArmView(90.0, 0.0, 1000.0, 750.0, (0.5, 0.5), (64, 64))]
+    masks = [np.ones((64, 64), bool), np.ones((64, 64), bool)]
+    hull = visual_hull(masks, views, grid, fov_aware=True)
+    centres = grid.voxel_centers()
+    seen = np.zeros(grid.num_voxels, bool)
+    for view in views:
+        r, c, _ = view.project(centres)
+        seen |= (np.rint(r) >= 0) & (np.rint(r) < 64) & (np.rint(c) >= 0) & (np.rint(c) < 64)
+    assert np.array_equal(hull.reshape(-1), seen) and not seen.all()
+
+
+def test_the_one_view_reach_bounds_the_support(cropped_case):
+    grid, views, label, masks = cropped_case
+    z = grid.voxel_centers()[:, 2].reshape(grid.shape)
+    unbounded = support_mask(masks, views, grid, one_view_reach_mm=None)
+    short = support_mask(masks, views, grid, one_view_reach_mm=4.0)
+    assert not np.any(short & ~unbounded)
+    # view 2 sees |z| ≲ 9 mm: with a 4 mm reach nothing beyond about 13 mm is left, unbounded it is
+    assert not short[np.abs(z) > 15].any() and unbounded[np.abs(z) > 15].any()
+    assert np.array_equal(short[np.abs(z) < 6], unbounded[np.abs(z) < 6])

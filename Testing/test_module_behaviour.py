@@ -149,3 +149,14 @@ def test_download_sample_loads_the_case_with_the_module_reader(sdfcar, monkeypat
     assert fileType == reader.fileType(), "downloadSample would load the file with another reader"
     assert reader.canLoadFile(arguments["fileNames"])
     assert arguments["sampleName"] == "SDFCAR two-view case"
+
+
+# --- warnings of a run reach the user ------------------------------------------------------------------
+def test_report_warnings_and_warning_progress_are_shown(sdfcar, tmp_path):
+    """Mask warnings (noise specks, a segmented collimator edge) were written to report.json only."""
+    report = tmp_path / "report.json"
+    report.write_text('{"warnings": ["view 1: the mask has 300 specks"]}', encoding="utf-8")
+    assert sdfcar.reportWarnings({"report": str(report)}) == ["view 1: the mask has 300 specks"]
+    assert sdfcar.reportWarnings({"report": str(tmp_path / "missing.json")}) == []
+    line = sdfcar.describeProgress({"phase": "warning", "message": "view 2: 30 % of the image's border", "step": 0})
+    assert line.startswith("Warning: view 2")

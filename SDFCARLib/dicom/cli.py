@@ -42,11 +42,13 @@ def add_dicom_arguments(parser: Any, required: bool = True) -> None:
         parser.add_argument(f"--secondary{n}", type=float, default=None, metavar="DEG",
                             help=f"secondary angle of view {n}, CRA + / CAU − (replaces tag (0018,1511))")
     parser.add_argument("--volume-shape", type=int, nargs=3, default=None, metavar=("I", "J", "K"),
-                        help="reconstruction grid size in voxels (default 128 128 128)")
+                        help="reconstruction grid size in voxels (default: placed on the masks' region when masks are "
+                             "given, else 128 128 128)")
     parser.add_argument("--volume-spacing", type=float, default=None, metavar="MM",
                         help="reconstruction voxel size in mm (default 0.8)")
     parser.add_argument("--volume-center", type=float, nargs=3, default=None, metavar=("X", "Y", "Z"),
-                        help="centre of the reconstruction grid, LPS mm (default: the isocenter 0 0 0)")
+                        help="centre of the reconstruction grid, LPS mm (default: placed on the masks' region when masks are "
+                             "given, else the isocenter 0 0 0)")
 
 
 def _overrides_from_args(args: Any, n: int) -> Dict[str, Any]:
