@@ -1,0 +1,10 @@
+"""Quantitative coronary analysis (3D-QCA) of a reconstruction: numpy/scipy/scikit-image only.
+
+Modules (one idea each)
+    centreline  skeleton → branches ordered from the ostium, smoothed, with junctions
+    diameter    diameters along a branch: 3D cross-sections of the field, 2D widths in the masks
+    lesion      robust reference diameter, MLD, % diameter/area stenosis, lesion extent
+    views       foreshortening of a segment in a view, bifurcation angles, best-view map
+    phantoms    analytic tubes, helices and stenoses with known answers
+    report      the whole analysis of a result folder → analysis.json, centrelines.vtk, CSV, figures
+"""

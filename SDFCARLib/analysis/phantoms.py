@@ -1,0 +1,194 @@
+"""Analytic vessel phantoms with known answers for quantitative coronary analysis (QCA).
+
+Every phantom is a ``phantoms.CenterlineTree`` (LPS mm) plus the truth needed to score a
+measure against it, and is voxelised with the package's ``phantoms.voxelize`` (voxel-centre test
+against the union of tubes, radius linear along each segment).
+
+Lesion profile (``stenosed_tube``)
+    Over the lesion length L the diameter follows d(x) = d_ref · (1 − S · w(x)), x ∈ [0, L] from
+    the lesion start, with S = %DS / 100 and w a plateau with cosine ramps of length
+    ``ramp = min(ramp_mm, L / 4)`` at each end: w = (1 − cos(π x / ramp)) / 2 on the first ramp,
+    1 on the throat, mirrored on the last ramp. L is therefore the full extent where the lumen is
+    narrower than the reference, MLD = d_ref (1 − S), %AS = 100 (1 − (1 − S)²).
+
+Lengths
+    ``voxelize`` closes each free end with a hemisphere (distance to the segment), so the lumen
+    reaches one radius beyond each end of the centreline: ``lumen_length_mm`` = centreline
+    length + diameter is what a centreline extended to the lumen surface measures, and positions
+    along the vessel (``lesion_start_mm`` …) are given from the centreline's first point, i.e.
+    one reference radius after the lumen's start.
+
+Concentric vs eccentric
+    Concentric: the centreline stays on the axis and both walls move in. Eccentric: one wall
+    stays where the healthy wall is and the centreline moves by (r_ref − r(x)) towards it, so all
+    of the narrowing comes from the opposite wall (a plaque on one side).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Dict, Optional, Sequence, Tuple
+
+import numpy as np
+
+from ..geometry import VolumeGrid
+from ..phantoms import Branch, CenterlineTree
+
+SAMPLE_STEP_MM = 0.1  # phantom centreline sampling: fine enough that linear radii follow the ramps
+
+
+@dataclass
+class AnalyticPhantom:
+    """A phantom tree and its truth (lengths in mm, percentages 0–100)."""
+
+    tree: CenterlineTree
+    truth: Dict[str, object] = field(default_factory=dict)
+
+
+def _unit(v: Sequence[float]) -> np.ndarray:
+    v = np.asarray(v, float)
+    n = np.linalg.norm(v)
+    if n == 0:
+        raise ValueError("a direction must be a non-zero vector")
+    return v / n
+
+
+def _perpendicular(t: np.ndarray) -> np.ndarray:
+    helper = np.array([0.0, 0.0, 1.0]) if abs(t[2]) < 0.9 else np.array([1.0, 0.0, 0.0])
+    n = np.cross(t, helper)
+    return n / np.linalg.norm(n)
+
+
+def grid_around(tree: CenterlineTree, spacing_mm: float, margin_mm: float = 2.0) -> VolumeGrid:
+    """The smallest axis-aligned grid at ``spacing_mm`` holding the tree's tubes plus a margin."""
+    lo, hi = tree.bounds()
+    lo, hi = lo - margin_mm, hi + margin_mm
+    shape = tuple(int(np.ceil((h - l) / spacing_mm)) + 1 for l, h in zip(lo, hi))
+    return VolumeGrid(shape, (float(spacing_mm),) * 3, tuple(float(c) for c in (lo + hi) / 2))
+
+
+def straight_tube(length_mm: float = 20.0, diameter_mm: float = 3.0, direction=(1.0, 0.6, 0.3),
+                  center_mm=(0.0, 0.0, 0.0)) -> AnalyticPhantom:
+    """A straight cylinder (flat ends) of known diameter and length, oblique to the grid axes."""
+    t = _unit(direction)
+    s = np.linspace(-length_mm / 2, length_mm / 2, max(2, int(round(length_mm / 1.0)) + 1))
+    points = np.asarray(center_mm, float) + s[:, None] * t
+    tree = CenterlineTree([Branch(points, np.full(len(s), diameter_mm / 2), "tube")], "straight-tube")
+    return AnalyticPhantom(tree, {"diameter_mm": diameter_mm, "length_mm": length_mm,
+                                  "lumen_length_mm": length_mm + diameter_mm, "direction": t.tolist()})
+
+
+def helix(radius_mm: float = 8.0, pitch_mm: float = 12.0, turns: float = 1.5, diameter_mm: float = 2.5,
+          axis=(0.0, 0.0, 1.0)) -> AnalyticPhantom:
+    """A helical tube; its centreline length is turns · sqrt((2π R)² + pitch²)."""
+    a = _unit(axis)
+    e1 = _perpendicular(a)
+    e2 = np.cross(a, e1)
+    length = turns * np.hypot(2 * np.pi * radius_mm, pitch_mm)
+    phi = np.linspace(0.0, 2 * np.pi * turns, int(np.ceil(length / SAMPLE_STEP_MM)) + 1)
+    points = (radius_mm * np.cos(phi))[:, None] * e1 + (radius_mm * np.sin(phi))[:, None] * e2 \
+        + (pitch_mm * phi / (2 * np.pi) - pitch_mm * turns / 2)[:, None] * a
+    tree = CenterlineTree([Branch(points, np.full(len(phi), diameter_mm / 2), "helix")], "helix")
+    return AnalyticPhantom(tree, {"diameter_mm": diameter_mm, "length_mm": float(length),
+                                  "lumen_length_mm": float(length) + diameter_mm})
+
+
+def lesion_weight(x_mm: np.ndarray, lesion_length_mm: float, ramp_mm: float = 2.0) -> np.ndarray:
+    """The plateau-with-cosine-ramps narrowing weight w(x) in [0, 1] (module docstring)."""
+    x = np.asarray(x_mm, float)
+    ramp = min(ramp_mm, lesion_length_mm / 4)
+    w = np.zeros_like(x)
+    inside = (x > 0) & (x < lesion_length_mm)
+    w[inside] = 1.0
+    up = inside & (x < ramp)
+    w[up] = (1 - np.cos(np.pi * x[up] / ramp)) / 2
+    down = inside & (x > lesion_length_mm - ramp)
+    w[down] = (1 - np.cos(np.pi * (lesion_length_mm - x[down]) / ramp)) / 2
+    return w
+
+
+def stenosed_tube(length_mm: float = 40.0, diameter_mm: float = 3.0, stenosis_pct: float = 50.0,
+                  lesion_length_mm: float = 10.0, lesion_center_mm: Optional[float] = None,
+                  eccentric: bool = False, direction=(1.0, 0.5, 0.25), curvature_radius_mm: Optional[float] = None,
+                  ramp_mm: float = 2.0, center_mm=(0.0, 0.0, 0.0)) -> AnalyticPhantom:
+    """A tube with one focal stenosis (module docstring); optionally bent on a circular arc.
+
+    ``curvature_radius_mm`` bends the axis in a plane (arc length = ``length_mm``), so that the
+    cross-sections must follow the centreline's tangent. The truth holds the reference diameter,
+    MLD, %DS, %AS, lesion start/end/length along the centreline from its first point (the ostium).
+    """
+    if not 0 <= stenosis_pct < 100:
+        raise ValueError(f"stenosis_pct must lie in [0, 100), got {stenosis_pct}")
+    if lesion_center_mm is None:
+        lesion_center_mm = length_mm / 2
+    start = lesion_center_mm - lesion_length_mm / 2
+    if start < 0 or start + lesion_length_mm > length_mm:
+        raise ValueError("the lesion must lie inside the tube: check lesion_center_mm and lesion_length_mm")
+    s = np.linspace(0.0, length_mm, int(np.ceil(length_mm / SAMPLE_STEP_MM)) + 1)
+    t0 = _unit(direction)
+    n0 = _perpendicular(t0)
+    if curvature_radius_mm:
+        angle = s / curvature_radius_mm
+        axis = curvature_radius_mm * (np.sin(angle)[:, None] * t0 + (1 - np.cos(angle))[:, None] * n0)
+        # The eccentric wall shift goes along the binormal, which is perpendicular to the tangent all along.
+        normal = np.tile(np.cross(t0, n0), (len(s), 1))
+    else:
+        axis = s[:, None] * t0
+        normal = np.tile(n0, (len(s), 1))
+    axis = axis - (axis.max(axis=0) + axis.min(axis=0)) / 2 + np.asarray(center_mm, float)
+    r_ref = diameter_mm / 2
+    radii = r_ref * (1 - stenosis_pct / 100 * lesion_weight(s - start, lesion_length_mm, ramp_mm))
+    points = axis + (r_ref - radii)[:, None] * normal if eccentric else axis
+    kind = "eccentric" if eccentric else "concentric"
+    tree = CenterlineTree([Branch(points, radii, "vessel")], f"stenosis-{stenosis_pct:g}-{kind}")
+    mld = diameter_mm * (1 - stenosis_pct / 100)
+    truth = {
+        "reference_diameter_mm": diameter_mm, "mld_mm": mld, "diameter_stenosis_pct": stenosis_pct,
+        "area_stenosis_pct": 100 * (1 - (1 - stenosis_pct / 100) ** 2), "lesion_start_mm": start,
+        "lesion_end_mm": start + lesion_length_mm, "lesion_length_mm": lesion_length_mm,
+        "length_mm": length_mm, "lumen_length_mm": length_mm + diameter_mm, "eccentric": eccentric,
+        "ostium_mm": points[0].tolist(),
+    }
+    return AnalyticPhantom(tree, truth)
+
+
+def branch_arc_length_mm(branch: Branch) -> np.ndarray:
+    """Cumulative arc length (mm) along a branch's points, 0 at its first point."""
+    return np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(branch.points, axis=0), axis=1))])
+
+
+def stenosed_tree(tree: CenterlineTree, branch_name: str, stenosis_pct: float, lesion_length_mm: float,
+                  lesion_center_fraction: float = 0.4, ramp_mm: float = 2.0) -> AnalyticPhantom:
+    """A copy of ``tree`` with a concentric focal stenosis on one branch (resampled at 0.1 mm).
+
+    The reference diameter at the lesion is the branch's own (tapering) healthy diameter.
+    """
+    names = [b.name for b in tree.branches]
+    if branch_name not in names:
+        raise ValueError(f"the tree has no branch {branch_name!r}; it has {', '.join(names)}")
+    branches = []
+    truth: Dict[str, object] = {}
+    for b in tree.branches:
+        if b.name != branch_name:
+            branches.append(Branch(b.points.copy(), b.radii.copy(), b.name))
+            continue
+        s = branch_arc_length_mm(b)
+        fine = np.linspace(0.0, s[-1], int(np.ceil(s[-1] / SAMPLE_STEP_MM)) + 1)
+        points = np.stack([np.interp(fine, s, b.points[:, a]) for a in range(3)], axis=1)
+        healthy = np.interp(fine, s, b.radii)
+        start = lesion_center_fraction * s[-1] - lesion_length_mm / 2
+        if start < 0 or start + lesion_length_mm > s[-1]:
+            raise ValueError(f"branch {branch_name!r} ({s[-1]:.1f} mm) is too short for a {lesion_length_mm} mm lesion there")
+        radii = healthy * (1 - stenosis_pct / 100 * lesion_weight(fine - start, lesion_length_mm, ramp_mm))
+        branches.append(Branch(points, radii, b.name))
+        ref = 2 * float(np.interp(start + lesion_length_mm / 2, fine, healthy))
+        truth = {"branch": branch_name, "reference_diameter_mm": ref, "mld_mm": ref * (1 - stenosis_pct / 100),
+                 "diameter_stenosis_pct": stenosis_pct, "lesion_start_mm": start,
+                 "lesion_end_mm": start + lesion_length_mm, "lesion_length_mm": lesion_length_mm}
+    return AnalyticPhantom(CenterlineTree(branches, f"{tree.name}-stenosis"), truth)
+
+
+def straight_segment_direction(points_mm: np.ndarray) -> Tuple[np.ndarray, float]:
+    """Unit direction and length of the chord of a polyline (for analytic foreshortening)."""
+    chord = np.asarray(points_mm, float)[-1] - np.asarray(points_mm, float)[0]
+    return chord / np.linalg.norm(chord), float(np.linalg.norm(chord))
