@@ -25,6 +25,7 @@
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 from typing import Dict, Optional, Sequence
 
@@ -68,35 +69,73 @@ class CrossSections:
     equivalent_diameter_mm: np.ndarray
     min_diameter_mm: np.ndarray
     max_diameter_mm: np.ndarray
+    centres_mm: Optional[np.ndarray] = None  # where the rays were cast from after re-centring
+
+
+def _cast(values_volume: np.ndarray, grid: VolumeGrid, centres: np.ndarray, directions: np.ndarray,
+          radii: np.ndarray, level: float, step: float) -> np.ndarray:
+    samples = centres[:, None, None, :] + radii[None, None, :, None] * directions[:, :, None, :]
+    ijk = grid.world_to_index(samples.reshape(-1, 3)).T
+    values = ndimage.map_coordinates(values_volume, ijk, order=1, mode="constant", cval=0.0)
+    return first_crossing(values.reshape(len(centres), directions.shape[1], len(radii)), step, level)
 
 
 def cross_sections(volume: np.ndarray, grid: VolumeGrid, points_mm: np.ndarray, tangents: np.ndarray,
                    level: float = 0.5, n_rays: int = 48, max_radius_mm: float = 4.0,
-                   radial_step_mm: Optional[float] = None, ray_cap: float = 2.0) -> CrossSections:
-    """Cross-sectional area and diameters of the lumen perpendicular to the centreline (module docstring)."""
+                   radial_step_mm: Optional[float] = None, ray_cap: float = 2.0, recentre: int = 2) -> CrossSections:
+    """Cross-sectional area and diameters of the lumen perpendicular to the centreline (module docstring).
+
+    ``recentre``: times the rays are cast again from the centroid of the section found, in its
+    plane: a smoothed centreline can sit off the centre of a narrow eccentric lumen, and rays
+    from near a wall see a thin sliver. A centre outside the lumen first moves to the nearest
+    lumen sample in its plane.
+    """
     points = np.asarray(points_mm, float)
     if len(points) == 0:
         empty = np.zeros(0)
-        return CrossSections(empty, empty, empty, empty)
+        return CrossSections(empty, empty, empty, empty, np.zeros((0, 3)))
+    vol = np.asarray(volume, np.float32)
     step = radial_step_mm or min(grid.spacing_mm) / 5.0
     radii = np.arange(0.0, max_radius_mm + step, step)
     theta = np.arange(n_rays) * 2 * np.pi / n_rays
     e1, e2 = plane_basis(tangents)
     directions = np.cos(theta)[None, :, None] * e1[:, None, :] + np.sin(theta)[None, :, None] * e2[:, None, :]
-    samples = points[:, None, None, :] + radii[None, None, :, None] * directions[:, :, None, :]
-    ijk = grid.world_to_index(samples.reshape(-1, 3)).T
-    values = ndimage.map_coordinates(np.asarray(volume, np.float32), ijk, order=1, mode="constant", cval=0.0)
-    r = first_crossing(values.reshape(len(points), n_rays, len(radii)), step, level)
-    with np.errstate(all="ignore"):
-        import warnings
-
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN rows: the centre is outside
-            median = np.nanmedian(r, axis=1)
+    centres = points.copy()
+    for it in range(recentre + 1):
+        r = _cast(vol, grid, centres, directions, radii, level, step)
+        outside = np.isnan(r).all(axis=1)
+        if outside.any():
+            # Nearest in-lumen sample along the rays (searched out to 1 mm).
+            near = radii[radii <= 1.0]
+            samples = centres[outside, None, None, :] + near[None, None, :, None] * directions[outside, :, None, :]
+            vals = ndimage.map_coordinates(vol, grid.world_to_index(samples.reshape(-1, 3)).T, order=1,
+                                           mode="constant").reshape(int(outside.sum()), n_rays, len(near))
+            inside = vals >= level
+            first = np.where(inside.any(axis=2), np.argmax(inside, axis=2), len(near))
+            ray = np.argmin(first, axis=1)
+            k = first[np.arange(len(ray)), ray]
+            found = k < len(near)
+            moved = centres[outside].copy()
+            moved[found] += (near[np.minimum(k[found] + 1, len(near) - 1)])[:, None] * directions[outside][found, ray[found]]
+            centres[outside] = moved
+        if it == recentre:
+            break
+        # Centroid of the star polygon: (2/3) Σ r³ (cos θ, sin θ) Δθ/2 / A, in the section's plane.
+        rr = np.nan_to_num(r)
+        area = 0.5 * np.sum(rr ** 2, axis=1) * (2 * np.pi / n_rays)
+        cx = np.sum(rr ** 3 * np.cos(theta), axis=1) * (2 * np.pi / n_rays) / 3
+        cy = np.sum(rr ** 3 * np.sin(theta), axis=1) * (2 * np.pi / n_rays) / 3
+        ok = (area > 0) & ~outside
+        shift = np.zeros_like(centres)
+        shift[ok] = (cx[ok] / area[ok])[:, None] * e1[ok] + (cy[ok] / area[ok])[:, None] * e2[ok]
+        centres = centres + shift
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN rows: the centre is outside
+        median = np.nanmedian(r, axis=1)
     r = np.minimum(r, ray_cap * median[:, None])
     area = 0.5 * np.sum(r ** 2, axis=1) * (2 * np.pi / n_rays)
     chords = r[:, : n_rays // 2] + r[:, n_rays // 2: 2 * (n_rays // 2)]
-    return CrossSections(area, 2 * np.sqrt(area / np.pi), np.min(chords, axis=1), np.max(chords, axis=1))
+    return CrossSections(area, 2 * np.sqrt(area / np.pi), np.min(chords, axis=1), np.max(chords, axis=1), centres)
 
 
 def branch_cross_sections(volume: np.ndarray, grid: VolumeGrid, branch: CentrelineBranch, level: float = 0.5,

@@ -11,12 +11,11 @@ Lesion profile (``stenosed_tube``)
     1 on the throat, mirrored on the last ramp. L is therefore the full extent where the lumen is
     narrower than the reference, MLD = d_ref (1 − S), %AS = 100 (1 − (1 − S)²).
 
-Lengths
-    ``voxelize`` closes each free end with a hemisphere (distance to the segment), so the lumen
-    reaches one radius beyond each end of the centreline: ``lumen_length_mm`` = centreline
-    length + diameter is what a centreline extended to the lumen surface measures, and positions
-    along the vessel (``lesion_start_mm`` …) are given from the centreline's first point, i.e.
-    one reference radius after the lumen's start.
+Voxelisation and lengths
+    ``voxelize_exact`` gives every cross-section perpendicular to the centreline exactly its disc
+    and flat free ends, so a tube's lumen is as long as its centreline (``length_mm``) and the
+    lesion's ramps keep their nominal shape; positions along the vessel (``lesion_start_mm`` …)
+    are arc lengths from the centreline's first point (the ostium).
 
 Concentric vs eccentric
     Concentric: the centreline stays on the axis and both walls move in. Eccentric: one wall
@@ -74,8 +73,7 @@ def straight_tube(length_mm: float = 20.0, diameter_mm: float = 3.0, direction=(
     s = np.linspace(-length_mm / 2, length_mm / 2, max(2, int(round(length_mm / 1.0)) + 1))
     points = np.asarray(center_mm, float) + s[:, None] * t
     tree = CenterlineTree([Branch(points, np.full(len(s), diameter_mm / 2), "tube")], "straight-tube")
-    return AnalyticPhantom(tree, {"diameter_mm": diameter_mm, "length_mm": length_mm,
-                                  "lumen_length_mm": length_mm + diameter_mm, "direction": t.tolist()})
+    return AnalyticPhantom(tree, {"diameter_mm": diameter_mm, "length_mm": length_mm, "direction": t.tolist()})
 
 
 def helix(radius_mm: float = 8.0, pitch_mm: float = 12.0, turns: float = 1.5, diameter_mm: float = 2.5,
@@ -89,8 +87,7 @@ def helix(radius_mm: float = 8.0, pitch_mm: float = 12.0, turns: float = 1.5, di
     points = (radius_mm * np.cos(phi))[:, None] * e1 + (radius_mm * np.sin(phi))[:, None] * e2 \
         + (pitch_mm * phi / (2 * np.pi) - pitch_mm * turns / 2)[:, None] * a
     tree = CenterlineTree([Branch(points, np.full(len(phi), diameter_mm / 2), "helix")], "helix")
-    return AnalyticPhantom(tree, {"diameter_mm": diameter_mm, "length_mm": float(length),
-                                  "lumen_length_mm": float(length) + diameter_mm})
+    return AnalyticPhantom(tree, {"diameter_mm": diameter_mm, "length_mm": float(length)})
 
 
 def lesion_weight(x_mm: np.ndarray, lesion_length_mm: float, ramp_mm: float = 2.0) -> np.ndarray:
@@ -146,10 +143,52 @@ def stenosed_tube(length_mm: float = 40.0, diameter_mm: float = 3.0, stenosis_pc
         "reference_diameter_mm": diameter_mm, "mld_mm": mld, "diameter_stenosis_pct": stenosis_pct,
         "area_stenosis_pct": 100 * (1 - (1 - stenosis_pct / 100) ** 2), "lesion_start_mm": start,
         "lesion_end_mm": start + lesion_length_mm, "lesion_length_mm": lesion_length_mm,
-        "length_mm": length_mm, "lumen_length_mm": length_mm + diameter_mm, "eccentric": eccentric,
+        "length_mm": length_mm, "eccentric": eccentric,
         "ostium_mm": points[0].tolist(),
     }
     return AnalyticPhantom(tree, truth)
+
+
+def voxelize_exact(tree: CenterlineTree, grid: VolumeGrid, spacing_along_mm: float = 0.05) -> np.ndarray:
+    """Boolean label of the tree whose cross-sections are exactly its nominal discs.
+
+    ``phantoms.voxelize`` takes the union of cones with rounded ends, i.e. the envelope of
+    spheres of radius r(s): where r changes fast (a lesion's ramps) that envelope is wider than
+    r(s) by up to √(1 + r′²), which shortens a steep lesion and thickens its flanks. Here a voxel
+    centre x is inside a branch when, with c(s) its nearest point on the finely resampled
+    centreline and t(s) the tangent there, its distance to the line through c(s) along t(s) is at
+    most r(s) (and, at the two end samples, it lies on the inner side), so every cross-section
+    perpendicular to the centreline is the disc of radius r(s) and free ends are flat.
+    Valid while the tube's radius stays below the centreline's radius of curvature.
+    """
+    from scipy.spatial import cKDTree
+
+    label = np.zeros(grid.shape, dtype=bool)
+    for branch in tree.branches:
+        s = branch_arc_length_mm(branch)
+        fine = np.linspace(0.0, s[-1], max(2, int(np.ceil(s[-1] / spacing_along_mm)) + 1))
+        c = np.stack([np.interp(fine, s, branch.points[:, a]) for a in range(3)], axis=1)
+        r = np.interp(fine, s, branch.radii)
+        t = np.gradient(c, axis=0)
+        t /= np.linalg.norm(t, axis=1, keepdims=True)
+        lo = np.floor(grid.world_to_index(c.min(axis=0) - r.max())).astype(int)
+        hi = np.ceil(grid.world_to_index(c.max(axis=0) + r.max())).astype(int)
+        lo, hi = np.clip(lo, 0, np.asarray(grid.shape) - 1), np.clip(hi, 0, np.asarray(grid.shape) - 1)
+        box = tuple(slice(int(a), int(b) + 1) for a, b in zip(lo, hi))
+        ijk = np.stack(np.meshgrid(*(np.arange(a.start, a.stop) for a in box), indexing="ij"), axis=-1).reshape(-1, 3)
+        x = grid.index_to_world(ijk)
+        dist, k = cKDTree(c).query(x, distance_upper_bound=float(r.max()) * 1.5 + spacing_along_mm)
+        near = np.isfinite(dist)
+        w = x[near] - c[k[near]]
+        axial = np.einsum("ij,ij->i", w, t[k[near]])
+        radial = np.linalg.norm(w - axial[:, None] * t[k[near]], axis=1)
+        # Only the end samples bound the axial offset (flat ends); an interior test would punch holes
+        # on the outside of bends, where neighbouring samples lie farther apart than the step.
+        kk = k[near]
+        inside = (radial <= r[kk]) & ~((kk == 0) & (axial < 0)) & ~((kk == len(fine) - 1) & (axial > 0))
+        hit = ijk[near][inside]
+        label[tuple(hit.T)] = True
+    return label
 
 
 def branch_arc_length_mm(branch: Branch) -> np.ndarray:
