@@ -304,25 +304,27 @@ def extract_centrelines(volume: np.ndarray, grid: VolumeGrid, level: float = 0.5
 def bifurcation_angles(tree: CentrelineTree, reach_mm: float = 4.0) -> List[Dict[str, float]]:
     """Angle (degrees) between each side branch and its parent's continuation, and the parent's inflow.
 
-    Directions are chords from the junction to the point ``reach_mm`` along each limb, which
-    averages out the smoothing's bend at the junction itself.
+    Each limb's direction is the chord between the points ``skip`` and ``skip + reach_mm`` along it
+    from the junction, ``skip`` the parent's inscribed radius there: the first part of a side
+    branch's centreline lies inside the parent's lumen, where thinning and smoothing bend it.
     """
     out = []
     for j in tree.junctions():
         parent, child = tree.branch(int(j["parent_id"])), tree.branch(int(j["child_id"]))
         i = int(j["parent_index"])
+        skip = float(parent.inscribed_radius_mm[i])
         s_p, s_c = parent.arc_length_mm, child.arc_length_mm
-        origin = parent.points_mm[i]
 
-        def chord(points, s, target):
-            k = int(np.clip(np.searchsorted(s, target), 0, len(s) - 1))
-            v = points[k] - origin
+        def limb(points, s, a, b):
+            ka = int(np.clip(np.searchsorted(s, a), 0, len(s) - 1))
+            kb = int(np.clip(np.searchsorted(s, b), 0, len(s) - 1))
+            v = points[kb] - points[ka]
             n = np.linalg.norm(v)
             return v / n if n > 0 else None
 
-        distal = chord(parent.points_mm, s_p, s_p[i] + reach_mm)
-        proximal = chord(parent.points_mm, s_p, s_p[i] - reach_mm)
-        side = chord(child.points_mm, s_c, reach_mm)
+        distal = limb(parent.points_mm, s_p, s_p[i] + skip, s_p[i] + skip + reach_mm)
+        proximal = limb(parent.points_mm, s_p, s_p[i] - skip, s_p[i] - skip - reach_mm)
+        side = limb(child.points_mm, s_c, skip, skip + reach_mm)
 
         def angle(a, b):
             return None if a is None or b is None else float(np.degrees(np.arccos(np.clip(a @ b, -1, 1))))
