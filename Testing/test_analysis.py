@@ -142,3 +142,73 @@ def test_mask_widths_of_a_tube_in_two_views():
     widths = mask_diameters(points[2:-2], tangents[2:-2], masks, geometry.views)
     assert np.nanmean(np.abs(widths["equivalent_diameter_mm"] - 2.5)) <= 0.15
     assert widths["view_widths_mm"].shape == (2, len(points) - 4)
+
+
+# --- the `analyse` command on a small synthetic result folder ---------------------------------------
+def _result_folder(tmp_path):
+    from SDFCARLib.geometry import Geometry
+    from SDFCARLib.io import write_json, write_mask_png, write_volume_nrrd
+
+    phantom = stenosed_tube(length_mm=24.0, diameter_mm=3.0, stenosis_pct=50.0, lesion_length_mm=8.0,
+                            direction=(1.0, 0.2, 0.4))
+    grid = grid_around(phantom.tree, 0.3)
+    geometry = Geometry(grid, standard_geometry("lao30-rao30").views)
+    folder = tmp_path / "result"
+    folder.mkdir()
+    write_volume_nrrd(folder / "occupancy.nrrd", voxelize_exact(phantom.tree, grid).astype(np.float32), grid)
+    masks = []
+    for n, view in enumerate(geometry.views):
+        masks.append(str(write_mask_png(tmp_path / f"view{n + 1}_mask.png", render_mask(phantom.tree, view))))
+    write_json(folder / "report.json", {"geometry": geometry.to_dict(), "settings": {"threshold": 0.5},
+                                        "target_kind": "mask", "inputs": {"targets": masks}})
+    return folder, phantom
+
+
+def test_analyse_command_writes_every_output(tmp_path, capsys):
+    import json
+
+    from SDFCARLib.cli import main
+
+    folder, phantom = _result_folder(tmp_path)
+    assert main(["analyse", str(folder), "--view-step-deg", "10", "--ostium", *map(str, phantom.truth["ostium_mm"])]) == 0
+    out = folder / "analysis"
+    data = json.loads((out / "analysis.json").read_text())
+    assert (out / "centrelines.vtk").read_text().startswith("# vtk DataFile")
+    assert (out / "profile_branch00.csv").read_text().splitlines()[0].startswith("arc_mm,diameter_3d_mm")
+    lesion = data["lesions"][0]
+    assert lesion["diameter_stenosis_pct"] == pytest.approx(50.0, abs=8.0)
+    assert lesion["length_mm"] == pytest.approx(8.0, abs=2.0)
+    assert data["branches"][0]["diameter_masks"]["max_mm"] == pytest.approx(3.0, abs=0.3)
+    assert data["best_view"]["foreshortening"] <= 0.05
+    assert len(data["target_segment"]["acquisition_views"]) == 2
+    assert "suggested view" in capsys.readouterr().out
+    pytest.importorskip("matplotlib")
+    assert (out / "diameter_profiles.png").is_file() and (out / "view_map.png").is_file()
+    # A second run refuses to replace the files unless asked to.
+    assert main(["analyse", str(folder)]) == 2
+    assert "--overwrite" in capsys.readouterr().err
+
+
+def test_centrelines_vtk_reads_back_with_radii(tmp_path):
+    pytest.importorskip("vtk")
+    from SDFCARLib.analysis.outputs import centrelines_vtk_text
+    from SDFCARLib.analysis.pipeline import analyse_volume
+    from SDFCARLib.phantoms import load_centerline_vtk
+
+    phantom = straight_tube(12.0, 2.0)
+    grid = grid_around(phantom.tree, 0.3)
+    result = analyse_volume(voxelize_exact(phantom.tree, grid), grid, best_view=False)
+    path = tmp_path / "centrelines.vtk"
+    path.write_text(centrelines_vtk_text(result))
+    tree = load_centerline_vtk(path)
+    assert len(tree.branches) == 1
+    assert np.allclose(tree.branches[0].points, result.tree.branches[0].points_mm, atol=1e-4)
+    assert np.median(tree.branches[0].radii) == pytest.approx(1.0, abs=0.08)
+
+
+def test_analyse_names_the_missing_volume(tmp_path, capsys):
+    from SDFCARLib.cli import main
+
+    (tmp_path / "empty").mkdir()
+    assert main(["analyse", str(tmp_path / "empty")]) == 2
+    assert "neither occupancy.nrrd nor segmentation.seg.nrrd" in capsys.readouterr().err
