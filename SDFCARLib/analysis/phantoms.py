@@ -15,7 +15,9 @@ Voxelisation and lengths
     ``voxelize_exact`` gives every cross-section perpendicular to the centreline exactly its disc
     and flat free ends, so a tube's lumen is as long as its centreline (``length_mm``) and the
     lesion's ramps keep their nominal shape; positions along the vessel (``lesion_start_mm`` …)
-    are arc lengths from the centreline's first point (the ostium).
+    are arc lengths from the centreline's first point (the ostium) along the centreline through
+    the lumen centres (for an eccentric lesion it steps sideways on the ramps, so its lesion and
+    tube lengths exceed the axis values ``lesion_axis_length_mm``, ``axis_length_mm``).
 
 Concentric vs eccentric
     Concentric: the centreline stays on the axis and both walls move in. Eccentric: one wall
@@ -139,11 +141,15 @@ def stenosed_tube(length_mm: float = 40.0, diameter_mm: float = 3.0, stenosis_pc
     kind = "eccentric" if eccentric else "concentric"
     tree = CenterlineTree([Branch(points, radii, "vessel")], f"stenosis-{stenosis_pct:g}-{kind}")
     mld = diameter_mm * (1 - stenosis_pct / 100)
+    # Lengths and positions along the centreline through the lumen centres: for an eccentric lesion
+    # it steps sideways by r_ref − r on each ramp and is longer than the straight axis.
+    arc = branch_arc_length_mm(Branch(points, radii))
+    a0, a1 = float(np.interp(start, s, arc)), float(np.interp(start + lesion_length_mm, s, arc))
     truth = {
         "reference_diameter_mm": diameter_mm, "mld_mm": mld, "diameter_stenosis_pct": stenosis_pct,
-        "area_stenosis_pct": 100 * (1 - (1 - stenosis_pct / 100) ** 2), "lesion_start_mm": start,
-        "lesion_end_mm": start + lesion_length_mm, "lesion_length_mm": lesion_length_mm,
-        "length_mm": length_mm, "eccentric": eccentric,
+        "area_stenosis_pct": 100 * (1 - (1 - stenosis_pct / 100) ** 2), "lesion_start_mm": a0,
+        "lesion_end_mm": a1, "lesion_length_mm": a1 - a0, "lesion_axis_length_mm": lesion_length_mm,
+        "length_mm": float(arc[-1]), "axis_length_mm": length_mm, "eccentric": eccentric,
         "ostium_mm": points[0].tolist(),
     }
     return AnalyticPhantom(tree, truth)
