@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import math
 
 import numpy as np
@@ -212,3 +213,35 @@ def test_analyse_names_the_missing_volume(tmp_path, capsys):
     (tmp_path / "empty").mkdir()
     assert main(["analyse", str(tmp_path / "empty")]) == 2
     assert "neither occupancy.nrrd nor segmentation.seg.nrrd" in capsys.readouterr().err
+
+
+# --- Slicer scene content (slicer-core, headless) ---------------------------------------------------
+def test_analysis_nodes_in_a_scene(tmp_path):
+    pytest.importorskip("slicer")
+    from SDFCARLib.analysis.mrml_nodes import add_analysis_nodes, camera_for_angles, set_camera_to_angles
+    from SDFCARLib.analysis.outputs import analyse_result_dir
+    from SDFCARLib.mrml import new_scene
+
+    folder, phantom = _result_folder(tmp_path)
+    analyse_result_dir(folder, view_step_deg=10.0, ostium_mm=phantom.truth["ostium_mm"])
+    scene = new_scene()
+    nodes = add_analysis_nodes(scene, folder / "analysis", name="case")
+    curve = nodes["curves"][0]
+    assert curve.GetNumberOfControlPoints() > 10
+    lps_first = np.array(json.loads((folder / "analysis" / "analysis.json").read_text())["branches"][0]["start_mm"])
+    assert np.allclose(curve.GetNthControlPointPosition(0), lps_first * [-1, -1, 1], atol=1e-3)  # RAS
+    diameters = curve.GetMeasurement("Diameter").GetControlPointValues()
+    values = [diameters.GetValue(i) for i in range(diameters.GetNumberOfTuples())]
+    assert len(values) == curve.GetNumberOfControlPoints() and max(values) == pytest.approx(3.0, abs=0.3)
+    table = nodes["table"]
+    assert table.GetNumberOfRows() == 1
+    assert table.GetTable().GetColumnByName("diameter_stenosis_pct").GetValue(0) == pytest.approx(50.0, abs=8.0)
+    assert nodes["chart"].GetNumberOfPlotSeriesNodes() == 1
+    image = nodes["view_map"].GetImageData()
+    assert image.GetDimensions()[:2] == (13, 9)  # −60..60 and −40..40 every 10°
+    # AP: the camera sits anterior (RAS +A... LPS −y), head up; LAO 90 would put it on the patient's left.
+    cam = camera_for_angles(0.0, 0.0, 500.0)
+    assert np.allclose(cam["position"], (0, 500, 0)) and np.allclose(cam["view_up"], (0, 0, 1))
+    camera = scene.AddNewNodeByClass("vtkMRMLCameraNode")
+    set_camera_to_angles(camera, 90.0, 0.0, 500.0)
+    assert np.allclose(camera.GetPosition(), (-500, 0, 0), atol=1e-6)  # LPS +x (left) = RAS −x

@@ -104,12 +104,12 @@ def score(phantom, volume, grid, level, masks, ostium, view_step_deg) -> Dict[st
         if les2:
             row.update({"ds_err_masks": les2[0].diameter_stenosis_pct - truth["diameter_stenosis_pct"],
                         "len_err_masks_mm": les2[0].length_mm - truth["lesion_length_mm"]})
-    # 3D length: a tube against its centreline (flat ends); a tree branch against the span of the truth
-    # branch it follows, between the truth points nearest its two ends.
     b = p.branch
-    _, k = kd.query(b.points_mm)
-    true_len = truth.get("length_mm") or float(abs(tarc[k[-1]] - (tarc[k[0]] if tnames[k[0]] == tnames[k[-1]] else 0.0)))
-    row["length_err_pct"] = 100 * (b.length_mm - true_len) / true_len
+    if "length_mm" in truth:  # a tube: its one branch against the centreline
+        row["length_err_pct"] = 100 * (b.length_mm - truth["length_mm"]) / truth["length_mm"]
+    else:  # a tree: which distal path a branch follows is a labelling choice; compare total lengths
+        total = phantom.tree.total_length_mm()
+        row["length_err_pct"] = 100 * (r.tree.total_length_mm() - total) / total
     # Foreshortening of the target segment (measured centreline) vs the truth centreline over the same span.
     tg = r.target
     idx = np.flatnonzero((b.arc_length_mm >= tg["start_mm"]) & (b.arc_length_mm <= tg["end_mm"]))

@@ -213,4 +213,9 @@ def summary(result: QCAResult) -> Dict[str, Any]:
                                                                           float(result.view_map.primary_deg[-1])],
                                 secondary_range_deg=[float(result.view_map.secondary_deg[0]),
                                                      float(result.view_map.secondary_deg[-1])])
+        vm = result.view_map
+        # The maps themselves (rows = secondary angle), for viewers that draw their own (Slicer's image).
+        out["view_map"] = {"primary_deg": vm.primary_deg.tolist(), "secondary_deg": vm.secondary_deg.tolist(),
+                           "foreshortening": np.round(vm.foreshortening, 4).tolist(),
+                           "overlap": np.round(vm.overlap, 4).tolist()}
     return out
