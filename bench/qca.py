@@ -182,7 +182,7 @@ def run_recon(n_cases, view_step_deg, steps=None):
 
 def summarise(rows: List[Dict]) -> str:
     def col(key, subset=None):
-        v = np.array([r[key] for r in (subset or rows) if key in r and r[key] is not None], float)
+        v = np.array([r[key] for r in (rows if subset is None else subset) if key in r and r[key] is not None], float)
         return v[np.isfinite(v)]
 
     found = [r for r in rows if r.get("found")]
