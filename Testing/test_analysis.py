@@ -245,3 +245,12 @@ def test_analysis_nodes_in_a_scene(tmp_path):
     camera = scene.AddNewNodeByClass("vtkMRMLCameraNode")
     set_camera_to_angles(camera, 90.0, 0.0, 500.0)
     assert np.allclose(camera.GetPosition(), (-500, 0, 0), atol=1e-6)  # LPS +x (left) = RAS −x
+
+
+def test_reconstruct_takes_the_analyse_flag():
+    from SDFCARLib.cli import build_parser
+
+    args = build_parser().parse_args(["reconstruct", "--geometry", "g.json", "--mask1", "a.png", "--mask2", "b.png",
+                                      "--out", "r", "--analyse"])
+    assert args.analyse is True
+    assert build_parser().parse_args(["analyse", "r", "--ostium", "1", "2", "3"]).ostium == [1.0, 2.0, 3.0]
