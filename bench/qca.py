@@ -158,7 +158,7 @@ def run_truth(cases, spacing, view_step_deg):
     return rows
 
 
-def run_recon(n_cases, view_step_deg, steps=None):
+def run_recon(n_cases, view_step_deg, steps=None, save_dir=None, first=0):
     from SDFCARLib.optimiser import make_settings, reconstruct
 
     rows = []
@@ -166,8 +166,8 @@ def run_recon(n_cases, view_step_deg, steps=None):
              ("70%/10mm/3mm/ecc", dict(stenosis_pct=70, lesion_length_mm=10, diameter_mm=3.0, eccentric=True, curvature_radius_mm=40.0)),
              ("50%/15mm/2.5mm/ecc", dict(stenosis_pct=50, lesion_length_mm=15, diameter_mm=2.5, eccentric=True, curvature_radius_mm=40.0)),
              ("70%/5mm/4mm/con", dict(stenosis_pct=70, lesion_length_mm=5, diameter_mm=4.0, eccentric=False)),
-             ("30%/10mm/2mm/con", dict(stenosis_pct=30, lesion_length_mm=10, diameter_mm=2.0, eccentric=False))][:n_cases]
-    for n, (name, kw) in enumerate(picks):
+             ("30%/10mm/2mm/con", dict(stenosis_pct=30, lesion_length_mm=10, diameter_mm=2.0, eccentric=False))]
+    for n, (name, kw) in list(enumerate(picks))[first:first + n_cases]:
         ph = stenosed_tube(length_mm=40.0, direction=np.random.default_rng(n).normal(size=3), **kw)
         geometry = Geometry(VolumeGrid((128, 128, 128), (0.4, 0.4, 0.4)), VIEWS)
         masks = [render_mask(ph.tree, v) for v in VIEWS]
@@ -175,6 +175,11 @@ def run_recon(n_cases, view_step_deg, steps=None):
         t0 = time.perf_counter()
         rec = reconstruct(geometry, masks, settings, "mask")
         t_rec = time.perf_counter() - t0
+        if save_dir:  # keep the reconstruction for a look in Slicer (occupancy on the 0.4 mm grid, LPS)
+            from SDFCARLib.io import write_volume_nrrd
+
+            Path(save_dir).mkdir(parents=True, exist_ok=True)
+            write_volume_nrrd(Path(save_dir) / f"recon{n}_occupancy.nrrd", rec.occupancy, geometry.volume)
         row = score(ph, rec.occupancy, geometry.volume, float(settings.threshold), masks, ph.truth["ostium_mm"], view_step_deg)
         rows.append(dict(case=name, reconstruct_s=t_rec, **row))
         print(f"{name}: " + ", ".join(f"{k}={v:.3g}" if isinstance(v, float) else f"{k}={v}" for k, v in rows[-1].items()),
@@ -217,6 +222,8 @@ def main(argv=None) -> int:
     ap.add_argument("--spacing", type=float, default=0.25, help="voxel size of the voxelised truth (mm)")
     ap.add_argument("--cases", type=int, default=4, help="recon suite: number of cases (at most 5)")
     ap.add_argument("--steps", type=int, default=None, help="recon suite: optimiser steps (default: the preset's)")
+    ap.add_argument("--first", type=int, default=0, help="recon suite: index of the first case (0–4)")
+    ap.add_argument("--save", help="recon suite: write each reconstruction's occupancy here")
     ap.add_argument("--view-step-deg", type=float, default=2.0)
     ap.add_argument("--csv", help="write the case rows here")
     args = ap.parse_args(argv)
@@ -226,7 +233,7 @@ def main(argv=None) -> int:
     elif args.suite == "trees":
         rows = run_truth(tree_cases(), args.spacing, args.view_step_deg)
     else:
-        rows = run_recon(args.cases, args.view_step_deg, args.steps)
+        rows = run_recon(args.cases, args.view_step_deg, args.steps, args.save, args.first)
     print()
     print(summarise(rows))
     print(f"\n{len(rows)} cases in {time.perf_counter() - t0:.0f} s")
