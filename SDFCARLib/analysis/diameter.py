@@ -177,7 +177,8 @@ def mask_diameters(points_mm: np.ndarray, tangents: np.ndarray, masks: Sequence[
     if len(masks) != len(views):
         raise ValueError(f"{len(masks)} masks for {len(views)} views: give one mask per view")
     widths = np.stack([projected_widths(points_mm, tangents, m, v, **kwargs) for m, v in zip(masks, views)])
-    with np.errstate(invalid="ignore"):
+    with np.errstate(invalid="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # points no view measured stay NaN
         combined = np.exp(np.nanmean(np.log(np.where(widths > 0, widths, np.nan)), axis=0))
     return {"view_widths_mm": widths, "equivalent_diameter_mm": combined}
 
