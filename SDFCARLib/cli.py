@@ -8,6 +8,7 @@ Commands
     geometry-template  write a GEOM.json for a standard view pair, as a starting point
     geometry           two XA DICOM runs → GEOM.json, every value with its source tag
     segment            one XA DICOM frame (or a plain image) → vessel mask, frame and overlay PNGs
+    analyse            a result folder → 3D-QCA: centrelines, diameters, lesions, best view
     benchmark          many simulated cases × modes → results.csv, summary.md (the paper's tables)
 
 Exit status: 0 success; 2 bad input (one line ``error: …`` on stderr, no traceback unless
@@ -362,6 +363,30 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
         print(f"masks made by the segment pipeline (--auto-masks): {args.out}/auto_mask1.png, auto_mask2.png "
               "(overlays beside them; check them by eye)")
     _summarise(files)
+    if args.analyse:
+        _print_analysis(args.out, None, args.overwrite)
+    return EXIT_OK
+
+
+def _print_analysis(result_dir: str, out: Optional[str], overwrite: bool, **options: Any) -> None:
+    from .analysis.outputs import analyse_result_dir
+
+    files = analyse_result_dir(result_dir, out, overwrite=overwrite, **options)
+    data = json.loads(files["analysis.json"].read_text(encoding="utf-8"))
+    print(f"3D-QCA: {data['tree']['branches']} branches, {data['tree']['total_length_mm']:.1f} mm of centreline")
+    for lesion in data["lesions"]:
+        print(f"  branch {lesion['branch_id']}: MLD {lesion['mld_mm']:.2f} mm, reference {lesion['reference_diameter_mm']:.2f} mm, "
+              f"DS {lesion['diameter_stenosis_pct']:.0f}%, AS {lesion['area_stenosis_pct']:.0f}%, length {lesion['length_mm']:.1f} mm")
+    if data.get("best_view"):
+        best = data["best_view"]
+        print(f"  suggested view: {best['label']} (foreshortening {100 * best['foreshortening']:.1f}%, "
+              f"overlap {100 * best['overlap']:.0f}%)")
+    print(f"wrote {len(files)} files to {files['analysis.json'].parent}")
+
+
+def cmd_analyse(args: argparse.Namespace) -> int:
+    _print_analysis(args.result_dir, args.out, args.overwrite, masks=args.masks, ostium_mm=args.ostium,
+                    view_step_deg=args.view_step_deg)
     return EXIT_OK
 
 
@@ -576,8 +601,23 @@ def build_parser() -> argparse.ArgumentParser:
                         "the geometry's voxel size; the default when GEOM.json's volume is \"auto\" or absent, or "
                         "when --dicom1/--dicom2 come without --volume-shape/--volume-center")
     p.add_argument("--out", required=True, help="output folder (created; existing results are kept unless --overwrite)")
+    p.add_argument("--analyse", action="store_true", help="also run the 3D-QCA (`analyse`) into OUT/analysis")
     _add_optimiser_options(p)
     p.set_defaults(func=cmd_reconstruct)
+
+    p = commands.add_parser("analyse", parents=[common], help="3D-QCA of a result folder: centrelines, diameters, lesions",
+                            description="Centreline tree, diameter profiles (3D sections and, with the masks, two-view "
+                                        "widths), lesions (MLD, %%DS, %%AS, length), bifurcation angles, foreshortening and "
+                                        "the best-view map of a reconstruction: analysis.json, centrelines.vtk, "
+                                        "profile_branchNN.csv, diameter_profiles.png, view_map.png.")
+    p.add_argument("result_dir", help="folder written by reconstruct (occupancy.nrrd or segmentation.seg.nrrd, report.json)")
+    p.add_argument("--out", help="output folder (default RESULT_DIR/analysis)")
+    p.add_argument("--masks", nargs="+", help="view masks for the 2D diameters (default: the masks report.json names)")
+    p.add_argument("--ostium", type=float, nargs=3, metavar=("X", "Y", "Z"),
+                   help="ostium in LPS mm (default: the thickest end of the tree)")
+    p.add_argument("--view-step-deg", type=float, default=2.0, help="angle step of the best-view map (default 2)")
+    p.add_argument("--overwrite", action="store_true", help="replace analysis files the output folder already holds")
+    p.set_defaults(func=cmd_analyse)
 
     p = commands.add_parser("geometry", parents=[common], help="write GEOM.json from two XA DICOM files",
                             description="Read the C-arm geometry of two X-ray angiography DICOM runs from their tags and "

@@ -1,0 +1,15 @@
+"""Quantitative coronary analysis (3D-QCA) of a reconstruction: numpy/scipy/scikit-image only.
+
+Modules (one idea each)
+    centreline  skeleton → branches ordered from the ostium, smoothed, with junctions
+    diameter    diameters along a branch: 3D cross-sections of the field, 2D widths in the masks
+    lesion      robust reference diameter, MLD, % diameter/area stenosis, lesion extent
+    views       foreshortening of a segment in a view, bifurcation angles, best-view map
+    phantoms    analytic tubes, helices and stenoses with known answers; exact voxeliser, clean masks
+    pipeline    all of the above on one volume (``analyse_volume``) and its JSON summary
+    outputs     a result folder → analysis.json, centrelines.vtk, CSV profiles, figures (``analyse``)
+    mrml_nodes  the outputs as Slicer nodes: curves with diameters, tables, plots, view map, camera
+
+Not imported here: ``from SDFCARLib.analysis.pipeline import analyse_volume`` etc. keep torch,
+vtk and slicer out of a plain import.
+"""

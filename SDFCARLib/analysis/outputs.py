@@ -1,0 +1,244 @@
+"""Files of a 3D-QCA: analysis.json, centrelines.vtk, per-branch CSV profiles and figures.
+
+``analyse_result_dir`` reads a reconstruction's result folder (``outputs.py`` of the package:
+occupancy.nrrd or segmentation.seg.nrrd, report.json with the geometry and the threshold),
+runs ``pipeline.analyse_volume`` and writes, all at once or not at all (``staged_directory``):
+
+    analysis.json           every number (``pipeline.summary``), LPS mm, degrees, percent
+    centrelines.vtk         legacy ASCII polydata, one polyline per branch, ``SPACE=LPS`` in the
+                            header line (as surface.vtk); point arrays Radius (3D equivalent
+                            radius, the inscribed radius where a section could not be measured),
+                            Diameter3D, DiameterMasks (−1 where not measured), ArcLength;
+                            cell array BranchId. Written as text whether or not vtk is installed,
+                            so the file is the same everywhere; vtk and Slicer read it.
+    profile_branchNN.csv    arc length, 3D diameter, area, min/max diameter, mask diameter and
+                            per-view widths, reference, excluded flag, centreline point
+    diameter_profiles.png   diameter against arc length per branch, lesions shaded (matplotlib)
+    view_map.png            foreshortening + overlap over the C-arm angles, best view marked
+"""
+
+from __future__ import annotations
+
+import csv
+import io as _io
+import json
+from pathlib import Path
+from typing import Any, Dict, Optional, Sequence, Union
+
+import numpy as np
+
+from ..geometry import Geometry
+from ..io import InputError, read_label, read_mask, read_volume, write_json
+from ..outputs import staged_directory
+from .pipeline import QCAResult, analyse_volume, summary
+
+PathLike = Union[str, Path]
+ANALYSIS_FILES = ("analysis.json", "centrelines.vtk", "diameter_profiles.png", "view_map.png")
+
+
+def centrelines_vtk_text(result: QCAResult) -> str:
+    """Legacy VTK polydata of the centreline tree (module docstring)."""
+    pts, lines, arrays = [], [], {"Radius": [], "Diameter3D": [], "DiameterMasks": [], "ArcLength": []}
+    ids = []
+    for p in result.profiles:
+        b = p.branch
+        start = sum(len(x) for x in pts)
+        pts.append(b.points_mm)
+        lines.append(list(range(start, start + len(b.points_mm))))
+        d3 = p.diameter_mm
+        arrays["Radius"].append(np.where(np.isfinite(d3), d3 / 2, np.nan_to_num(b.inscribed_radius_mm)))
+        arrays["Diameter3D"].append(np.where(np.isfinite(d3), d3, -1.0))
+        dm = p.mask_diameter_mm if p.mask_diameter_mm is not None else np.full(len(d3), np.nan)
+        arrays["DiameterMasks"].append(np.where(np.isfinite(dm), dm, -1.0))
+        arrays["ArcLength"].append(b.arc_length_mm)
+        ids.append(b.branch_id)
+    points = np.concatenate(pts)
+    out = _io.StringIO()
+    out.write("# vtk DataFile Version 3.0\nSDFCAR centrelines SPACE=LPS\nASCII\nDATASET POLYDATA\n")
+    out.write(f"POINTS {len(points)} float\n")
+    np.savetxt(out, points, fmt="%.5f")
+    out.write(f"LINES {len(lines)} {sum(len(l) + 1 for l in lines)}\n")
+    for l in lines:
+        out.write(" ".join(map(str, [len(l)] + l)) + "\n")
+    out.write(f"CELL_DATA {len(lines)}\nSCALARS BranchId int 1\nLOOKUP_TABLE default\n")
+    out.write("\n".join(map(str, ids)) + "\n")
+    out.write(f"POINT_DATA {len(points)}\n")
+    for name, values in arrays.items():
+        out.write(f"SCALARS {name} float 1\nLOOKUP_TABLE default\n")
+        np.savetxt(out, np.concatenate(values), fmt="%.5f")
+    return out.getvalue()
+
+
+def profile_csv_text(result: QCAResult, branch_id: int) -> str:
+    p = result.profile(branch_id)
+    b = p.branch
+    n_views = 0 if p.view_widths_mm is None else len(p.view_widths_mm)
+    header = ["arc_mm", "diameter_3d_mm", "area_mm2", "min_diameter_mm", "max_diameter_mm", "diameter_masks_mm"]
+    header += [f"width_view{v + 1}_mm" for v in range(n_views)] + ["reference_mm", "excluded", "x_mm", "y_mm", "z_mm"]
+    ref = p.reference(b.arc_length_mm) if p.reference is not None else np.full(len(b.points_mm), np.nan)
+    out = _io.StringIO()
+    w = csv.writer(out, lineterminator="\n")
+    w.writerow(header)
+
+    def f(v):
+        return "" if v is None or not np.isfinite(v) else f"{float(v):.4f}"
+
+    for i in range(len(b.points_mm)):
+        row = [f(b.arc_length_mm[i]), f(p.diameter_mm[i]), f(p.sections.area_mm2[i]), f(p.sections.min_diameter_mm[i]),
+               f(p.sections.max_diameter_mm[i]), f(None if p.mask_diameter_mm is None else p.mask_diameter_mm[i])]
+        row += [f(p.view_widths_mm[v, i]) for v in range(n_views)]
+        row += [f(ref[i]), int(p.excluded[i])] + [f(c) for c in b.points_mm[i]]
+        w.writerow(row)
+    return out.getvalue()
+
+
+def _pyplot():
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError:
+        return None
+    return plt
+
+
+def plot_profiles(path: PathLike, result: QCAResult, max_branches: int = 6) -> bool:
+    """Diameter-profile figure (branches with lesions first, then the longest); False without matplotlib."""
+    plt = _pyplot()
+    if plt is None:
+        return False
+    ranked = sorted(result.profiles, key=lambda p: (-len(p.lesions), -p.branch.length_mm))[:max_branches]
+    fig, axes = plt.subplots(len(ranked), 1, figsize=(8, 2.3 * len(ranked)), squeeze=False)
+    for ax, p in zip(axes[:, 0], ranked):
+        s = p.branch.arc_length_mm
+        ax.plot(s, p.diameter_mm, color="C0", lw=1.5, label="3D cross-section")
+        if p.mask_diameter_mm is not None:
+            ax.plot(s, p.mask_diameter_mm, color="C2", lw=1, alpha=0.8, label="two-view masks (ellipse)")
+        if p.reference is not None:
+            ax.plot(s, p.reference(s), color="k", ls="--", lw=1, label="reference")
+        ex = np.where(p.excluded, p.diameter_mm, np.nan)
+        ax.plot(s, ex, color="0.6", lw=3, alpha=0.5, label="junction / end (not in reference)")
+        for lesion in p.lesions:
+            ax.axvspan(lesion.start_mm, lesion.end_mm, color="C3", alpha=0.15)
+            ax.plot([lesion.mld_position_mm], [lesion.mld_mm], "v", color="C3")
+            ax.annotate(f"MLD {lesion.mld_mm:.2f} mm, DS {lesion.diameter_stenosis_pct:.0f}%, "
+                        f"L {lesion.length_mm:.1f} mm", (lesion.mld_position_mm, lesion.mld_mm),
+                        textcoords="offset points", xytext=(6, -12), fontsize=8, color="C3")
+        parent = "" if p.branch.parent_id is None else f" (from branch {p.branch.parent_id})"
+        ax.set_title(f"branch {p.branch.branch_id}{parent}: {p.branch.length_mm:.1f} mm", fontsize=9)
+        ax.set_ylabel("diameter (mm)")
+        ax.set_ylim(0, np.nanmax(np.r_[p.diameter_mm[~p.excluded] if (~p.excluded).any() else p.diameter_mm, 1.0]) * 1.3)
+        ax.grid(alpha=0.3)
+    axes[0, 0].legend(fontsize=7, loc="upper right")
+    axes[-1, 0].set_xlabel("arc length from the proximal end (mm)")
+    fig.tight_layout()
+    fig.savefig(str(path), dpi=110)
+    plt.close(fig)
+    return True
+
+
+def plot_view_map(path: PathLike, result: QCAResult) -> bool:
+    """View-map figure: foreshortening (%) with the overlap hatched; False without matplotlib or a map."""
+    plt = _pyplot()
+    vm = result.view_map
+    if plt is None or vm is None:
+        return False
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4))
+    extent = [vm.primary_deg[0], vm.primary_deg[-1], vm.secondary_deg[0], vm.secondary_deg[-1]]
+    for ax, data, title in ((axes[0], 100 * vm.foreshortening, "foreshortening (%)"),
+                            (axes[1], 100 * vm.score, "score: foreshortening + overlap (%)")):
+        im = ax.imshow(data, origin="lower", extent=extent, aspect="auto", cmap="viridis_r", vmin=0,
+                       vmax=max(float(np.nanmax(data)), 1.0))
+        fig.colorbar(im, ax=ax)
+        if vm.overlap.any():
+            ax.contour(vm.primary_deg, vm.secondary_deg, vm.overlap, levels=[0.05], colors="w", linewidths=1)
+        ax.plot(vm.best_primary_deg, vm.best_secondary_deg, "r*", ms=14, label="suggested")
+        for k, v in enumerate(result.views):
+            ax.plot(v.primary_deg, v.secondary_deg, "o", mfc="none", mec="orange", ms=9,
+                    label="acquired" if k == 0 else None)
+        ax.set_xlabel("primary angle (° LAO +, RAO −)")
+        ax.set_ylabel("secondary angle (° CRA +, CAU −)")
+        ax.set_title(title, fontsize=9)
+    best = vm.best()
+    axes[0].legend(fontsize=7, loc="lower left")
+    fig.suptitle(f"branch {result.target['branch_id']} {result.target['start_mm']:.0f}–{result.target['end_mm']:.0f} mm: "
+                 f"suggested {best['label']} (foreshortening {100 * best['foreshortening']:.1f}%, "
+                 f"overlap {100 * best['overlap']:.0f}%); white line: overlap > 5%", fontsize=9)
+    fig.tight_layout()
+    fig.savefig(str(path), dpi=110)
+    plt.close(fig)
+    return True
+
+
+def _read_result_volume(result_dir: Path, report: Dict[str, Any]):
+    occupancy = result_dir / "occupancy.nrrd"
+    segmentation = result_dir / "segmentation.seg.nrrd"
+    level = float((report.get("settings") or {}).get("threshold", 0.5))
+    if occupancy.is_file():
+        volume, grid = read_volume(occupancy, "occupancy")
+        return volume.astype(np.float32), grid, level, occupancy.name
+    if segmentation.is_file():
+        label, grid = read_label(segmentation, what="segmentation")
+        return label.astype(np.float32), grid, 0.5, segmentation.name
+    raise InputError(f"{result_dir} holds neither occupancy.nrrd nor segmentation.seg.nrrd: give the folder that "
+                     "`python -m SDFCARLib reconstruct --out …` wrote")
+
+
+def _masks_for(report: Dict[str, Any], geometry: Optional[Geometry], masks: Optional[Sequence[PathLike]]):
+    if geometry is None:
+        return None, "no geometry in report.json: mask diameters need the views"
+    paths = list(masks) if masks else []
+    if not paths and report.get("target_kind") == "mask":
+        paths = [p for p in ((report.get("inputs") or {}).get("targets") or []) if p]
+        if not all(Path(p).is_file() for p in paths):
+            return None, "the masks named in report.json were not found; pass --masks to measure 2D diameters"
+    if not paths:
+        return None, "no view masks (line-integral input or none given): 2D diameters skipped"
+    if len(paths) != len(geometry.views):
+        raise InputError(f"{len(paths)} masks for {len(geometry.views)} views: give one mask per view, in the views' order")
+    return [read_mask(p, geometry.views[i].detector_shape, f"mask of view {i + 1}") for i, p in enumerate(paths)], None
+
+
+def analyse_result_dir(result_dir: PathLike, out_dir: Optional[PathLike] = None, overwrite: bool = False,
+                       masks: Optional[Sequence[PathLike]] = None, ostium_mm: Optional[Sequence[float]] = None,
+                       view_step_deg: float = 2.0, min_stenosis_pct: float = 20.0) -> Dict[str, Path]:
+    """Analyse a reconstruction's result folder and write the QCA files (module docstring); return their paths."""
+    result_dir = Path(result_dir)
+    if not result_dir.is_dir():
+        raise InputError(f"{result_dir} is not a folder; give the result folder of `reconstruct`")
+    out = Path(out_dir) if out_dir is not None else result_dir / "analysis"
+    report_path = result_dir / "report.json"
+    report: Dict[str, Any] = {}
+    if report_path.is_file():
+        try:
+            report = json.loads(report_path.read_text(encoding="utf-8"))
+        except json.JSONDecodeError as exc:
+            raise InputError(f"{report_path} is not valid JSON ({exc.msg}); restore it or re-run reconstruct") from exc
+    volume, grid, level, source = _read_result_volume(result_dir, report)
+    geometry = Geometry.from_dict(report["geometry"]) if isinstance(report.get("geometry"), dict) else None
+    view_masks, mask_note = _masks_for(report, geometry, masks)
+    result = analyse_volume(volume, grid, level=level, views=geometry.views if geometry else (), masks=view_masks,
+                            ostium_mm=ostium_mm, view_step_deg=view_step_deg, min_stenosis_pct=min_stenosis_pct)
+    data = summary(result)
+    data["source"] = {"result_dir": str(result_dir.absolute()), "volume": source, "level": level,
+                      "report": report_path.name if report else None}
+    notes = [mask_note] if mask_note else []
+    csv_names = [f"profile_branch{p.branch.branch_id:02d}.csv" for p in result.profiles]
+    stale = [p.name for p in out.glob("profile_branch*.csv")] if out.is_dir() and overwrite else []
+    names = list(ANALYSIS_FILES) + sorted(set(csv_names) | set(stale))
+    with staged_directory(out, names, overwrite) as staging:
+        (staging / "centrelines.vtk").write_text(centrelines_vtk_text(result), encoding="utf-8")
+        for p, name in zip(result.profiles, csv_names):
+            (staging / name).write_text(profile_csv_text(result, p.branch.branch_id), encoding="utf-8")
+        figures = {"diameter_profiles": plot_profiles(staging / "diameter_profiles.png", result),
+                   "view_map": plot_view_map(staging / "view_map.png", result)}
+        if not all(figures.values()):
+            notes.append("figures skipped: " + ", ".join(k for k, v in figures.items() if not v)
+                         + " (matplotlib missing, or no view map)")
+        data["files"] = {"centrelines": "centrelines.vtk", "profiles": csv_names,
+                         **{k: f"{k}.png" for k, v in figures.items() if v}}
+        data["notes"] = notes
+        write_json(staging / "analysis.json", data)
+        written = sorted(p.name for p in staging.iterdir())
+    return {name: out / name for name in written}

@@ -1,0 +1,171 @@
+"""Foreshortening and overlap of a vessel segment in C-arm views, and the best-view map.
+
+Foreshortening (``foreshortening``)
+    A segment's apparent length in a view is the length of its projection; foreshortening is
+    F = 1 − L_projected / L_3D, 0 when the segment lies parallel to the detector, 1 when it runs
+    along the ray. Each element Δp of the polyline contributes |Δp − (Δp·r̂) r̂|, r̂ the unit ray
+    through its midpoint: from the source (perspective, what the C-arm shows once the image is
+    scaled back to the element's depth) or the central ray d (``perspective=False``, the
+    parallel-projection value, independent of the source distance). For a straight segment of
+    unit direction t, the parallel value is 1 − √(1 − (t·d)²).
+
+Overlap (``overlap_fraction``)
+    The segment's centreline samples and the rest of the tree's are projected in parallel onto
+    the detector plane (u, v of ``geometry.CArmView``). A segment sample is overlapped when its
+    disc (radius r) meets the disc of any other tree sample (r_seg + r_other > their distance).
+    Tree samples within ``attach_mm`` (3D) of the segment — its own continuation and the mouths
+    of its side branches — are not "others": they touch it in space, not only in the image.
+    The overlap is the fraction of the segment's samples overlapped.
+
+Best-view map (``view_map``)
+    Over primary α ∈ [−60°, 60°] (LAO +) and secondary β ∈ [−40°, 40°] (CRA +) the score is
+    F + w·overlap (``overlap_weight`` w = 1); the suggested view minimises it. Views 180° apart
+    show the same projection mirrored, so the clinical range is enough.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Dict, Optional, Sequence
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from ..geometry import CArmView
+
+PRIMARY_RANGE_DEG = (-60.0, 60.0)
+SECONDARY_RANGE_DEG = (-40.0, 40.0)
+
+
+def view_direction(primary_deg, secondary_deg) -> np.ndarray:
+    """d = (sin α cos β, −cos α cos β, sin β) (``geometry.py``), broadcast over the angles."""
+    a, b = np.radians(primary_deg), np.radians(secondary_deg)
+    return np.stack(np.broadcast_arrays(np.sin(a) * np.cos(b), -np.cos(a) * np.cos(b), np.sin(b)), axis=-1)
+
+
+def image_axes(primary_deg: float, secondary_deg: float):
+    """Detector axes u (columns) and v (rows) of a view (``geometry.py``)."""
+    a = math.radians(primary_deg)
+    u = np.array([math.cos(a), math.sin(a), 0.0])
+    return u, np.cross(u, view_direction(primary_deg, secondary_deg))
+
+
+def foreshortening(points_mm: np.ndarray, view: CArmView, perspective: bool = True) -> float:
+    """1 − projected length / 3D length of a polyline in a view (module docstring)."""
+    p = np.asarray(points_mm, float)
+    if len(p) < 2:
+        raise ValueError("a segment needs at least 2 points to have a length")
+    delta = np.diff(p, axis=0)
+    if perspective:
+        ray = (p[:-1] + p[1:]) / 2 - view.source_position
+        ray /= np.linalg.norm(ray, axis=1, keepdims=True)
+    else:
+        ray = np.broadcast_to(view.detector_direction, delta.shape)
+    along = np.einsum("ij,ij->i", delta, ray)
+    projected = np.linalg.norm(delta - along[:, None] * ray, axis=1).sum()
+    length = np.linalg.norm(delta, axis=1).sum()
+    if length == 0:
+        raise ValueError("the segment has zero length")
+    return float(1.0 - projected / length)
+
+
+def foreshortening_map(points_mm: np.ndarray, primary_deg: np.ndarray, secondary_deg: np.ndarray) -> np.ndarray:
+    """Parallel-projection foreshortening of a polyline for every (α, β) of a grid (arrays broadcast)."""
+    delta = np.diff(np.asarray(points_mm, float), axis=0)
+    lengths = np.linalg.norm(delta, axis=1)
+    d = view_direction(primary_deg, secondary_deg)  # (..., 3)
+    along = d @ delta.T  # (..., M)
+    perp = np.sqrt(np.maximum(lengths ** 2 - along ** 2, 0.0))
+    return 1.0 - perp.sum(axis=-1) / lengths.sum()
+
+
+def _others_for(segment_mm: np.ndarray, segment_radii: np.ndarray, others_mm: np.ndarray, others_radii: np.ndarray,
+                attach_mm: float):
+    if len(others_mm) == 0:
+        return others_mm, others_radii
+    dist, _ = cKDTree(segment_mm).query(others_mm)
+    keep = dist > attach_mm + float(np.max(segment_radii)) + others_radii
+    return others_mm[keep], others_radii[keep]
+
+
+def overlap_fraction(segment_mm: np.ndarray, segment_radii: np.ndarray, others_mm: np.ndarray,
+                     others_radii: np.ndarray, primary_deg: float, secondary_deg: float,
+                     attach_mm: float = 2.0, _filtered: bool = False) -> float:
+    """Fraction of the segment's samples whose projected disc meets another tree sample's (module docstring)."""
+    seg = np.asarray(segment_mm, float)
+    seg_r = np.broadcast_to(np.asarray(segment_radii, float), (len(seg),))
+    oth, oth_r = np.asarray(others_mm, float).reshape(-1, 3), np.broadcast_to(np.asarray(others_radii, float), (len(others_mm),))
+    if not _filtered:
+        oth, oth_r = _others_for(seg, seg_r, oth, oth_r, attach_mm)
+    if len(oth) == 0:
+        return 0.0
+    u, v = image_axes(primary_deg, secondary_deg)
+    basis = np.stack([u, v], axis=1)
+    tree2d = cKDTree(oth @ basis)
+    reach = float(seg_r.max() + oth_r.max())
+    hits = tree2d.query_ball_point(seg @ basis, reach)
+    q = seg @ basis
+    o2 = oth @ basis
+    covered = np.zeros(len(seg), bool)
+    for i, idx in enumerate(hits):
+        if idx:
+            idx = np.asarray(idx)
+            covered[i] = bool(np.any(np.linalg.norm(o2[idx] - q[i], axis=1) < seg_r[i] + oth_r[idx]))
+    return float(covered.mean())
+
+
+@dataclass
+class ViewMap:
+    primary_deg: np.ndarray  # (A,)
+    secondary_deg: np.ndarray  # (B,)
+    foreshortening: np.ndarray  # (B, A), rows = secondary
+    overlap: np.ndarray  # (B, A)
+    score: np.ndarray  # (B, A)
+    best_primary_deg: float
+    best_secondary_deg: float
+
+    def best(self) -> Dict[str, float]:
+        j = int(np.argmin(np.abs(self.secondary_deg - self.best_secondary_deg)))
+        i = int(np.argmin(np.abs(self.primary_deg - self.best_primary_deg)))
+        return {"primary_deg": self.best_primary_deg, "secondary_deg": self.best_secondary_deg,
+                "foreshortening": float(self.foreshortening[j, i]), "overlap": float(self.overlap[j, i]),
+                "label": view_label(self.best_primary_deg, self.best_secondary_deg)}
+
+
+def view_label(primary_deg: float, secondary_deg: float) -> str:
+    """'LAO 30 CRA 20'-style name of a view."""
+    a, b = round(primary_deg), round(secondary_deg)
+    text = "AP" if a == 0 else f"{'LAO' if a > 0 else 'RAO'} {abs(a)}"
+    return text + ("" if b == 0 else f" {'CRA' if b > 0 else 'CAU'} {abs(b)}")
+
+
+def view_map(segment_mm: np.ndarray, segment_radii, others_mm: Optional[np.ndarray] = None, others_radii=None,
+             primary_range_deg: Sequence[float] = PRIMARY_RANGE_DEG,
+             secondary_range_deg: Sequence[float] = SECONDARY_RANGE_DEG, step_deg: float = 2.0,
+             overlap_weight: float = 1.0, attach_mm: float = 2.0) -> ViewMap:
+    """Foreshortening, overlap and their score over the clinical range of angles (module docstring).
+
+    Ties (a straight segment is unforeshortened on a whole great circle of views) go to the view
+    closest to AP (smallest α² + β²), the easiest to reach.
+    """
+    seg = np.asarray(segment_mm, float)
+    seg_r = np.broadcast_to(np.asarray(segment_radii, float), (len(seg),))
+    a = np.arange(primary_range_deg[0], primary_range_deg[1] + 1e-9, step_deg)
+    b = np.arange(secondary_range_deg[0], secondary_range_deg[1] + 1e-9, step_deg)
+    aa, bb = np.meshgrid(a, b)
+    fs = foreshortening_map(seg, aa, bb)
+    ov = np.zeros_like(fs)
+    if others_mm is not None and len(others_mm):
+        oth = np.asarray(others_mm, float)
+        oth_r = np.broadcast_to(np.asarray(others_radii, float), (len(oth),))
+        oth, oth_r = _others_for(seg, seg_r, oth, oth_r, attach_mm)
+        for j in range(len(b)):
+            for i in range(len(a)):
+                ov[j, i] = overlap_fraction(seg, seg_r, oth, oth_r, a[i], b[j], attach_mm, _filtered=True)
+    score = fs + overlap_weight * ov
+    tol = 1e-4
+    candidates = score <= score.min() + tol
+    order = np.where(candidates, aa ** 2 + bb ** 2, np.inf)
+    j, i = np.unravel_index(int(np.argmin(order)), order.shape)
+    return ViewMap(a, b, fs, ov, score, float(a[i]), float(b[j]))

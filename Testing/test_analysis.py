@@ -1,0 +1,256 @@
+"""3D-QCA measures (SDFCARLib.analysis) against analytic phantoms with known answers."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+from SDFCARLib.analysis.centreline import bifurcation_angles, extract_centrelines
+from SDFCARLib.analysis.diameter import branch_cross_sections, junction_zones, mask_diameters
+from SDFCARLib.analysis.lesion import ReferenceFit, find_lesions, reference_fit
+from SDFCARLib.analysis.phantoms import (grid_around, helix, render_mask, stenosed_tube, straight_tube,
+                                         voxelize_exact)
+from SDFCARLib.analysis.views import foreshortening, foreshortening_map, overlap_fraction, view_direction, view_map
+from SDFCARLib.geometry import CArmView, standard_geometry
+from SDFCARLib.phantoms import Branch, CenterlineTree
+
+
+def _measure(phantom, spacing_mm, ostium=None):
+    grid = grid_around(phantom.tree, spacing_mm)
+    label = voxelize_exact(phantom.tree, grid)
+    tree = extract_centrelines(label, grid, ostium_mm=ostium)
+    branch = tree.branches[0]
+    return tree, branch, branch_cross_sections(label, grid, branch), junction_zones(tree, branch)
+
+
+@pytest.mark.parametrize("diameter_mm, spacing_mm", [(3.0, 0.3), (1.5, 0.25)])
+def test_straight_tube_diameter(diameter_mm, spacing_mm):
+    tree, branch, sections, ends = _measure(straight_tube(16.0, diameter_mm), spacing_mm)
+    assert len(tree.branches) == 1
+    error = np.abs(sections.equivalent_diameter_mm[~ends] - diameter_mm)
+    assert error.mean() <= 0.15, error.mean()
+    assert branch.length_mm == pytest.approx(16.0, rel=0.02)  # flat ends: the lumen is the centreline's length
+
+
+def test_helix_length_within_2_percent():
+    phantom = helix(radius_mm=6.0, pitch_mm=10.0, turns=1.25, diameter_mm=2.0)
+    tree, branch, sections, ends = _measure(phantom, 0.3)
+    assert len(tree.branches) == 1
+    assert branch.length_mm == pytest.approx(phantom.truth["length_mm"], rel=0.02)
+    assert np.abs(sections.equivalent_diameter_mm[~ends] - 2.0).mean() <= 0.15
+
+
+@pytest.mark.parametrize("eccentric", [False, True])
+def test_fifty_percent_stenosis(eccentric):
+    phantom = stenosed_tube(length_mm=30.0, diameter_mm=3.0, stenosis_pct=50.0, lesion_length_mm=10.0,
+                            eccentric=eccentric, curvature_radius_mm=40.0 if eccentric else None)
+    truth = phantom.truth
+    _, branch, sections, ends = _measure(phantom, 0.3, ostium=truth["ostium_mm"])
+    s = branch.arc_length_mm
+    reference = reference_fit(s, sections.equivalent_diameter_mm, ~ends)
+    lesions = find_lesions(s, sections.equivalent_diameter_mm, reference, ~ends, sections.area_mm2)
+    assert len(lesions) == 1
+    lesion = lesions[0]
+    assert lesion.reference_diameter_mm == pytest.approx(3.0, abs=0.15)
+    assert lesion.diameter_stenosis_pct == pytest.approx(50.0, abs=8.0)
+    assert lesion.area_stenosis_pct == pytest.approx(75.0, abs=8.0)
+    assert lesion.mld_mm == pytest.approx(1.5, abs=0.2)
+    assert lesion.length_mm == pytest.approx(10.0, abs=2.0)
+    assert lesion.start_mm == pytest.approx(truth["lesion_start_mm"], abs=1.5)
+
+
+def test_reference_fit_ignores_the_lesion_and_keeps_the_taper():
+    s = np.arange(0.0, 60.0, 0.25)
+    healthy = 3.5 - 0.02 * s
+    d = healthy * (1 - 0.6 * ((s > 20) & (s < 35)))
+    d = d + np.random.default_rng(0).normal(0, 0.04, len(s))
+    fit = reference_fit(s, d)
+    assert fit.slope_mm_per_mm == pytest.approx(-0.02, abs=0.003)
+    assert fit.intercept_mm == pytest.approx(3.5, abs=0.05)
+    assert not fit.kept[(s > 22) & (s < 33)].any()
+
+
+def test_no_lesion_on_a_healthy_profile():
+    s = np.arange(0.0, 30.0, 0.25)
+    d = 3.0 + np.random.default_rng(1).normal(0, 0.05, len(s))
+    assert find_lesions(s, d, ReferenceFit(3.0, 0.0, np.ones(len(s), bool))) == []
+
+
+def test_bifurcation_angle_and_ostium():
+    # A thick main vessel with a thinner side branch leaving at 60° from its continuation.
+    main = np.linspace([-15.0, 0, 0], [15.0, 0, 0], 301)
+    side_dir = np.array([math.cos(math.radians(60)), math.sin(math.radians(60)), 0.0])
+    side = np.array([0.0, 0, 0]) + np.linspace(0, 14.0, 141)[:, None] * side_dir
+    tree_in = CenterlineTree([Branch(main, np.linspace(1.6, 1.3, 301), "main"), Branch(side, np.full(141, 0.9), "side")])
+    grid = grid_around(tree_in, 0.3)
+    tree = extract_centrelines(voxelize_exact(tree_in, grid), grid)
+    assert len(tree.branches) == 2
+    assert tree.branches[0].points_mm[0][0] < -13.0  # rooted at the thick end (x = −15)
+    angles = bifurcation_angles(tree)
+    assert len(angles) == 1
+    assert angles[0]["distal_angle_deg"] == pytest.approx(60.0, abs=8.0)
+    assert angles[0]["parent_arc_mm"] == pytest.approx(15.0, abs=1.5)
+
+
+@pytest.mark.parametrize("primary, secondary", [(0.0, 0.0), (30.0, 20.0), (-45.0, -25.0), (60.0, 40.0)])
+def test_foreshortening_of_a_straight_segment_is_analytic(primary, secondary):
+    t = np.array([0.3, -0.8, 0.52])
+    t /= np.linalg.norm(t)
+    points = np.linspace(-10, 10, 41)[:, None] * t
+    view = CArmView(primary, secondary, 1000.0, 750.0, (0.278, 0.278), (512, 512))
+    analytic = 1 - math.sqrt(1 - float(t @ view.detector_direction) ** 2)
+    assert foreshortening(points, view, perspective=False) == pytest.approx(analytic, abs=1e-9)
+    assert foreshortening(points, view) == pytest.approx(analytic, abs=0.01)  # perspective, at the isocenter
+    assert float(foreshortening_map(points, primary, secondary)) == pytest.approx(analytic, abs=1e-9)
+
+
+def test_best_view_of_a_straight_segment_is_perpendicular_to_it():
+    t = np.array([0.5, -0.6, 0.62])
+    t /= np.linalg.norm(t)
+    points = np.linspace(-8, 8, 33)[:, None] * t
+    vm = view_map(points, 1.0, step_deg=5.0)
+    best = vm.best()
+    d = view_direction(best["primary_deg"], best["secondary_deg"])
+    assert abs(float(d @ t)) < math.sin(math.radians(5.0))
+    assert best["foreshortening"] < 0.01
+    assert vm.foreshortening.max() > 0.3  # the map does see the segment end-on somewhere
+
+
+def test_overlap_of_crossing_vessels():
+    segment = np.linspace([-10.0, 0, 0], [10.0, 0, 0], 81)  # along L
+    other = np.linspace([0.0, -20, -10], [0.0, -20, 10], 81)  # along S, 20 mm anterior: crosses it in AP
+    assert 0.0 < overlap_fraction(segment, 1.0, other, 1.0, 0.0, 0.0) < 0.5
+    # In LAO α the other projects at u = −20 sin α, the segment over |u| <= 10 cos α: apart beyond ~31°.
+    assert overlap_fraction(segment, 1.0, other, 1.0, 60.0, 0.0) == 0.0
+    alone = view_map(segment, 1.0, step_deg=5.0).best()
+    assert alone["primary_deg"] == 0.0 and alone["foreshortening"] < 1e-9  # AP shows it whole...
+    # ...but the other hides it there; tilting CRA/CAU beyond ~31° (tan β > 0.6) lifts the other off it
+    # and keeps the segment parallel to the detector.
+    crossed = view_map(segment, 1.0, other, 1.0, step_deg=5.0).best()
+    assert crossed["overlap"] == 0.0 and crossed["foreshortening"] < 1e-9
+    assert crossed["primary_deg"] == 0.0 and abs(crossed["secondary_deg"]) >= 30.0
+
+
+def test_mask_widths_of_a_tube_in_two_views():
+    phantom = straight_tube(20.0, 2.5, direction=(0.2, 0.3, 1.0))
+    geometry = standard_geometry("lao30-rao30")
+    masks = [render_mask(phantom.tree, view) for view in geometry.views]
+    points = phantom.tree.branches[0].points
+    tangents = np.tile(phantom.truth["direction"], (len(points), 1))
+    widths = mask_diameters(points[2:-2], tangents[2:-2], masks, geometry.views)
+    assert np.nanmean(np.abs(widths["equivalent_diameter_mm"] - 2.5)) <= 0.15
+    assert widths["view_widths_mm"].shape == (2, len(points) - 4)
+
+
+# --- the `analyse` command on a small synthetic result folder ---------------------------------------
+def _result_folder(tmp_path):
+    from SDFCARLib.geometry import Geometry
+    from SDFCARLib.io import write_json, write_mask_png, write_volume_nrrd
+
+    phantom = stenosed_tube(length_mm=24.0, diameter_mm=3.0, stenosis_pct=50.0, lesion_length_mm=8.0,
+                            direction=(1.0, 0.2, 0.4))
+    grid = grid_around(phantom.tree, 0.3)
+    geometry = Geometry(grid, standard_geometry("lao30-rao30").views)
+    folder = tmp_path / "result"
+    folder.mkdir()
+    write_volume_nrrd(folder / "occupancy.nrrd", voxelize_exact(phantom.tree, grid).astype(np.float32), grid)
+    masks = []
+    for n, view in enumerate(geometry.views):
+        masks.append(str(write_mask_png(tmp_path / f"view{n + 1}_mask.png", render_mask(phantom.tree, view))))
+    write_json(folder / "report.json", {"geometry": geometry.to_dict(), "settings": {"threshold": 0.5},
+                                        "target_kind": "mask", "inputs": {"targets": masks}})
+    return folder, phantom
+
+
+def test_analyse_command_writes_every_output(tmp_path, capsys):
+    import json
+
+    from SDFCARLib.cli import main
+
+    folder, phantom = _result_folder(tmp_path)
+    assert main(["analyse", str(folder), "--view-step-deg", "10", "--ostium", *map(str, phantom.truth["ostium_mm"])]) == 0
+    out = folder / "analysis"
+    data = json.loads((out / "analysis.json").read_text())
+    assert (out / "centrelines.vtk").read_text().startswith("# vtk DataFile")
+    assert (out / "profile_branch00.csv").read_text().splitlines()[0].startswith("arc_mm,diameter_3d_mm")
+    lesion = data["lesions"][0]
+    assert lesion["diameter_stenosis_pct"] == pytest.approx(50.0, abs=8.0)
+    assert lesion["length_mm"] == pytest.approx(8.0, abs=2.0)
+    assert data["branches"][0]["diameter_masks"]["max_mm"] == pytest.approx(3.0, abs=0.3)
+    assert data["best_view"]["foreshortening"] <= 0.05
+    assert len(data["target_segment"]["acquisition_views"]) == 2
+    assert "suggested view" in capsys.readouterr().out
+    pytest.importorskip("matplotlib")
+    assert (out / "diameter_profiles.png").is_file() and (out / "view_map.png").is_file()
+    # A second run refuses to replace the files unless asked to.
+    assert main(["analyse", str(folder)]) == 2
+    assert "--overwrite" in capsys.readouterr().err
+
+
+def test_centrelines_vtk_reads_back_with_radii(tmp_path):
+    pytest.importorskip("vtk")
+    from SDFCARLib.analysis.outputs import centrelines_vtk_text
+    from SDFCARLib.analysis.pipeline import analyse_volume
+    from SDFCARLib.phantoms import load_centerline_vtk
+
+    phantom = straight_tube(12.0, 2.0)
+    grid = grid_around(phantom.tree, 0.3)
+    result = analyse_volume(voxelize_exact(phantom.tree, grid), grid, best_view=False)
+    path = tmp_path / "centrelines.vtk"
+    path.write_text(centrelines_vtk_text(result))
+    tree = load_centerline_vtk(path)
+    assert len(tree.branches) == 1
+    assert np.allclose(tree.branches[0].points, result.tree.branches[0].points_mm, atol=1e-4)
+    assert np.median(tree.branches[0].radii) == pytest.approx(1.0, abs=0.08)
+
+
+def test_analyse_names_the_missing_volume(tmp_path, capsys):
+    from SDFCARLib.cli import main
+
+    (tmp_path / "empty").mkdir()
+    assert main(["analyse", str(tmp_path / "empty")]) == 2
+    assert "neither occupancy.nrrd nor segmentation.seg.nrrd" in capsys.readouterr().err
+
+
+# --- Slicer scene content (slicer-core, headless) ---------------------------------------------------
+def test_analysis_nodes_in_a_scene(tmp_path):
+    pytest.importorskip("slicer")
+    from SDFCARLib.analysis.mrml_nodes import add_analysis_nodes, camera_for_angles, set_camera_to_angles
+    from SDFCARLib.analysis.outputs import analyse_result_dir
+    from SDFCARLib.mrml import new_scene
+
+    folder, phantom = _result_folder(tmp_path)
+    analyse_result_dir(folder, view_step_deg=10.0, ostium_mm=phantom.truth["ostium_mm"])
+    scene = new_scene()
+    nodes = add_analysis_nodes(scene, folder / "analysis", name="case")
+    curve = nodes["curves"][0]
+    assert curve.GetNumberOfControlPoints() > 10
+    lps_first = np.array(json.loads((folder / "analysis" / "analysis.json").read_text())["branches"][0]["start_mm"])
+    assert np.allclose(curve.GetNthControlPointPosition(0), lps_first * [-1, -1, 1], atol=1e-3)  # RAS
+    diameters = curve.GetMeasurement("Diameter").GetControlPointValues()
+    values = [diameters.GetValue(i) for i in range(diameters.GetNumberOfTuples())]
+    assert len(values) == curve.GetNumberOfControlPoints() and max(values) == pytest.approx(3.0, abs=0.3)
+    table = nodes["table"]
+    assert table.GetNumberOfRows() == 1
+    assert table.GetTable().GetColumnByName("diameter_stenosis_pct").GetValue(0) == pytest.approx(50.0, abs=8.0)
+    assert nodes["chart"].GetNumberOfPlotSeriesNodes() == 1
+    image = nodes["view_map"].GetImageData()
+    assert image.GetDimensions()[:2] == (13, 9)  # −60..60 and −40..40 every 10°
+    # AP: the camera sits anterior (RAS +A... LPS −y), head up; LAO 90 would put it on the patient's left.
+    cam = camera_for_angles(0.0, 0.0, 500.0)
+    assert np.allclose(cam["position"], (0, 500, 0)) and np.allclose(cam["view_up"], (0, 0, 1))
+    camera = scene.AddNewNodeByClass("vtkMRMLCameraNode")
+    set_camera_to_angles(camera, 90.0, 0.0, 500.0)
+    assert np.allclose(camera.GetPosition(), (-500, 0, 0), atol=1e-6)  # LPS +x (left) = RAS −x
+
+
+def test_reconstruct_takes_the_analyse_flag():
+    from SDFCARLib.cli import build_parser
+
+    args = build_parser().parse_args(["reconstruct", "--geometry", "g.json", "--mask1", "a.png", "--mask2", "b.png",
+                                      "--out", "r", "--analyse"])
+    assert args.analyse is True
+    assert build_parser().parse_args(["analyse", "r", "--ostium", "1", "2", "3"]).ostium == [1.0, 2.0, 3.0]
