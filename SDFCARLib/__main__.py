@@ -1,4 +1,4 @@
-"""``python -m SDFCARLib``: the command line (``cli.py``)."""
+"""``python -m SDFCARLib``: the command line (``cli/``)."""
 
 import sys
 

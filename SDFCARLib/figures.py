@@ -1,7 +1,7 @@
 """Figures: the paper's overlay view (green overlap, red predicted only, blue missed) as MIPs.
 
 ``save_overlay_figure`` writes the benchmark's overlay PNGs; ``save_result_figure`` is the
-one-picture summary of a reconstruction shown in the README (``docs/demo-result.png``).
+one-picture summary of a reconstruction shown in the README (``Resources/Screenshots/demo-result.png``).
 """
 
 from __future__ import annotations

@@ -40,7 +40,7 @@ PathLike = Union[str, Path]
 
 IMAGE_FORMATS = "PNG (.png), TIFF (.tif, .tiff) or NRRD (.nrrd, .nhdr)"
 VOLUME_FORMATS = "NRRD (.nrrd, .nhdr, .seg.nrrd) or NIfTI (.nii, .nii.gz)"
-CENTERLINE_FORMATS = "VTK polydata (.vtk, .vtp)"
+CENTRELINE_FORMATS = "VTK polydata (.vtk, .vtp)"
 
 #: Largest off-axis component of a unit axis direction still taken as axis-aligned: 1e-3 rad
 #: moves a point 0.1 mm over 100 mm, well below a voxel.
@@ -333,10 +333,10 @@ def read_label(path: PathLike, grid: Optional[VolumeGrid] = None, threshold: Opt
     if suffix in (".vtk", ".vtp"):
         if grid is None:
             raise InputError(f"{path}: a centreline {what} needs a volume grid to be voxelised on; give the geometry")
-        from .phantoms import load_centerline_vtk, voxelize
+        from .phantoms import load_centreline_vtk, voxelize
 
         try:
-            tree = load_centerline_vtk(path)
+            tree = load_centreline_vtk(path)
         except (ValueError, OSError) as exc:
             raise InputError(f"cannot read {path} as a centreline: {exc}") from exc
         label = voxelize(tree, grid)
@@ -348,7 +348,7 @@ def read_label(path: PathLike, grid: Optional[VolumeGrid] = None, threshold: Opt
     elif suffix in (".nii", ".nii.gz"):
         data, label_grid = _nifti_volume(path)
     else:
-        raise InputError(f"{path}: unsupported {what} format {suffix or '(no extension)'!r}; use {VOLUME_FORMATS} or {CENTERLINE_FORMATS}")
+        raise InputError(f"{path}: unsupported {what} format {suffix or '(no extension)'!r}; use {VOLUME_FORMATS} or {CENTRELINE_FORMATS}")
     if data.dtype != bool and np.issubdtype(data.dtype, np.floating):
         if not np.all(np.isfinite(data)):
             raise InputError(f"{path}: the {what} contains NaN or infinite values; fix the volume")

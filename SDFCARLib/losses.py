@@ -37,9 +37,9 @@ L_geo
       max-pooling), which costs the square less.
 
 Why not kornia's function itself (``cascaded_distance``)
-    kornia runs the cascade max(H, W) / (kernel_size // 2) times and autograd keeps every round:
-    22 GB for four 512² images (measured, fwd + bwd) — most of the paper preset's memory (on the hull
-    support its peak fell from 4.9 to 1.5 GB) — and a cost linear in the image size per round. Distances beyond the
+    Distances grow by kernel_size // 2 pixels per round; kornia runs the cascade
+    max(H, W) / (kernel_size // 2) times and autograd keeps every round: tens of GB for a few 512² images, most of the paper preset's
+    memory (bench/RESULTS.md, section 3) — and a cost linear in the image size per round. Distances beyond the
     truncation are clipped anyway, and the cascade sets a pixel's distance in the round its
     neighbourhood first reaches a source, never later — so stopping after
     ceil(truncation / (kernel_size // 2)) + 1 rounds gives the same clipped values and gradients
@@ -81,8 +81,8 @@ class _SymmetricFilter(torch.autograd.Function):
     """Valid correlation with a fixed kernel that equals itself rotated by 180°.
 
     Its input gradient is the same correlation of the output gradient zero-padded by kernel size
-    − 1. Written out because the CPU (mkldnn) backward of a one-channel convolution took ~8× its forward
-    (measured: 88 vs 11 ms at 4 × 256²), which made it the largest cost of L_geo.
+    − 1. Written out because the CPU (mkldnn) backward of a one-channel convolution takes several
+    times its forward (bench/RESULTS.md), which made it the largest cost of L_geo.
     """
 
     @staticmethod

@@ -43,6 +43,7 @@ from .field import FieldConfig, ImplicitField
 from .geometry import Geometry
 from .hull import support_mask
 from .losses import DistanceSettings, GeometricLoss, ViewTarget, make_target, occupancy_loss
+from .consistency import consistency_warnings, view_consistency
 from .mask_checks import mask_warnings, support_masks
 from .masks import MaskError, binarise_mask
 from .connectivity import ReconnectSettings, field_values, reconnect_fragments
@@ -138,7 +139,8 @@ class Problem:
     view_targets: List[ViewTarget]
     geometric: Optional[GeometricLoss]
     setup_s: float = 0.0
-    warnings: List[str] = field(default_factory=list)  # for report.json (mask checks, support)
+    warnings: List[str] = field(default_factory=list)  # for report.json (mask checks, support, consistency)
+    consistency: List[float] = field(default_factory=list)  # per view: centreline with a partner (consistency.py)
 
 
 def _normalised_points(geometry: Geometry, flat: np.ndarray, device: torch.device) -> torch.Tensor:
@@ -173,9 +175,13 @@ def build_problem(geometry: Geometry, targets: Sequence[np.ndarray], settings: S
     grid = geometry.volume
     pixels = vessel_pixels(arrays, target_kind)
     warnings: List[str] = []
+    consistency: List[float] = []
     if target_kind == "mask":
         for n, (mask, view) in enumerate(zip(pixels, geometry.views), start=1):
             warnings += mask_warnings(mask, view.pixel_spacing_mm, source=f"view {n}")
+        # Seconds to catch a wrong angle sign or a mask of the wrong view before minutes of work.
+        consistency = view_consistency(geometry, pixels)
+        warnings += consistency_warnings(consistency)
     if settings.region.support == "hull":
         # Hundreds of specks would each add a cone to the support (and time to every step).
         pixels, left_out = support_masks(pixels, geometry.views, grid)
@@ -212,7 +218,7 @@ def build_problem(geometry: Geometry, targets: Sequence[np.ndarray], settings: S
             DistanceSettings(loss.dt_downsample, loss.dt_threshold, loss.dt_truncation_mm, loss.dt_kernel_size),
         )
     return Problem(geometry, settings, target_kind, arrays, support, voxels, device, device_reason, needed_bytes,
-                   projectors, view_targets, geometric, time.perf_counter() - t_start, warnings)
+                   projectors, view_targets, geometric, time.perf_counter() - t_start, warnings, consistency)
 
 
 def optimise(problem: Problem, model: ImplicitField, progress: Progress = None, cancel: Cancel = None,
@@ -317,6 +323,7 @@ def finish(problem: Problem, model: ImplicitField, history: List[Dict[str, float
         "timings_s": {"setup": problem.setup_s, "optimise": optimise_s, "output": output_s,
                       "total": time.perf_counter() - t_start, "per_step": optimise_s / steps},
         "warnings": list(problem.warnings),
+        "view_consistency": list(problem.consistency),
     }
     return Reconstruction(geometry, settings, occupancy_volume, field_volume, segmentation, problem.support, report, history)
 

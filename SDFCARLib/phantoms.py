@@ -46,7 +46,7 @@ class Branch:
 
 
 @dataclass
-class CenterlineTree:
+class CentrelineTree:
     branches: List[Branch]
     name: str = "tree"
 
@@ -59,11 +59,11 @@ class CenterlineTree:
         hi = np.max([np.max(b.points + b.radii[:, None], axis=0) for b in self.branches], axis=0)
         return lo, hi
 
-    def translated(self, offset: Sequence[float]) -> "CenterlineTree":
+    def translated(self, offset: Sequence[float]) -> "CentrelineTree":
         off = np.asarray(offset, float)
-        return CenterlineTree([Branch(b.points + off, b.radii.copy(), b.name) for b in self.branches], self.name)
+        return CentrelineTree([Branch(b.points + off, b.radii.copy(), b.name) for b in self.branches], self.name)
 
-    def centered(self) -> "CenterlineTree":
+    def centered(self) -> "CentrelineTree":
         """The tree moved so that its bounding box is centred on the isocenter."""
         lo, hi = self.bounds()
         return self.translated(-(lo + hi) / 2)
@@ -73,7 +73,7 @@ class CenterlineTree:
 
 
 # --- voxelisation --------------------------------------------------------------------------------
-def voxelize(tree: CenterlineTree, grid: VolumeGrid) -> np.ndarray:
+def voxelize(tree: CentrelineTree, grid: VolumeGrid) -> np.ndarray:
     """Boolean label ``[i, j, k]`` of the tree's tubes on ``grid`` (voxel-centre test)."""
     label = np.zeros(grid.shape, dtype=bool)
     spacing = np.asarray(grid.spacing_mm, float)
@@ -104,7 +104,7 @@ def voxelize(tree: CenterlineTree, grid: VolumeGrid) -> np.ndarray:
 RADIUS_ARRAY_NAMES = ("radii", "radius", "Radius", "MaximumInscribedSphereRadius", "RADIUS")
 
 
-def load_centerline_vtk(path: PathLike, name: Optional[str] = None) -> CenterlineTree:
+def load_centreline_vtk(path: PathLike, name: Optional[str] = None) -> CentrelineTree:
     """Read a centreline tree from VTK polydata (.vtk legacy or .vtp) with a point radius array."""
     path = Path(path)
     if not path.is_file():
@@ -144,7 +144,7 @@ def load_centerline_vtk(path: PathLike, name: Optional[str] = None) -> Centerlin
         n += 1
     if not branches:
         raise ValueError(f"{path} has no polylines; a centreline needs its points connected by lines")
-    return CenterlineTree(branches, name or path.stem)
+    return CentrelineTree(branches, name or path.stem)
 
 
 # --- procedural trees --------------------------------------------------------------------------------
@@ -223,7 +223,7 @@ _LAD: List[_Template] = [
 ]
 
 
-def _procedural_tree(templates: List[_Template], name: str, seed: int, grid_half_extent_mm: float = 48.0) -> CenterlineTree:
+def _procedural_tree(templates: List[_Template], name: str, seed: int, grid_half_extent_mm: float = 48.0) -> CentrelineTree:
     rng = np.random.default_rng(seed)
     rotation = _rotation(rng, 10.0)
     scale = rng.uniform(0.9, 1.08)
@@ -243,20 +243,20 @@ def _procedural_tree(templates: List[_Template], name: str, seed: int, grid_half
     branches = []
     for b in built.values():
         branches.append(Branch((b.points @ rotation.T) * scale, b.radii, b.name))
-    tree = CenterlineTree(branches, name).centered()
+    tree = CentrelineTree(branches, name).centered()
     lo, hi = tree.bounds()
     half = float(np.max(np.maximum(np.abs(lo), np.abs(hi))))
     if half > grid_half_extent_mm:
-        tree = CenterlineTree([Branch(b.points * grid_half_extent_mm / half, b.radii, b.name) for b in tree.branches], name)
+        tree = CentrelineTree([Branch(b.points * grid_half_extent_mm / half, b.radii, b.name) for b in tree.branches], name)
     return tree
 
 
-def rca_tree(seed: int = 0) -> CenterlineTree:
+def rca_tree(seed: int = 0) -> CentrelineTree:
     """Right-coronary-like procedural tree (see module docstring)."""
     return _procedural_tree(_RCA, f"RCA-{seed}", seed)
 
 
-def lad_tree(seed: int = 0) -> CenterlineTree:
+def lad_tree(seed: int = 0) -> CentrelineTree:
     """Left-coronary (LM/LAD/LCx)-like procedural tree (see module docstring)."""
     return _procedural_tree(_LAD, f"LAD-{seed}", seed)
 
@@ -293,7 +293,7 @@ def simulate_views(
 
 
 def make_case(
-    tree: CenterlineTree,
+    tree: CentrelineTree,
     geometry: Geometry,
     mask_threshold_mm: float = MASK_THRESHOLD_MM,
     name: Optional[str] = None,

@@ -34,7 +34,7 @@ import numpy as np
 from . import mrml
 from .geometry import Geometry, standard_geometry
 from .metrics import cldice, dice
-from .phantoms import Branch, CenterlineTree, beer_lambert_counts, lad_tree, make_case
+from .phantoms import Branch, CentrelineTree, beer_lambert_counts, lad_tree, make_case
 from .sample_data import TREE_SEED, VIEW_PAIR
 from .settings import MASK_THRESHOLD_MM, make_settings
 
@@ -61,7 +61,7 @@ class SelfTestFailure(AssertionError):
 @dataclass
 class SelfTestCase:
     geometry: Geometry
-    tree: CenterlineTree
+    tree: CentrelineTree
     label: np.ndarray
     line_integrals: List[np.ndarray]
     masks: List[np.ndarray]
@@ -81,7 +81,7 @@ def selftest_case(radius_scale: float = 2.0) -> SelfTestCase:
     """The small case of the self-test (see the module docstring); deterministic, about 2 s."""
 
     tree = lad_tree(seed=TREE_SEED)
-    tree = CenterlineTree([Branch(b.points, b.radii * radius_scale, b.name) for b in tree.branches], tree.name)
+    tree = CentrelineTree([Branch(b.points, b.radii * radius_scale, b.name) for b in tree.branches], tree.name)
     geometry = standard_geometry(VIEW_PAIR, volume_shape=(40, 40, 40), spacing_mm=2.4,
                                  detector_shape=(96, 96), detector_spacing_mm=1.5)
     case = make_case(tree, geometry, MASK_THRESHOLD_MM, name="SDFCAR self-test")

@@ -33,9 +33,9 @@ def write_json(path: Path, data: Any) -> Path:
 
 
 def tiny_tree():
-    from SDFCARLib.phantoms import Branch, CenterlineTree
+    from SDFCARLib.phantoms import Branch, CentrelineTree
 
-    return CenterlineTree([
+    return CentrelineTree([
         Branch(np.array([[-20.0, -5.0, 20.0], [0.0, 0.0, 0.0], [5.0, 5.0, -20.0]]), np.array([4.0, 3.5, 3.0]), "main"),
         Branch(np.array([[0.0, 0.0, 0.0], [20.0, -5.0, -10.0]]), np.array([3.0, 2.5]), "side"),
     ], "tiny")

@@ -15,7 +15,7 @@ from SDFCARLib.analysis.phantoms import (grid_around, helix, render_mask, stenos
                                          voxelize_exact)
 from SDFCARLib.analysis.views import foreshortening, foreshortening_map, overlap_fraction, view_direction, view_map
 from SDFCARLib.geometry import CArmView, standard_geometry
-from SDFCARLib.phantoms import Branch, CenterlineTree
+from SDFCARLib.phantoms import Branch, CentrelineTree
 
 
 def _measure(phantom, spacing_mm, ostium=None):
@@ -84,7 +84,7 @@ def test_bifurcation_angle_and_ostium():
     main = np.linspace([-15.0, 0, 0], [15.0, 0, 0], 301)
     side_dir = np.array([math.cos(math.radians(60)), math.sin(math.radians(60)), 0.0])
     side = np.array([0.0, 0, 0]) + np.linspace(0, 14.0, 141)[:, None] * side_dir
-    tree_in = CenterlineTree([Branch(main, np.linspace(1.6, 1.3, 301), "main"), Branch(side, np.full(141, 0.9), "side")])
+    tree_in = CentrelineTree([Branch(main, np.linspace(1.6, 1.3, 301), "main"), Branch(side, np.full(141, 0.9), "side")])
     grid = grid_around(tree_in, 0.3)
     tree = extract_centrelines(voxelize_exact(tree_in, grid), grid)
     assert len(tree.branches) == 2
@@ -194,14 +194,14 @@ def test_centrelines_vtk_reads_back_with_radii(tmp_path):
     pytest.importorskip("vtk")
     from SDFCARLib.analysis.outputs import centrelines_vtk_text
     from SDFCARLib.analysis.pipeline import analyse_volume
-    from SDFCARLib.phantoms import load_centerline_vtk
+    from SDFCARLib.phantoms import load_centreline_vtk
 
     phantom = straight_tube(12.0, 2.0)
     grid = grid_around(phantom.tree, 0.3)
     result = analyse_volume(voxelize_exact(phantom.tree, grid), grid, best_view=False)
     path = tmp_path / "centrelines.vtk"
     path.write_text(centrelines_vtk_text(result))
-    tree = load_centerline_vtk(path)
+    tree = load_centreline_vtk(path)
     assert len(tree.branches) == 1
     assert np.allclose(tree.branches[0].points, result.tree.branches[0].points_mm, atol=1e-4)
     assert np.median(tree.branches[0].radii) == pytest.approx(1.0, abs=0.08)

@@ -12,7 +12,7 @@ from xa_writer import write_xa
 from SDFCARLib.cli import main
 from SDFCARLib.geometry import CArmView, Geometry, VolumeGrid
 from SDFCARLib.io import write_mask_png
-from SDFCARLib.phantoms import Branch, CenterlineTree, beer_lambert_counts, make_case
+from SDFCARLib.phantoms import Branch, CentrelineTree, beer_lambert_counts, make_case
 
 JPEG_LOSSLESS_SV1 = "1.2.840.10008.1.2.4.70"
 
@@ -24,7 +24,7 @@ def dicom_pair(tmp_path_factory):
     views = (CArmView(30.0, 0.0, 1000.0, 757.0, (1.0, 1.0), (64, 64)),
              CArmView(-30.0, 10.0, 1040.0, 760.0, (1.0, 1.0), (64, 64)))
     geometry = Geometry(VolumeGrid((24, 24, 24), (2.0, 2.0, 2.0)), views)
-    tube = CenterlineTree([Branch(np.array([[-12.0, 0, -10], [10.0, 4, 12]]), np.array([3.0, 2.5]))])
+    tube = CentrelineTree([Branch(np.array([[-12.0, 0, -10], [10.0, 4, 12]]), np.array([3.0, 2.5]))])
     case = make_case(tube, geometry)
     paths, masks = [], []
     for n, (view, line_integral, mask) in enumerate(zip(views, case.line_integrals, case.masks), start=1):

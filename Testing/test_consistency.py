@@ -56,3 +56,25 @@ def test_options_and_bad_input(case):
     assert view_consistency(geometry, [masks[0], np.zeros_like(masks[1])])[1] == 0.0
     with pytest.raises(ValueError, match="1 masks for 2 views"):
         view_consistency(geometry, masks[:1])
+
+
+def test_reconstruct_reports_consistency_and_warns_before_the_loop(case):
+    from SDFCARLib.optimiser import reconstruct
+    from SDFCARLib.settings import make_settings
+
+    geometry, masks = case
+    settings = make_settings("fast", steps=2, levels=4, log2_table_size=12, width=16, depth=2, prune=False,
+                             reconnect=False)
+    report = reconstruct(geometry, masks, settings).report
+    assert len(report["view_consistency"]) == 2 and min(report["view_consistency"]) > 0.95
+    assert not any("partner" in w for w in report["warnings"])
+    events = []
+    flipped = _with_view2(geometry, primary_deg=50.0)
+    try:
+        report = reconstruct(flipped, masks, settings, progress=events.append).report
+    except ValueError as exc:  # the flipped views may not meet at all: refused, which is fine too
+        assert "do not intersect" in str(exc)
+    else:
+        assert any("angle signs" in w for w in report["warnings"])
+    warned = [e for e in events if e.get("phase") == "warning"]
+    assert warned and all(e["step"] == 0 for e in warned)  # before the optimisation

@@ -9,7 +9,7 @@ import torch
 import SDFCARLib.optimiser as optimiser
 from SDFCARLib.device import check_host_memory, choose_device, estimate_memory_bytes
 from SDFCARLib.geometry import CArmView, Geometry, VolumeGrid
-from SDFCARLib.phantoms import Branch, CenterlineTree, simulate_views, voxelize
+from SDFCARLib.phantoms import Branch, CentrelineTree, simulate_views, voxelize
 from SDFCARLib.settings import ReconstructionError, make_settings
 
 
@@ -49,7 +49,7 @@ def test_host_memory_check_refuses_with_the_ways_out(monkeypatch):
     # In a reconstruction the check comes before any work and can be switched off.
     grid = VolumeGrid((24, 24, 24), (2.0, 2.0, 2.0))
     views = [CArmView(a, 0.0, 1000.0, 750.0, (1.0, 1.0), (64, 64)) for a in (30.0, -30.0)]
-    tree = CenterlineTree([Branch(np.array([[-12.0, -6.0, -10.0], [12.0, 6.0, 10.0]]), np.array([3.0, 2.0]))])
+    tree = CentrelineTree([Branch(np.array([[-12.0, -6.0, -10.0], [12.0, 6.0, 10.0]]), np.array([3.0, 2.0]))])
     _, masks = simulate_views(voxelize(tree, grid), grid, views)
     geometry = Geometry(grid, views)
     monkeypatch.setattr(optimiser, "available_memory_bytes", lambda: 1024)

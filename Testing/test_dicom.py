@@ -460,10 +460,10 @@ def test_written_object_is_a_valid_multiframe_xa(tmp_path):
 def test_round_trip_phantom_dicom_geometry_reconstruction(tmp_path):
     from SDFCARLib.optimiser import reconstruct
     from SDFCARLib.settings import make_settings
-    from SDFCARLib.phantoms import Branch, CenterlineTree, lad_tree, make_case
+    from SDFCARLib.phantoms import Branch, CentrelineTree, lad_tree, make_case
 
     tree = lad_tree(0)
-    tree = CenterlineTree([Branch(b.points * 0.6, b.radii * 1.5, b.name) for b in tree.branches], tree.name)
+    tree = CentrelineTree([Branch(b.points * 0.6, b.radii * 1.5, b.name) for b in tree.branches], tree.name)
     views = (CArmView(30.0, 0.0, 1000.0, 757.0, (1.0, 1.0), (96, 96)),
              CArmView(-25.0, 20.0, 1050.0, 760.0, (1.0, 1.0), (96, 96)))
     original = Geometry(VolumeGrid((32, 32, 32), (2.0, 2.0, 2.0)), views)

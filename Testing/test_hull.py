@@ -9,7 +9,7 @@ import pytest
 
 from SDFCARLib.geometry import CArmView, VolumeGrid
 from SDFCARLib.hull import support_mask, visual_hull
-from SDFCARLib.phantoms import Branch, CenterlineTree, simulate_views, voxelize
+from SDFCARLib.phantoms import Branch, CentrelineTree, simulate_views, voxelize
 
 
 @pytest.fixture(scope="module")
@@ -17,7 +17,7 @@ def tube_case():
     grid = VolumeGrid((32, 32, 32), (1.0, 1.0, 1.0))
     views = [CArmView(30.0, 0.0, 1000.0, 750.0, (0.5, 0.5), (96, 96)),
              CArmView(-30.0, 15.0, 1000.0, 750.0, (0.5, 0.5), (96, 96))]
-    tree = CenterlineTree([
+    tree = CentrelineTree([
         Branch(np.array([[-12.0, -4.0, -11.0], [0.0, 3.0, 0.0], [11.0, -2.0, 12.0]]), np.array([2.0, 1.5, 1.0])),
         Branch(np.array([[0.0, 3.0, 0.0], [8.0, 8.0, -9.0]]), np.array([1.2, 0.7])),
     ])
@@ -123,7 +123,7 @@ def cropped_case():
     grid = VolumeGrid((24, 24, 40), (1.0, 1.0, 1.0))
     views = [CArmView(0.0, 0.0, 1000.0, 750.0, (0.5, 0.5), (128, 128)),
              CArmView(90.0, 0.0, 1000.0, 750.0, (0.5, 0.5), (48, 128))]  # view 2 sees |z| ≲ 9 mm only
-    tree = CenterlineTree([Branch(np.array([[-8.0, 0.0, -18.0], [0.0, 2.0, 0.0], [8.0, -2.0, 18.0]]),
+    tree = CentrelineTree([Branch(np.array([[-8.0, 0.0, -18.0], [0.0, 2.0, 0.0], [8.0, -2.0, 18.0]]),
                                   np.array([1.5, 1.5, 1.5]))])
     label = voxelize(tree, grid)
     _, masks = simulate_views(label, grid, views)

@@ -15,7 +15,7 @@ import pytest
 
 from SDFCARLib.geometry import CArmView, Geometry, VolumeGrid
 from SDFCARLib.jobs import JobFailed, JobFolderError, ReconstructionJob, prepare_job, run_job
-from SDFCARLib.phantoms import Branch, CenterlineTree, make_case
+from SDFCARLib.phantoms import Branch, CentrelineTree, make_case
 
 pytestmark = pytest.mark.skipif(os.name != "posix", reason="process-group tests use POSIX signals")
 
@@ -24,7 +24,7 @@ pytestmark = pytest.mark.skipif(os.name != "posix", reason="process-group tests 
 def tiny_case():
     grid = VolumeGrid((24, 24, 24), (2.0, 2.0, 2.0))
     views = [CArmView(a, 0.0, 1000.0, 750.0, (1.0, 1.0), (64, 64)) for a in (30.0, -30.0)]
-    tube = CenterlineTree([Branch(np.array([[-12.0, 0, -10], [10.0, 4, 12]]), np.array([3.0, 2.5]))])
+    tube = CentrelineTree([Branch(np.array([[-12.0, 0, -10], [10.0, 4, 12]]), np.array([3.0, 2.5]))])
     return make_case(tube, Geometry(grid, views))
 
 

@@ -20,7 +20,7 @@ from SDFCARLib.losses import (
     signed_distance,
     silhouette,
 )
-from SDFCARLib.phantoms import Branch, CenterlineTree, voxelize
+from SDFCARLib.phantoms import Branch, CentrelineTree, voxelize
 from SDFCARLib.projector import ConeBeamProjector, project_volume
 
 TAU = 0.3
@@ -230,7 +230,7 @@ def test_geometric_loss_downsampled_keeps_thin_vessels():
 def tiny_problem():
     grid = VolumeGrid((16, 16, 16), (1.0, 1.0, 1.0))
     view = CArmView(20.0, 10.0, 1000.0, 750.0, (1.0, 1.0), (24, 24))
-    tree = CenterlineTree([Branch(np.array([[-5.0, -2.0, -4.0], [5.0, 2.0, 4.0]]), np.array([1.5, 1.5]))])
+    tree = CentrelineTree([Branch(np.array([[-5.0, -2.0, -4.0], [5.0, 2.0, 4.0]]), np.array([1.5, 1.5]))])
     label = voxelize(tree, grid)
     mask = torch.as_tensor(project_volume(label.astype(np.float32), view, grid) > 0.2, dtype=torch.float32)
     assert 0 < float(mask.sum()) < 0.5 * mask.numel()

@@ -327,3 +327,13 @@ def test_license_is_apache_2():
     text = source(ROOT / "LICENSE")
     assert "Apache License" in text and "Version 2.0, January 2004" in text
     assert "Copyright 2026 the SDFCAR authors" in text
+
+
+def test_extension_icon_and_screenshots_are_in_the_repository():
+    text = cmake_words(ROOT / "CMakeLists.txt")
+    for key in ("ICONURL", "SCREENSHOTURLS"):
+        url = re.search(rf'set\(EXTENSION_{key}\s*"([^"]+)"', text).group(1)
+        for one in url.split():
+            path = one.split("/main/", 1)[1]
+            assert (ROOT / path).is_file(), f"EXTENSION_{key} names {path}, which is not in the repository"
+            assert path.startswith("Resources/"), "extension-level resources live in the top-level Resources/"

@@ -10,7 +10,7 @@ from SDFCARLib.geometry import CArmView, Geometry, VolumeGrid
 from SDFCARLib.losses import silhouette
 from SDFCARLib.optimiser import ReconstructionCancelled, reconstruct, validate_targets
 from SDFCARLib.settings import MODES, ReconstructionError, make_settings
-from SDFCARLib.phantoms import Branch, CenterlineTree, simulate_views, voxelize
+from SDFCARLib.phantoms import Branch, CentrelineTree, simulate_views, voxelize
 from SDFCARLib.projector import project_volume
 
 
@@ -19,7 +19,7 @@ from SDFCARLib.projector import project_volume
 def case():
     grid = VolumeGrid((24, 24, 24), (2.0, 2.0, 2.0))
     views = [CArmView(a, 0.0, 1000.0, 750.0, (1.0, 1.0), (64, 64)) for a in (30.0, -30.0)]
-    tree = CenterlineTree([Branch(np.array([[-12.0, -6.0, -10.0], [0.0, 2.0, 0.0], [12.0, 6.0, 10.0]]),
+    tree = CentrelineTree([Branch(np.array([[-12.0, -6.0, -10.0], [0.0, 2.0, 0.0], [12.0, 6.0, 10.0]]),
                                   np.array([3.0, 2.5, 2.0]))])
     label = voxelize(tree, grid)
     line_integrals, masks = simulate_views(label, grid, views)

@@ -11,9 +11,9 @@ import pytest
 from SDFCARLib.geometry import CArmView, Geometry, VolumeGrid
 from SDFCARLib.phantoms import (
     Branch,
-    CenterlineTree,
+    CentrelineTree,
     lad_tree,
-    load_centerline_vtk,
+    load_centreline_vtk,
     make_case,
     rca_tree,
     simulate_views,
@@ -115,7 +115,7 @@ def test_voxelised_cylinder_volume():
     # a capsule, πr²L + 4/3·πr³ (for L ≫ r this is πr²L).
     r, length, h = 2.0, 10.0, 0.25
     grid = VolumeGrid((64, 24, 24), (h, h, h))
-    tree = CenterlineTree([Branch(np.array([[-length / 2, 0.1, -0.05], [length / 2, 0.1, -0.05]]), np.array([r, r]))])
+    tree = CentrelineTree([Branch(np.array([[-length / 2, 0.1, -0.05], [length / 2, 0.1, -0.05]]), np.array([r, r]))])
     label = voxelize(tree, grid)
     expected = (math.pi * r**2 * length + 4 / 3 * math.pi * r**3) / h**3
     assert label.sum() == pytest.approx(expected, rel=0.03)
@@ -128,7 +128,7 @@ def test_voxelised_tapering_segment_volume():
     # radius linear along the segment: a frustum πL(r0² + r0·r1 + r1²)/3 plus hemispherical ends.
     r0, r1, length, h = 2.0, 1.0, 12.0, 0.25
     grid = VolumeGrid((72, 24, 24), (h, h, h))
-    tree = CenterlineTree([Branch(np.array([[-length / 2, 0.0, 0.0], [length / 2, 0.0, 0.0]]), np.array([r0, r1]))])
+    tree = CentrelineTree([Branch(np.array([[-length / 2, 0.0, 0.0], [length / 2, 0.0, 0.0]]), np.array([r0, r1]))])
     label = voxelize(tree, grid)
     expected = (math.pi * length * (r0**2 + r0 * r1 + r1**2) / 3 + 2 / 3 * math.pi * (r0**3 + r1**3)) / h**3
     assert label.sum() == pytest.approx(expected, rel=0.03)
@@ -137,7 +137,7 @@ def test_voxelised_tapering_segment_volume():
 def test_voxelize_uses_voxel_centres_in_lps():
     grid = VolumeGrid((10, 10, 10), (1.0, 1.0, 1.0), (20.0, 0.0, 0.0))  # grid centred at x = 20 mm
     point = grid.index_to_world([7, 2, 5])
-    tree = CenterlineTree([Branch(np.array([point, point]), np.array([0.3, 0.3]))])
+    tree = CentrelineTree([Branch(np.array([point, point]), np.array([0.3, 0.3]))])
     label = voxelize(tree, grid)
     assert label.sum() == 1 and label[7, 2, 5]
 
@@ -145,7 +145,7 @@ def test_voxelize_uses_voxel_centres_in_lps():
 # --- centreline files ------------------------------------------------------------------------------------------
 @pytest.mark.skipif(not CENTRELINE_721A.is_file(), reason="the 721A centreline lives outside the repository (/work/shared/data) and is absent here")
 def test_load_721a_centreline():
-    tree = load_centerline_vtk(CENTRELINE_721A)
+    tree = load_centreline_vtk(CENTRELINE_721A)
     assert tree.name == "721A_Centreline"
     assert len(tree.branches) == 3
     points = tree.all_points()
@@ -166,30 +166,30 @@ def test_load_721a_centreline():
 VTK_HEADER = "# vtk DataFile Version 3.0\ntest\nASCII\nDATASET POLYDATA\nPOINTS 3 float\n0 0 0 5 0 0 10 0 0\n"
 
 
-def test_load_centerline_alternative_radius_name(tmp_path):
+def test_load_centreline_alternative_radius_name(tmp_path):
     path = tmp_path / "c.vtk"
     path.write_text(VTK_HEADER + "LINES 1 4\n3 0 1 2\nPOINT_DATA 3\nSCALARS Radius float 1\nLOOKUP_TABLE default\n1.5 1.2 1.0\n")
-    tree = load_centerline_vtk(path)
+    tree = load_centreline_vtk(path)
     assert len(tree.branches) == 1
     np.testing.assert_allclose(tree.branches[0].radii, [1.5, 1.2, 1.0])
     np.testing.assert_allclose(tree.branches[0].points[2], [10, 0, 0])
 
 
-def test_load_centerline_errors(tmp_path):
+def test_load_centreline_errors(tmp_path):
     with pytest.raises(FileNotFoundError, match="not found"):
-        load_centerline_vtk(tmp_path / "missing.vtk")
+        load_centreline_vtk(tmp_path / "missing.vtk")
     no_radius = tmp_path / "no_radius.vtk"
     no_radius.write_text(VTK_HEADER + "LINES 1 4\n3 0 1 2\n")
     with pytest.raises(ValueError, match="radius"):
-        load_centerline_vtk(no_radius)
+        load_centreline_vtk(no_radius)
     no_lines = tmp_path / "no_lines.vtk"
     no_lines.write_text(VTK_HEADER + "POINT_DATA 3\nSCALARS radii float 1\nLOOKUP_TABLE default\n1 1 1\n")
     with pytest.raises(ValueError, match="polylines"):
-        load_centerline_vtk(no_lines)
+        load_centreline_vtk(no_lines)
     garbage = tmp_path / "garbage.vtk"
     garbage.write_text("this is not a VTK file\n")
     with pytest.raises(ValueError):
-        load_centerline_vtk(garbage)
+        load_centreline_vtk(garbage)
 
 
 # --- simulation ---------------------------------------------------------------------------------------------------
@@ -197,7 +197,7 @@ def test_load_centerline_errors(tmp_path):
 def small_case():
     grid = VolumeGrid((32, 32, 32), (1.0, 1.0, 1.0))
     views = [CArmView(30.0, 0.0, 1000.0, 750.0, (1.0, 1.0), (48, 48)), CArmView(-30.0, 20.0, 1000.0, 750.0, (1.0, 1.0), (48, 48))]
-    tree = CenterlineTree([Branch(np.array([[-12.0, -5.0, -10.0], [0.0, 3.0, 0.0], [10.0, 0.0, 12.0]]), np.array([2.0, 1.5, 1.0]))])
+    tree = CentrelineTree([Branch(np.array([[-12.0, -5.0, -10.0], [0.0, 3.0, 0.0], [10.0, 0.0, 12.0]]), np.array([2.0, 1.5, 1.0]))])
     return grid, views, tree
 
 

@@ -8,7 +8,7 @@ import pytest
 from SDFCARLib.geometry import CArmView, Geometry, VolumeGrid
 from SDFCARLib.metrics import mask_dice
 from SDFCARLib.settings import make_settings
-from SDFCARLib.phantoms import Branch, CenterlineTree, simulate_views, voxelize
+from SDFCARLib.phantoms import Branch, CentrelineTree, simulate_views, voxelize
 from SDFCARLib.projector import project_volume
 from SDFCARLib.pruning import PruneSettings, prune_redundant_branches, removal_zone, skeleton_pieces
 
@@ -19,7 +19,7 @@ VIEWS = [CArmView(0.0, 0.0, 1000.0, 750.0, (0.5, 0.5), (128, 128)),
 
 
 def _tube(x, y, z0, z1, radius):
-    return voxelize(CenterlineTree([Branch(np.array([[x, y, z0], [x, y, z1]], float), np.array([radius, radius]))]), GRID)
+    return voxelize(CentrelineTree([Branch(np.array([[x, y, z0], [x, y, z1]], float), np.array([radius, radius]))]), GRID)
 
 
 @pytest.fixture(scope="module")
@@ -57,7 +57,7 @@ def test_prune_removes_the_ghost_and_keeps_the_vessels(ghost_case):
 
 
 def test_prune_keeps_a_true_tree_whole():
-    tree = CenterlineTree([
+    tree = CentrelineTree([
         Branch(np.array([[-14.0, -4.0, -13.0], [0.0, 3.0, 0.0], [13.0, -2.0, 14.0]]), np.array([2.0, 1.6, 1.2])),
         Branch(np.array([[0.0, 3.0, 0.0], [9.0, 9.0, -11.0]]), np.array([1.4, 1.0])),
     ])

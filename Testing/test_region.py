@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from SDFCARLib.geometry import CArmView, GeometryError, VolumeGrid
-from SDFCARLib.phantoms import Branch, CenterlineTree, simulate_views, voxelize
+from SDFCARLib.phantoms import Branch, CentrelineTree, simulate_views, voxelize
 from SDFCARLib.region import (STAND_IN_VOLUME, RegionError, locate_region, mask_coverage, place_volume,
                               read_geometry)
 
@@ -18,7 +18,7 @@ OFFSET = np.array([42.0, -25.0, 30.0])  # the heart is not at the isocenter
 @pytest.fixture(scope="module")
 def off_centre_case():
     views = [CArmView(a, b, 1000.0, 750.0, (1.0, 1.0), (224, 224)) for a, b in ((30.0, 0.0), (-30.0, 20.0))]
-    tree = CenterlineTree([
+    tree = CentrelineTree([
         Branch(OFFSET + np.array([[-30.0, -5.0, 25.0], [0.0, 0.0, 0.0], [10.0, 5.0, -30.0]]), np.array([3.0, 2.5, 2.0])),
         Branch(OFFSET + np.array([[0.0, 0.0, 0.0], [28.0, -6.0, -12.0]]), np.array([2.5, 2.0])),
     ])

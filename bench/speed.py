@@ -59,11 +59,11 @@ def machine() -> dict:
 
 def make_case(name: str, protocol: str):
     from SDFCARLib.geometry import CArmView, Geometry, VIEW_PAIRS, VolumeGrid
-    from SDFCARLib.phantoms import lad_tree, load_centerline_vtk, make_case as simulate, rca_tree
+    from SDFCARLib.phantoms import lad_tree, load_centreline_vtk, make_case as simulate, rca_tree
 
     grid = VolumeGrid((128, 128, 128), (0.8, 0.8, 0.8))
     if name == "721a":
-        tree = load_centerline_vtk(REPO.parent / "shared" / "data" / "721A_Centreline.vtk").centered()
+        tree = load_centreline_vtk(REPO.parent / "shared" / "data" / "721A_Centreline.vtk").centered()
     else:
         kind, seed = name.split("-")
         tree = {"lad": lad_tree, "rca": rca_tree}[kind](int(seed))

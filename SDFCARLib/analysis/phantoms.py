@@ -1,6 +1,6 @@
 """Analytic vessel phantoms with known answers for quantitative coronary analysis (QCA).
 
-Every phantom is a ``phantoms.CenterlineTree`` (LPS mm) plus the truth needed to score a
+Every phantom is a ``phantoms.CentrelineTree`` (LPS mm) plus the truth needed to score a
 measure against it, and is voxelised with the package's ``phantoms.voxelize`` (voxel-centre test
 against the union of tubes, radius linear along each segment).
 
@@ -33,7 +33,7 @@ from typing import Dict, Optional, Sequence, Tuple
 import numpy as np
 
 from ..geometry import CArmView, VolumeGrid
-from ..phantoms import Branch, CenterlineTree
+from ..phantoms import Branch, CentrelineTree
 
 SAMPLE_STEP_MM = 0.1  # phantom centreline sampling: fine enough that linear radii follow the ramps
 
@@ -42,7 +42,7 @@ SAMPLE_STEP_MM = 0.1  # phantom centreline sampling: fine enough that linear rad
 class AnalyticPhantom:
     """A phantom tree and its truth (lengths in mm, percentages 0–100)."""
 
-    tree: CenterlineTree
+    tree: CentrelineTree
     truth: Dict[str, object] = field(default_factory=dict)
 
 
@@ -60,7 +60,7 @@ def _perpendicular(t: np.ndarray) -> np.ndarray:
     return n / np.linalg.norm(n)
 
 
-def grid_around(tree: CenterlineTree, spacing_mm: float, margin_mm: float = 2.0) -> VolumeGrid:
+def grid_around(tree: CentrelineTree, spacing_mm: float, margin_mm: float = 2.0) -> VolumeGrid:
     """The smallest axis-aligned grid at ``spacing_mm`` holding the tree's tubes plus a margin."""
     lo, hi = tree.bounds()
     lo, hi = lo - margin_mm, hi + margin_mm
@@ -74,7 +74,7 @@ def straight_tube(length_mm: float = 20.0, diameter_mm: float = 3.0, direction=(
     t = _unit(direction)
     s = np.linspace(-length_mm / 2, length_mm / 2, max(2, int(round(length_mm / 1.0)) + 1))
     points = np.asarray(center_mm, float) + s[:, None] * t
-    tree = CenterlineTree([Branch(points, np.full(len(s), diameter_mm / 2), "tube")], "straight-tube")
+    tree = CentrelineTree([Branch(points, np.full(len(s), diameter_mm / 2), "tube")], "straight-tube")
     return AnalyticPhantom(tree, {"diameter_mm": diameter_mm, "length_mm": length_mm, "direction": t.tolist()})
 
 
@@ -88,7 +88,7 @@ def helix(radius_mm: float = 8.0, pitch_mm: float = 12.0, turns: float = 1.5, di
     phi = np.linspace(0.0, 2 * np.pi * turns, int(np.ceil(length / SAMPLE_STEP_MM)) + 1)
     points = (radius_mm * np.cos(phi))[:, None] * e1 + (radius_mm * np.sin(phi))[:, None] * e2 \
         + (pitch_mm * phi / (2 * np.pi) - pitch_mm * turns / 2)[:, None] * a
-    tree = CenterlineTree([Branch(points, np.full(len(phi), diameter_mm / 2), "helix")], "helix")
+    tree = CentrelineTree([Branch(points, np.full(len(phi), diameter_mm / 2), "helix")], "helix")
     return AnalyticPhantom(tree, {"diameter_mm": diameter_mm, "length_mm": float(length)})
 
 
@@ -139,7 +139,7 @@ def stenosed_tube(length_mm: float = 40.0, diameter_mm: float = 3.0, stenosis_pc
     radii = r_ref * (1 - stenosis_pct / 100 * lesion_weight(s - start, lesion_length_mm, ramp_mm))
     points = axis + (r_ref - radii)[:, None] * normal if eccentric else axis
     kind = "eccentric" if eccentric else "concentric"
-    tree = CenterlineTree([Branch(points, radii, "vessel")], f"stenosis-{stenosis_pct:g}-{kind}")
+    tree = CentrelineTree([Branch(points, radii, "vessel")], f"stenosis-{stenosis_pct:g}-{kind}")
     mld = diameter_mm * (1 - stenosis_pct / 100)
     # Lengths and positions along the centreline through the lumen centres: for an eccentric lesion
     # it steps sideways by r_ref − r on each ramp and is longer than the straight axis.
@@ -155,7 +155,7 @@ def stenosed_tube(length_mm: float = 40.0, diameter_mm: float = 3.0, stenosis_pc
     return AnalyticPhantom(tree, truth)
 
 
-def voxelize_exact(tree: CenterlineTree, grid: VolumeGrid, spacing_along_mm: float = 0.05) -> np.ndarray:
+def voxelize_exact(tree: CentrelineTree, grid: VolumeGrid, spacing_along_mm: float = 0.05) -> np.ndarray:
     """Boolean label of the tree whose cross-sections are exactly its nominal discs.
 
     ``phantoms.voxelize`` takes the union of cones with rounded ends, i.e. the envelope of
@@ -197,7 +197,7 @@ def voxelize_exact(tree: CenterlineTree, grid: VolumeGrid, spacing_along_mm: flo
     return label
 
 
-def render_mask(tree: CenterlineTree, view: CArmView, step_mm: float = 0.1) -> np.ndarray:
+def render_mask(tree: CentrelineTree, view: CArmView, step_mm: float = 0.1) -> np.ndarray:
     """Clean binary mask of a tree in a view: the union of the projected spheres along each centreline.
 
     Each centreline sample (every ``step_mm``) projects to a disc of radius r · SID / depth
@@ -238,7 +238,7 @@ def branch_arc_length_mm(branch: Branch) -> np.ndarray:
     return np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(branch.points, axis=0), axis=1))])
 
 
-def stenosed_tree(tree: CenterlineTree, branch_name: str, stenosis_pct: float, lesion_length_mm: float,
+def stenosed_tree(tree: CentrelineTree, branch_name: str, stenosis_pct: float, lesion_length_mm: float,
                   lesion_center_fraction: float = 0.4, ramp_mm: float = 2.0) -> AnalyticPhantom:
     """A copy of ``tree`` with a concentric focal stenosis on one branch (resampled at 0.1 mm).
 
@@ -266,7 +266,7 @@ def stenosed_tree(tree: CenterlineTree, branch_name: str, stenosis_pct: float, l
         truth = {"branch": branch_name, "reference_diameter_mm": ref, "mld_mm": ref * (1 - stenosis_pct / 100),
                  "diameter_stenosis_pct": stenosis_pct, "lesion_start_mm": start,
                  "lesion_end_mm": start + lesion_length_mm, "lesion_length_mm": lesion_length_mm}
-    return AnalyticPhantom(CenterlineTree(branches, f"{tree.name}-stenosis"), truth)
+    return AnalyticPhantom(CentrelineTree(branches, f"{tree.name}-stenosis"), truth)
 
 
 def straight_segment_direction(points_mm: np.ndarray) -> Tuple[np.ndarray, float]:

@@ -219,7 +219,7 @@ class PreparedCase:
 
 def prepare_case(spec: CaseSpec, protocol: str, grid: Optional[GridOptions] = None) -> PreparedCase:
     """Build the case's label on its geometry and simulate the two views."""
-    from ..phantoms import lad_tree, load_centerline_vtk, rca_tree, simulate_views, voxelize
+    from ..phantoms import lad_tree, load_centreline_vtk, rca_tree, simulate_views, voxelize
 
     t0 = time.perf_counter()
     kind, _ = parse_suite(spec.suite)
@@ -229,7 +229,7 @@ def prepare_case(spec: CaseSpec, protocol: str, grid: Optional[GridOptions] = No
         tree = (rca_tree if kind == "rca" else lad_tree)(spec.seed)
         label = voxelize(tree, geometry.volume)
     elif kind == "721a":
-        tree = load_centerline_vtk(spec.source, name="721A").centered()
+        tree = load_centreline_vtk(spec.source, name="721A").centered()
         label = voxelize(tree, geometry.volume)
     else:
         trees = preprocess_label_file(spec.source, geometry.volume.spacing_mm[0], geometry.volume.shape)

@@ -1,0 +1,169 @@
+"""What the commands share: progress bar and Ctrl-C cancellation, metric tables, settings from the options, file helpers."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import signal
+import sys
+import threading
+from pathlib import Path
+from typing import Any, Dict, Optional
+
+import numpy as np
+
+from ..settings import GROUND_TRUTH_METRICS, METRICS, make_settings, parse_setting_overrides
+
+EXIT_OK, EXIT_FAILURE, EXIT_BAD_INPUT, EXIT_CANCELLED = 0, 1, 2, 130
+
+
+METRIC_ROWS = [(key, METRICS[key].title + (f" ({METRICS[key].unit})" if METRICS[key].unit else ""))
+               for key in GROUND_TRUTH_METRICS]
+
+
+class ProgressBar:
+    """Turns ``reconstruct(progress=…)`` reports into a tqdm bar on stderr (step, loss, ETA)."""
+
+    def __init__(self, enabled: bool = True, stream=None) -> None:
+        self.enabled = enabled
+        self.stream = stream if stream is not None else sys.stderr
+        self.bar = None
+
+    def __call__(self, info: Dict[str, Any]) -> None:
+        if not self.enabled:
+            return
+        phase = info.get("phase")
+        if phase == "setup":
+            print("preparing the reconstruction (visual hull, projectors)…", file=self.stream)
+        elif phase == "optimise":
+            if self.bar is None:
+                from tqdm import tqdm
+
+                self.bar = tqdm(total=int(info["total"]), desc="optimising", unit="step", file=self.stream,
+                                dynamic_ncols=True, mininterval=0.5)
+            self.bar.set_postfix(loss=f"{info.get('loss', float('nan')):.4f}", refresh=False)
+            self.bar.update(int(info["step"]) - self.bar.n)
+        elif phase == "output":
+            self.close()
+            print("evaluating the field on the grid…", file=self.stream)
+        elif phase == "prune":
+            print("pruning the branches that no mask pixel needs…", file=self.stream)
+        elif phase == "warning":
+            print(f"warning: {info.get('message', '')}", file=self.stream)
+
+    def close(self) -> None:
+        if self.bar is not None:
+            self.bar.close()
+            self.bar = None
+
+
+class CancelOnInterrupt:
+    """While active, Ctrl-C asks the reconstruction to stop at its next step (a second one aborts)."""
+
+    def __init__(self) -> None:
+        self.requested = False
+        self._previous: Any = None
+
+    def __call__(self) -> bool:
+        return self.requested
+
+    def _handle(self, signum, frame) -> None:
+        if self.requested:
+            raise KeyboardInterrupt
+        self.requested = True
+        print("\ncancelling… (press Ctrl-C again to abort at once)", file=sys.stderr)
+
+    def __enter__(self) -> "CancelOnInterrupt":
+        if threading.current_thread() is threading.main_thread():
+            self._previous = signal.signal(signal.SIGINT, self._handle)
+        return self
+
+    def __exit__(self, *exc_info) -> None:
+        if self._previous is not None:
+            signal.signal(signal.SIGINT, self._previous)
+            self._previous = None
+
+
+def run_reconstruction(geometry, targets, settings, target_kind: str, show_progress: bool):
+    from ..optimiser import reconstruct
+
+    bar = ProgressBar(show_progress)
+    try:
+        with CancelOnInterrupt() as cancel:
+            return reconstruct(geometry, targets, settings, target_kind=target_kind, progress=bar, cancel=cancel)
+    finally:
+        bar.close()
+
+
+def _fmt(value: Any) -> str:
+    if value is None or (isinstance(value, float) and not np.isfinite(value)):
+        return "n/a"
+    if isinstance(value, (list, tuple)):
+        return " / ".join(_fmt(v) for v in value)
+    if isinstance(value, (int, np.integer)):
+        return str(int(value))
+    return f"{float(value):.3f}"
+
+
+def metrics_table(columns: Dict[str, Dict[str, Any]]) -> str:
+    """A plain-text table: one row per metric, one column per method."""
+    names = list(columns)
+    rows = [("metric", *names)]
+    for key, title in METRIC_ROWS + [("reprojection_dice", "reprojection Dice"), ("voxels_predicted", "voxels")]:
+        if any(key in columns[n] for n in names):
+            rows.append((title, *(_fmt(columns[n].get(key)) for n in names)))
+    widths = [max(len(r[i]) for r in rows) for i in range(len(rows[0]))]
+    return "\n".join("  ".join(cell.ljust(w) if i == 0 else cell.rjust(w) for i, (cell, w) in enumerate(zip(r, widths)))
+                     for r in rows)
+
+
+def print_metrics(metrics: Dict[str, Dict[str, Any]], stream=None) -> None:
+    columns = {"reconstruction" if "visual_hull" in metrics else "prediction": metrics["prediction"]}
+    if "visual_hull" in metrics:
+        columns["visual hull (baseline)"] = metrics["visual_hull"]
+    print(metrics_table(columns), file=stream or sys.stdout)
+
+
+def settings_from_args(args: argparse.Namespace):
+    named = {"mode": args.mode, "device": args.device, "seed": args.seed, "steps": args.steps, "threads": args.threads}
+    reserved = {key: f"use --{key}" for key in named}
+    reserved["preset"] = "use --preset"
+    return make_settings(args.preset, **{**parse_setting_overrides(args.overrides, reserved), **named})
+
+
+def absolute_path(path: Optional[str]) -> Optional[str]:
+    return str(Path(path).absolute()) if path else None
+
+
+def load_geometry(path: str):
+    from ..geometry import Geometry
+
+    return Geometry.load(path)
+
+
+def print_provenance(provenance: Dict[str, Any]) -> None:
+    """Every geometry value read from DICOM and where it came from, so a clinician can check it."""
+    for n, view in enumerate(provenance.get("views", []), start=1):
+        frame = view.get("frame", {})
+        print(f"view {n}: {view.get('file')} frame {frame.get('index')} ({frame.get('reason', '')})", file=sys.stderr)
+        for name, entry in view.get("fields", {}).items():
+            print(f"  {name} = {_fmt(entry.get('value'))}  [{entry.get('source', '?')}]", file=sys.stderr)
+        for note in view.get("notes", []):
+            print(f"  note: {note}", file=sys.stderr)
+    volume = provenance.get("volume")
+    if volume:
+        print(f"volume: {volume.get('value')}  [{volume.get('source')}]", file=sys.stderr)
+
+
+def print_summary(files: Dict[str, Path]) -> None:
+    report = json.loads(files["report"].read_text(encoding="utf-8"))
+    timings = report.get("timings_s", {})
+    total = timings.get("total")
+    print(f"{report.get('method', 'reconstruction')}: {report.get('segmented_voxels', 0)} voxels segmented in "
+          f"{total if total is None else round(float(total), 1)} s on {report.get('device', '?')}")
+    print(f"reprojection Dice per view: {_fmt(report.get('reprojection_dice'))}")
+    if "metrics" in report:
+        print_metrics(report["metrics"])
+    for message in report.get("warnings", []):
+        print(f"warning: {message}", file=sys.stderr)
+    print(f"results in {files['report'].parent}: {', '.join(sorted(p.name for p in files.values()))}")

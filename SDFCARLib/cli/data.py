@@ -1,0 +1,140 @@
+"""The data commands: ``segment``, ``simulate``, ``evaluate`` and ``geometry-template``."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from ..io import write_text_atomically
+from .common import EXIT_OK, absolute_path, load_geometry, print_metrics
+
+def cmd_segment(args: argparse.Namespace) -> int:
+    from ..masks import AngioMaskSettings, segment_angiogram, segmentation_paths, write_segmentation
+
+    spacing, magnification = args.pixel_spacing, args.magnification
+    if bool(args.dicom) == bool(args.image):
+        raise ValueError("give one input: --dicom RUN.dcm (with --frame N) or --image FRAME.png")
+    segmentation_paths(args.out)  # a wrong --out fails before the work
+    if args.dicom:
+        from ..dicom import DicomInputError, choose_frame, load_xa, view_from_dicom
+
+        run = load_xa(args.dicom)
+        choice = choose_frame(run, args.frame)
+        frame = run.frames[choice.index]
+        source = {"dicom": absolute_path(args.dicom), "frame": choice.to_dict()}
+        try:
+            view, _ = view_from_dicom(run, choice.index)
+            spacing = spacing or list(view.pixel_spacing_mm)
+            magnification = magnification or view.sid_mm / view.sod_mm
+            source["geometry"] = "pixel spacing and SID/SOD from the DICOM tags unless given"
+        except DicomInputError as exc:
+            source["geometry"] = f"not read from the tags ({exc})"
+        print(f"frame {choice.index} (0-based): {choice.reason}", file=sys.stderr)
+    else:
+        if args.frame is not None:
+            raise ValueError("--frame picks a frame of a --dicom run; an --image is one frame")
+        from ..io import read_image
+
+        frame = read_image(args.image, what="frame")
+        source = {"image": absolute_path(args.image)}
+    settings = AngioMaskSettings(**({"method": args.method} if args.method else {}),
+                                 **({"vessel_radius_mm": tuple(args.vessel_radius_mm)} if args.vessel_radius_mm else {}))
+    result = segment_angiogram(frame, spacing, magnification, settings)
+    paths = write_segmentation(args.out, frame, result, source, overwrite=args.overwrite)
+    p = result.parameters
+    print(f"mask: {p['components']} component(s), {100 * p['vessel_fraction']:.1f}% of the frame, border "
+          f"{100 * p['border_fraction']:.0f}% excluded, σ {p['sigmas_px']} px at {p['isocenter_pixel_mm']:.3f} mm/px "
+          f"(pixel spacing {p['pixel_spacing_source']}, magnification {p['magnification_source']}), {p['seconds']:.1f} s")
+    for path in paths.values():
+        print(f"wrote {path}")
+    return EXIT_OK
+
+
+def cmd_simulate(args: argparse.Namespace) -> int:
+    from ..io import read_label, write_image_nrrd, write_mask_png
+    from ..outputs import check_destination, staged_directory
+    from ..phantoms import simulate_views
+
+    geometry = load_geometry(args.geometry)
+    if not args.mask_threshold_mm > 0:
+        raise ValueError(f"--mask-threshold-mm must be positive, got {args.mask_threshold_mm}")
+    names = [f"view{n}_{kind}" for n in range(1, len(geometry.views) + 1) for kind in ("mask.png", "lineint.nrrd")]
+    check_destination(args.out, names, args.overwrite)
+    label, label_grid = read_label(args.label, grid=geometry.volume, what="label")
+    if not label.any():
+        raise ValueError(f"{args.label}: the label is empty (no vessel voxel); nothing to project")
+    _warn_outside(label, label_grid, geometry.volume)
+    line_integrals, masks = simulate_views(label, label_grid, geometry.views, args.mask_threshold_mm)
+    for n, (mask, view) in enumerate(zip(masks, geometry.views), start=1):
+        if not mask.any():
+            raise ValueError(f"view {n} ({view.describe()}): the label leaves no shadow above {args.mask_threshold_mm} mm "
+                             "on the detector; check the label's position and the view's angles")
+        if mask.all():
+            raise ValueError(f"view {n} ({view.describe()}): the label's shadow covers the whole detector; "
+                             "check the label (is it inverted?) and the detector size")
+    with staged_directory(args.out, names, args.overwrite) as staging:
+        for n, (li, mask, view) in enumerate(zip(line_integrals, masks, geometry.views), start=1):
+            write_mask_png(staging / f"view{n}_mask.png", mask)
+            write_image_nrrd(staging / f"view{n}_lineint.nrrd", li, view.pixel_spacing_mm,
+                             content=f"SDFCAR line integral (mm), view {n} {view.describe()}")
+    for n, (li, mask) in enumerate(zip(line_integrals, masks), start=1):
+        print(f"view {n}: {int(mask.sum())} vessel pixels, longest path {float(li.max()):.2f} mm")
+    print(f"wrote {', '.join(names)} in {args.out}")
+    return EXIT_OK
+
+
+def _warn_outside(label: np.ndarray, label_grid, grid) -> None:
+    ijk = np.argwhere(label)
+    lo, hi = grid.bounds()
+    if np.any(label_grid.index_to_world(ijk.min(axis=0)) < lo) or np.any(label_grid.index_to_world(ijk.max(axis=0)) > hi):
+        print("warning: part of the label lies outside the geometry's volume; a reconstruction on that volume "
+              "cannot recover it (check volume.center_mm and volume.shape)", file=sys.stderr)
+
+
+def cmd_evaluate(args: argparse.Namespace) -> int:
+    from ..io import align_to_grid, read_label
+    from ..io import json_compatible
+    from ..outputs import check_destination, ground_truth_metrics
+
+    geometry = load_geometry(args.geometry) if args.geometry else None
+    if args.json:
+        check_destination(Path(args.json).parent, [Path(args.json).name], args.overwrite)
+    prediction, prediction_grid = read_label(args.prediction, grid=geometry.volume if geometry else None,
+                                             threshold=args.threshold, what="prediction")
+    label, label_grid = read_label(args.label, grid=geometry.volume if geometry else prediction_grid, what="label")
+    prediction = align_to_grid(prediction, prediction_grid, label_grid, what="prediction")
+    metrics = ground_truth_metrics(prediction, label, label_grid, geometry.views if geometry else None)
+    print_metrics(metrics)
+    if args.json:
+        out = {"prediction_file": absolute_path(args.prediction), "label_file": absolute_path(args.label),
+               "geometry_file": absolute_path(args.geometry),
+               "grid": label_grid.to_dict(), "metrics": metrics}
+        write_text_atomically(Path(args.json), json.dumps(json_compatible(out), indent=2, allow_nan=False) + "\n")
+        print(f"wrote {args.json}")
+    return EXIT_OK
+
+
+def cmd_geometry_template(args: argparse.Namespace) -> int:
+    from ..geometry import standard_geometry
+
+    geometry = standard_geometry(args.view_pair, volume_shape=args.shape, spacing_mm=args.spacing_mm,
+                                 center_mm=args.center_mm, detector_shape=args.detector_shape,
+                                 detector_spacing_mm=args.detector_spacing_mm)
+    data = {"description": f"SDFCAR geometry template for the view pair {args.view_pair}; replace the angles, "
+                           "distances and detector with those of your acquisition (DICOM tags PositionerPrimaryAngle, "
+                           "PositionerSecondaryAngle, DistanceSourceToDetector, DistanceSourceToPatient, ImagerPixelSpacing)",
+            **geometry.to_dict()}
+    text = json.dumps(data, indent=2) + "\n"
+    if not args.out:
+        sys.stdout.write(text)
+        return EXIT_OK
+    out = Path(args.out)
+    if out.exists() and not args.overwrite:
+        raise ValueError(f"{out} already exists; choose another file or pass --overwrite")
+    write_text_atomically(out, text)
+    print(f"wrote {out} ({', '.join(v.describe() for v in geometry.views)})", file=sys.stderr)
+    return EXIT_OK

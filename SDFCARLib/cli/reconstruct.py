@@ -1,0 +1,241 @@
+"""The commands that reconstruct: ``reconstruct``, ``geometry`` (from DICOM), ``demo`` and ``analyse``."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+from typing import Any, Dict, List, Optional, Tuple
+
+import numpy as np
+
+from ..dicom import cli_geometry_from_args, write_geometry_json
+from ..settings import MASK_THRESHOLD_MM
+from .common import EXIT_OK, absolute_path, print_provenance, print_summary, run_reconstruction, settings_from_args
+
+def _read_targets(args: argparse.Namespace, geometry) -> Tuple[List[np.ndarray], str, List[np.ndarray]]:
+    """The per-view targets, their kind, and the views' masks (for the visual-hull baseline)."""
+    from ..io import read_line_integral, read_mask
+
+    masks_given = [args.mask1, args.mask2]
+    lineints_given = [args.lineint1, args.lineint2]
+    kind = args.target_kind
+    if kind is None:
+        kind = "line_integral" if any(lineints_given) and not any(masks_given) else "mask"
+    chosen, flag = (masks_given, "--mask") if kind == "mask" else (lineints_given, "--lineint")
+    other, other_flag = (lineints_given, "--lineint") if kind == "mask" else (masks_given, "--mask")
+    if any(other):
+        raise ValueError(f"--target-kind {kind} uses {flag}1/{flag}2; remove {other_flag}1/{other_flag}2 "
+                         "(give either masks or line integrals)")
+    missing = [f"{flag}{n}" for n, path in enumerate(chosen, start=1) if not path]
+    if missing:
+        raise ValueError(f"missing {' and '.join(missing)}: give one {'mask' if kind == 'mask' else 'line-integral image'} per view")
+    if len(geometry.views) != 2:
+        raise ValueError(f"{args.geometry or 'the geometry'} describes {len(geometry.views)} view(s) but reconstruct takes two "
+                         f"({flag}1 and {flag}2); list exactly two views in GEOM.json")
+    if kind == "mask":
+        targets = [read_mask(path, view.detector_shape, what=f"view {n} mask")
+                   for n, (path, view) in enumerate(zip(chosen, geometry.views), start=1)]
+        return targets, kind, targets
+    targets = [read_line_integral(path, view.detector_shape) for path, view in zip(chosen, geometry.views)]
+    return targets, kind, [t > MASK_THRESHOLD_MM for t in targets]
+
+
+def _geometry_for_reconstruct(args: argparse.Namespace):
+    """GEOM.json, or the geometry read from the two DICOM files' tags (with its provenance), and
+    the request to place the grid on the masks (``region.AutoVolume``) or None."""
+    from ..region import AutoVolume, read_geometry
+
+    if args.dicom1 or args.dicom2:
+        if args.geometry:
+            raise ValueError("give either --geometry or --dicom1/--dicom2, not both")
+        geometry, provenance = cli_geometry_from_args(args)
+        print_provenance(provenance)
+        return geometry, provenance, _dicom_volume_request(args)
+    if not args.geometry:
+        raise ValueError("missing --geometry: give a GEOM.json, or the two XA DICOM files with --dicom1 and --dicom2")
+    geometry, request = read_geometry(args.geometry)
+    if request is None and args.auto_volume:
+        request = AutoVolume(tuple(geometry.volume.spacing_mm))  # keep the user's voxel size
+    return geometry, None, request
+
+
+def _dicom_volume_request(args: argparse.Namespace):
+    """Without --volume-shape and --volume-center the grid is placed on the masks (at --volume-spacing)."""
+    from ..region import AutoVolume
+    from ..settings import PAPER_SPACING_MM
+
+    if (args.volume_shape is None and args.volume_center is None) or getattr(args, "auto_volume", False):
+        return AutoVolume((float(args.volume_spacing or PAPER_SPACING_MM),) * 3)
+    return None
+
+
+def _place_grid(geometry, masks, request, provenance: Optional[Dict[str, Any]]):
+    """The geometry on the grid placed on the masks' region, and the placement's record."""
+    from ..geometry import Geometry
+    from ..region import locate_region
+
+    placement = locate_region(geometry.views, masks, request.spacing_mm, request.margin_mm)
+    grid = placement.grid
+    for note in placement.notes:
+        print(f"warning: {note}", file=sys.stderr)
+    source = (f"placed on the masks' region (SDFCARLib.region): where their back-projections meet, plus "
+              f"{request.margin_mm:g} mm")
+    print(f"volume: {list(grid.shape)} voxels of {'/'.join(f'{v:g}' for v in grid.spacing_mm)} mm centred at "
+          f"{[round(c, 1) for c in grid.center_mm]} mm  [{source}]", file=sys.stderr)
+    if provenance is not None:
+        provenance["volume"] = {"value": grid.to_dict(), "source": source}
+    return Geometry(volume=grid, views=geometry.views), placement, source
+
+
+def _grid_record(geometry, masks, source: str, placement=None) -> Tuple[Dict[str, Any], List[str]]:
+    """report.json's ``grid`` entry (where the grid came from, how much of each mask its hull
+    explains) and the warnings for views it explains poorly; the warnings are printed at once."""
+    from ..region import mask_coverage
+
+    coverage = mask_coverage(masks, geometry.views, geometry.volume)
+    warnings = [f"the grid's visual hull explains only {100 * c:.0f} % of view {n}'s mask pixels: the grid cuts the tree "
+                "(place it on the masks with --auto-volume, or move/enlarge the volume) or the geometry does not align "
+                "the views (check the angles, distances and pixel spacing)"
+                for n, c in enumerate(coverage, start=1) if c < 0.9]
+    for message in warnings:
+        print(f"warning: {message}", file=sys.stderr)
+    record = {"source": source, "mask_coverage": coverage, "placement": placement.to_dict() if placement else None}
+    return record, warnings
+
+
+def cmd_geometry(args: argparse.Namespace) -> int:
+    from ..io import read_mask
+
+    out = Path(args.out)
+    if out.exists() and not args.overwrite:
+        raise ValueError(f"{out} exists; choose another --out or add --overwrite")
+    if bool(args.mask1) != bool(args.mask2):
+        raise ValueError("give both --mask1 and --mask2 (one vessel mask per view) to place the grid, or neither")
+    geometry, provenance = cli_geometry_from_args(args)
+    print_provenance(provenance)
+    request = _dicom_volume_request(args)
+    if args.mask1:
+        masks = [read_mask(path, view.detector_shape, what=f"view {n} mask")
+                 for n, (path, view) in enumerate(zip([args.mask1, args.mask2], geometry.views), start=1)]
+        source = provenance["volume"]["source"]
+        if request is not None:
+            geometry, _, source = _place_grid(geometry, masks, request, provenance)
+        record, _ = _grid_record(geometry, masks, source)
+        provenance["volume"]["mask_coverage"] = record["mask_coverage"]
+    elif request is not None:
+        provenance["volume"]["source"] += ("; no masks were given, so the grid could not be placed on the vessels: "
+                                           "give --mask1/--mask2 here, or run reconstruct --auto-volume")
+        print(f"note: {provenance['volume']['source']}", file=sys.stderr)
+    write_geometry_json(out, geometry, provenance)
+    print(f"wrote {out}")
+    return EXIT_OK
+
+
+def _auto_masks(args: argparse.Namespace, geometry, provenance) -> List[Tuple[Dict[str, Any], np.ndarray, Any]]:
+    """--auto-masks: the segment pipeline on the frame of each DICOM view the geometry was read from."""
+    from ..dicom import load_xa
+    from ..masks import segment_angiogram
+
+    if not (args.dicom1 and args.dicom2):
+        raise ValueError("--auto-masks segments the frames of --dicom1 and --dicom2; give both (or give --mask1/--mask2)")
+    if any([args.mask1, args.mask2, args.lineint1, args.lineint2]):
+        raise ValueError("--auto-masks makes the masks itself; remove --mask1/--mask2 (or --lineint1/--lineint2)")
+    auto = []
+    for n, (view, info) in enumerate(zip(geometry.views, provenance["views"]), start=1):
+        frame_info = info["frame"]
+        frame = load_xa(getattr(args, f"dicom{n}")).frames[int(frame_info["index"])]
+        auto.append((frame_info, frame, segment_angiogram(frame, view.pixel_spacing_mm, view.sid_mm / view.sod_mm)))
+        p = auto[-1][2].parameters
+        print(f"view {n}: auto mask of frame {frame_info['index']}: {p['components']} component(s), "
+              f"{100 * p['vessel_fraction']:.1f}% of the frame", file=sys.stderr)
+    return auto
+
+
+def cmd_reconstruct(args: argparse.Namespace) -> int:
+    from ..io import align_to_grid, read_label
+    from ..outputs import RESULT_FILES, check_destination, write_reconstruction
+
+    geometry, provenance, request = _geometry_for_reconstruct(args)
+    auto = _auto_masks(args, geometry, provenance) if args.auto_masks else None
+    targets, kind, masks = ([a.mask for _, _, a in auto], "mask", [a.mask for _, _, a in auto]) if auto \
+        else _read_targets(args, geometry)
+    placement = None
+    if request is not None:
+        geometry, placement, source = _place_grid(geometry, masks, request, provenance)
+    elif provenance is not None:
+        source = provenance["volume"]["source"]
+    else:
+        source = f"user: {args.geometry}"
+    grid_record, grid_warnings = _grid_record(geometry, masks, source, placement)
+    label = None
+    if args.label:
+        label, label_grid = read_label(args.label, grid=geometry.volume, what="ground-truth label")
+        label = align_to_grid(label, label_grid, geometry.volume, what="ground-truth label")
+    settings = settings_from_args(args)
+    check_destination(args.out, list(RESULT_FILES.values()), args.overwrite)  # before minutes of work
+    result = run_reconstruction(geometry, targets, settings, kind, not args.no_progress)
+    result.report["warnings"] = grid_warnings + list(result.report.get("warnings", []))
+    inputs = {"geometry": absolute_path(args.geometry), "label": absolute_path(args.label),
+              "dicom": [absolute_path(args.dicom1), absolute_path(args.dicom2)] if args.dicom1 else None,
+              "geometry_provenance": provenance,
+              "targets": [absolute_path(p) for p in ([args.mask1, args.mask2] if kind == "mask" else [args.lineint1, args.lineint2])]}
+    if auto:
+        inputs["targets"] = [f"auto_mask{n}.png" for n in (1, 2)]
+        inputs["auto_masks"] = [dict(a.parameters, frame=f) for f, _, a in auto]
+    files = write_reconstruction(result, args.out, name=args.name, label=label, masks=masks, overwrite=args.overwrite,
+                                 extra={"inputs": inputs, "grid": grid_record})
+    if auto:
+        from ..masks import write_segmentation
+
+        for n, (f, frame, a) in enumerate(auto, start=1):
+            write_segmentation(Path(args.out) / f"auto_mask{n}.png", frame, a,
+                               {"dicom": absolute_path(getattr(args, f"dicom{n}")), "frame": f}, overwrite=True)
+        print(f"masks made by the segment pipeline (--auto-masks): {args.out}/auto_mask1.png, auto_mask2.png "
+              "(overlays beside them; check them by eye)")
+    print_summary(files)
+    if args.analyse:
+        _print_analysis(args.out, None, args.overwrite)
+    return EXIT_OK
+
+
+def _print_analysis(result_dir: str, out: Optional[str], overwrite: bool, **options: Any) -> None:
+    from ..analysis.outputs import analyse_result_dir
+
+    files = analyse_result_dir(result_dir, out, overwrite=overwrite, **options)
+    data = json.loads(files["analysis.json"].read_text(encoding="utf-8"))
+    print(f"3D-QCA: {data['tree']['branches']} branches, {data['tree']['total_length_mm']:.1f} mm of centreline")
+    for lesion in data["lesions"]:
+        print(f"  branch {lesion['branch_id']}: MLD {lesion['mld_mm']:.2f} mm, reference {lesion['reference_diameter_mm']:.2f} mm, "
+              f"DS {lesion['diameter_stenosis_pct']:.0f}%, AS {lesion['area_stenosis_pct']:.0f}%, length {lesion['length_mm']:.1f} mm")
+    if data.get("best_view"):
+        best = data["best_view"]
+        print(f"  suggested view: {best['label']} (foreshortening {100 * best['foreshortening']:.1f}%, "
+              f"overlap {100 * best['overlap']:.0f}%)")
+    print(f"wrote {len(files)} files to {files['analysis.json'].parent}")
+
+
+def cmd_analyse(args: argparse.Namespace) -> int:
+    _print_analysis(args.result_dir, args.out, args.overwrite, masks=args.masks, ostium_mm=args.ostium,
+                    view_step_deg=args.view_step_deg)
+    return EXIT_OK
+
+
+def cmd_demo(args: argparse.Namespace) -> int:
+    from ..outputs import RESULT_FILES, check_destination, write_reconstruction
+    from ..sample_data import load_sample_case
+
+    check_destination(args.out, list(RESULT_FILES.values()), args.overwrite)
+    case = load_sample_case()
+    settings = settings_from_args(args)
+    print(f"SDFCAR demo: bundled sample case ({case.directory}), {settings.run.preset} preset, mode {settings.run.mode}, "
+          f"{settings.optimisation.steps} steps", file=sys.stderr)
+    started = time.perf_counter()
+    result = run_reconstruction(case.geometry, case.masks, settings, "mask", not args.no_progress)
+    files = write_reconstruction(result, args.out, name=args.name or "SDFCAR demo", label=case.label, masks=case.masks,
+                                 overwrite=args.overwrite, extra={"inputs": {"sample_case": str(case.directory)}})
+    print_summary(files)
+    print(f"demo finished in {time.perf_counter() - started:.0f} s")
+    return EXIT_OK
