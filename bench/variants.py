@@ -1,0 +1,59 @@
+"""Settings variants side by side on one benchmark case: the same prepared input, the default first.
+
+    .venv/bin/python bench/variants.py --suite rca --case 0 --protocol realistic-static-lao30-rao30 \
+        --grid80 '{"prune": false}' '{"dt_downsample": 4}'
+
+Each variant is a JSON object of setting overrides (``settings.py`` keys) on the ``fast`` preset;
+the first row is always the unchanged preset. Prints clDice, Dice, components (result / truth),
+support voxels and wall time per variant, and the machine.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import sys
+import time
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+import torch  # noqa: E402
+
+from SDFCARLib.benchmark import BenchmarkConfig, GridOptions, build_cases, prepare_case  # noqa: E402
+from SDFCARLib.metrics import evaluate  # noqa: E402
+from SDFCARLib.optimiser import reconstruct  # noqa: E402
+from SDFCARLib.settings import PROTOCOLS, make_settings  # noqa: E402
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--suite", default="rca")
+    parser.add_argument("--case", type=int, default=0, help="case index of the suite (its seed)")
+    parser.add_argument("--protocol", default="realistic-static-lao30-rao30", choices=sorted(PROTOCOLS))
+    parser.add_argument("--grid80", action="store_true", help="80³ at 1.3 mm, 192² at 0.8 mm (section 1's coarse grid)")
+    parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument("variants", nargs="*", help="JSON objects of setting overrides")
+    args = parser.parse_args()
+    torch.set_num_threads(args.threads)
+    grid = GridOptions((80, 80, 80), 1.3, (192, 192), 0.8) if args.grid80 else GridOptions()
+    config = BenchmarkConfig(args.suite, Path("unused"), cases=args.case + 1, grid=grid, protocol=args.protocol)
+    spec = build_cases(config)[args.case]
+    case = prepare_case(spec, args.protocol, grid)
+    print(f"# {platform.processor() or platform.machine()}, {os.cpu_count()} cores, torch {torch.__version__}, "
+          f"{args.threads} thread(s); {spec.name}, {args.protocol}, {'grid80' if args.grid80 else 'paper grid'}")
+    for variant in [{}] + [json.loads(text) for text in args.variants]:
+        t0 = time.perf_counter()
+        result = reconstruct(case.geometry, case.targets, make_settings("fast", seed=spec.seed, **variant), case.target_kind)
+        m = evaluate(result.segmentation, case.label, case.geometry.volume, case.geometry.views, case.masks)
+        print(f"{json.dumps(variant):40s} clDice {m['cldice']:.3f}  Dice {m['dice']:.3f}  components "
+              f"{m.get('components')}/{m.get('components_label')}  support {result.report['support_voxels']}  "
+              f"{time.perf_counter() - t0:.0f} s", flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
