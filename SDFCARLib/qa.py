@@ -47,7 +47,7 @@ LEGEND_HEIGHT_PX = LEGEND_LINE_PX * (len(LEGEND) + 1) + 4  # a title line and on
 LEGEND_WIDTH_PX = 200
 
 WARN_SHARE = 0.10  # result-only or mask-only area above this share of the mask's area
-WARN_BLOB_MM2 = 10.0  # a disagreeing blob (after the opening) larger than this at the isocenter
+WARN_BLOB_MM2 = 5.0  # a disagreeing blob (after the opening) larger than this at the isocenter
 
 _EIGHT = np.ones((3, 3), dtype=bool)
 KINDS = ("result_only", "mask_only")
