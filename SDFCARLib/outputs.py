@@ -267,8 +267,8 @@ def write_reconstruction(
             "name": name,
             "written_at": datetime.datetime.now().astimezone().isoformat(timespec="seconds"),
             "coordinate_system": "LPS",
-            "files": {key: file for key, file in RESULT_FILES.items() if (staging / file).exists() or key == "report"},
-            "qa_files": [file for file in qa_names if (staging / file).exists()],
+            "files": {**{key: file for key, file in RESULT_FILES.items() if (staging / file).exists() or key == "report"},
+                      **{Path(file).stem: file for file in qa_names if (staging / file).exists()}},
             "surface": {"vertices": int(len(vertices)), "triangles": int(len(faces)), "level": level},
             "scene": scene,
         })

@@ -142,7 +142,7 @@ def test_result_folder_holds_the_overlays_and_the_report_the_numbers(tmp_path, t
     report = json.loads(files["report"].read_text())
     qa = report["reprojection_qa"]
     assert len(qa) == 2 and report["reprojection_dice"] == [q["dice"] for q in qa]
-    assert report["qa_files"] == ["qa_view1.png", "qa_view2.png"]
+    assert report["files"]["qa_view1"] == "qa_view1.png" and report["files"]["qa_view2"] == "qa_view2.png"
     projected = reprojected_masks(result.segmentation, tiny_geometry)
     for n in (1, 2):
         assert files[f"qa_view{n}"] == tmp_path / "result" / f"qa_view{n}.png"
