@@ -19,12 +19,13 @@ vessel is.
 colour-vision deficiencies) over an optional grey frame, outlines the largest blob of each kind
 and adds a legend strip below the image, so no detector pixel is hidden. ``qa_warnings`` names the
 views whose disagreement exceeds ``WARN_SHARE`` of the mask or ``WARN_BLOB_MM2`` (the levels are
-chosen from clean simulated cases, bench/RESULTS.md "Reprojection QA").
+chosen from clean and broken simulated cases, bench/RESULTS.md section 8).
 """
 
 from __future__ import annotations
 
-from typing import Any, Dict, List, Optional, Sequence, Tuple
+from pathlib import Path
+from typing import Any, Dict, List, Optional, Sequence, Tuple, Union
 
 import numpy as np
 from scipy import ndimage
@@ -213,9 +214,11 @@ def qa_title(view_number: int, qa: Dict[str, Any]) -> str:
             f"mask only {a['mask_only']:.1f} mm2")
 
 
-def write_qa_png(path, frame: Optional[np.ndarray], projected_mask: np.ndarray, mask: np.ndarray, title: str = ""):
+def write_qa_png(path: Union[str, Path], frame: Optional[np.ndarray], projected_mask: np.ndarray, mask: np.ndarray,
+                 title: str = "") -> Path:
     """Write ``qa_overlay_rgb`` as a PNG; returns the path."""
     import imageio.v3 as iio  # as in io.py: the PNG writer is only needed when writing
 
+    path = Path(path)
     iio.imwrite(path, qa_overlay_rgb(frame, projected_mask, mask, title), extension=".png")
     return path
