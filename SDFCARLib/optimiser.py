@@ -49,6 +49,7 @@ from .masks import MaskError, binarise_mask
 from .connectivity import ReconnectSettings, field_values, reconnect_fragments
 from .metrics import component_counts, mask_dice
 from .projector import ConeBeamProjector, project_volume
+from .qa import qa_warnings, reprojection_qa
 from .pruning import PruneSettings, prune_redundant_branches, removal_zone
 from .settings import MASK_THRESHOLD_MM, TARGET_KINDS, ReconstructionError, Settings, make_settings
 
@@ -120,6 +121,8 @@ class Reconstruction:
     support: Optional[np.ndarray]  # bool voxels the field was evaluated on (None: all)
     report: Dict[str, Any] = field(default_factory=dict)
     history: List[Dict[str, float]] = field(default_factory=list)
+    # Per view (projected segmentation, vessel mask), bool: outputs.py draws qa_view<n>.png from them.
+    qa_masks: List[Tuple[np.ndarray, np.ndarray]] = field(default_factory=list)
 
 
 @dataclass
@@ -299,7 +302,13 @@ def finish(problem: Problem, model: ImplicitField, history: List[Dict[str, float
             segmentation, occupancy_volume, geometry.volume.spacing_mm, problem.support,
             ReconnectSettings(settings.region.reconnect_max_gap_mm, settings.region.reconnect_min_occupancy, threshold))
         field_volume[changed] = field_values(occupancy_volume[changed], settings.mode.field_kind, settings.field.alpha)
-    reprojection = reprojection_dice(segmentation, geometry, problem.targets, problem.target_kind)
+    projected = reprojected_masks(segmentation, geometry)
+    references = vessel_pixels(problem.targets, problem.target_kind)
+    qa = [reprojection_qa(p, m, v) for p, m, v in zip(projected, references, geometry.views)]
+    qa_warned = qa_warnings(qa)
+    for message in qa_warned:
+        _report(progress, phase="warning", message=message, step=steps, total=steps, elapsed_s=optimise_s,
+                eta_s=None, device=str(problem.device))
     output_s = time.perf_counter() - t_out
     report: Dict[str, Any] = {
         "method": settings.mode.title,
@@ -319,13 +328,15 @@ def finish(problem: Problem, model: ImplicitField, history: List[Dict[str, float
         "components": component_counts(segmentation),
         "projector_nonzeros": [p.nnz for p in problem.projectors],
         "final_losses": {k: v for k, v in history[-1].items() if k != "step"} if history else {},
-        "reprojection_dice": reprojection,
+        "reprojection_dice": [q["dice"] for q in qa],
+        "reprojection_qa": qa,
         "timings_s": {"setup": problem.setup_s, "optimise": optimise_s, "output": output_s,
                       "total": time.perf_counter() - t_start, "per_step": optimise_s / steps},
-        "warnings": list(problem.warnings),
+        "warnings": list(problem.warnings) + qa_warned,
         "view_consistency": list(problem.consistency),
     }
-    return Reconstruction(geometry, settings, occupancy_volume, field_volume, segmentation, problem.support, report, history)
+    return Reconstruction(geometry, settings, occupancy_volume, field_volume, segmentation, problem.support, report, history,
+                          list(zip(projected, references)))
 
 
 def reconstruct(
@@ -380,15 +391,17 @@ def evaluate_volume(model: ImplicitField, problem: Problem, chunk: int = 262144)
     return occ_volume.reshape(grid.shape), field_volume.reshape(grid.shape)
 
 
+def reprojected_masks(segmentation: np.ndarray, geometry: Geometry,
+                      mask_threshold_mm: float = MASK_THRESHOLD_MM) -> List[np.ndarray]:
+    """Per view, the segmentation's projected mask (line integral above the mask threshold)."""
+    if not segmentation.any():
+        return [np.zeros(view.detector_shape, dtype=bool) for view in geometry.views]
+    volume = segmentation.astype(np.float32)
+    return [project_volume(volume, view, geometry.volume) > mask_threshold_mm for view in geometry.views]
+
+
 def reprojection_dice(segmentation: np.ndarray, geometry: Geometry, targets: Sequence[np.ndarray], kind: str,
                       mask_threshold_mm: float = MASK_THRESHOLD_MM) -> List[float]:
     """Per view, Dice of the segmentation's projected mask against the view's vessel pixels."""
-    out = []
-    for view, target in zip(geometry.views, targets):
-        if segmentation.any():
-            projected = project_volume(segmentation.astype(np.float32), view, geometry.volume) > mask_threshold_mm
-        else:
-            projected = np.zeros(view.detector_shape, dtype=bool)
-        reference = target > 0 if kind == "mask" else target > mask_threshold_mm
-        out.append(mask_dice(projected, reference))
-    return out
+    references = [target > 0 if kind == "mask" else target > mask_threshold_mm for target in targets]
+    return [mask_dice(p, r) for p, r in zip(reprojected_masks(segmentation, geometry, mask_threshold_mm), references)]

@@ -9,6 +9,8 @@ Files (all in physical LPS millimetres, see ``geometry.py``)
     ``report.json``             the reconstruction's report, the files, the surface size,
                                 warnings, metrics against a ground truth when one is given and
                                 those of the visual-hull baseline (NaN written as null)
+    ``qa_view<n>.png``          per view, the mask against the result's projection (``qa.py``):
+                                both, result only, mask only, the largest blobs outlined, a legend
     ``scene.mrml``              a Slicer scene with the segmentation and the surface, when
                                 slicer-core is installed (``mrml.py``); otherwise the report says
                                 why it was skipped
@@ -33,6 +35,7 @@ import numpy as np
 
 from .geometry import VolumeGrid
 from .io import write_json, write_segmentation_nrrd, write_surface_vtk, write_volume_nrrd
+from .qa import qa_file_name, qa_title, write_qa_png
 from .settings import MASK_THRESHOLD_MM
 
 PathLike = Union[str, Path]
@@ -47,6 +50,11 @@ RESULT_FILES = {
 }
 
 _BACKUP = ".replaced"
+
+
+def result_file_names(view_count: int) -> List[str]:
+    """Every file a result folder of ``view_count`` views may hold: ``RESULT_FILES`` and the QA overlays."""
+    return list(RESULT_FILES.values()) + [qa_file_name(n) for n in range(1, view_count + 1)]
 
 
 class OutputError(ValueError):
@@ -223,7 +231,11 @@ def write_reconstruction(
     level = float(result.settings.region.threshold)
     report: Dict[str, Any] = dict(result.report)
     report_warnings: List[str] = list(report.get("warnings", []))
-    with staged_directory(out_dir, list(RESULT_FILES.values()), overwrite) as staging:
+    qa_masks = list(getattr(result, "qa_masks", []))
+    names = result_file_names(len(result.geometry.views))
+    qa_names = names[len(RESULT_FILES):]
+    qa_numbers = report.get("reprojection_qa") or []
+    with staged_directory(out_dir, names, overwrite) as staging:
         write_volume_nrrd(staging / RESULT_FILES["occupancy"], result.occupancy, grid)
         write_volume_nrrd(staging / RESULT_FILES["field"], result.field, grid)
         write_segmentation_nrrd(staging / RESULT_FILES["segmentation"], result.segmentation, grid, name=name)
@@ -245,6 +257,9 @@ def write_reconstruction(
             "SDFCAR.geometryDigest": result.geometry.digest(),
             "SDFCAR.coordinateSystem": "LPS",
         }
+        for n, (projected, mask) in enumerate(qa_masks, start=1):
+            title = qa_title(n, qa_numbers[n - 1]) if n <= len(qa_numbers) else f"view {n}"
+            write_qa_png(staging / qa_file_name(n), None, projected, mask, title)
         scene = _write_scene(staging, name, result, attributes)
         if not scene["written"]:
             report_warnings.append(f"scene.mrml was not written: {scene['reason']}")
@@ -252,7 +267,8 @@ def write_reconstruction(
             "name": name,
             "written_at": datetime.datetime.now().astimezone().isoformat(timespec="seconds"),
             "coordinate_system": "LPS",
-            "files": {key: file for key, file in RESULT_FILES.items() if (staging / file).exists() or key == "report"},
+            "files": {**{key: file for key, file in RESULT_FILES.items() if (staging / file).exists() or key == "report"},
+                      **{Path(file).stem: file for file in qa_names if (staging / file).exists()}},
             "surface": {"vertices": int(len(vertices)), "triangles": int(len(faces)), "level": level},
             "scene": scene,
         })
@@ -261,5 +277,6 @@ def write_reconstruction(
         report.update(extra or {})
         report["warnings"] = report_warnings
         write_json(staging / RESULT_FILES["report"], report)
-        written = [key for key, file in RESULT_FILES.items() if (staging / file).exists()]
-    return {key: out_dir / RESULT_FILES[key] for key in written}
+        written = {key: file for key, file in RESULT_FILES.items() if (staging / file).exists()}
+        written.update({Path(file).stem: file for file in qa_names if (staging / file).exists()})
+    return {key: out_dir / file for key, file in written.items()}

@@ -156,7 +156,7 @@ def _auto_masks(args: argparse.Namespace, geometry, provenance) -> List[Tuple[Di
 
 def cmd_reconstruct(args: argparse.Namespace) -> int:
     from ..io import align_to_grid, read_label
-    from ..outputs import RESULT_FILES, check_destination, write_reconstruction
+    from ..outputs import check_destination, result_file_names, write_reconstruction
 
     geometry, provenance, request = _geometry_for_reconstruct(args)
     auto = _auto_masks(args, geometry, provenance) if args.auto_masks else None
@@ -175,7 +175,7 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
         label, label_grid = read_label(args.label, grid=geometry.volume, what="ground-truth label")
         label = align_to_grid(label, label_grid, geometry.volume, what="ground-truth label")
     settings = settings_from_args(args)
-    check_destination(args.out, list(RESULT_FILES.values()), args.overwrite)  # before minutes of work
+    check_destination(args.out, result_file_names(len(geometry.views)), args.overwrite)  # before minutes of work
     result = run_reconstruction(geometry, targets, settings, kind, not args.no_progress)
     result.report["warnings"] = grid_warnings + list(result.report.get("warnings", []))
     inputs = {"geometry": absolute_path(args.geometry), "label": absolute_path(args.label),
@@ -224,11 +224,11 @@ def cmd_analyse(args: argparse.Namespace) -> int:
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
-    from ..outputs import RESULT_FILES, check_destination, write_reconstruction
+    from ..outputs import check_destination, result_file_names, write_reconstruction
     from ..sample_data import load_sample_case
 
-    check_destination(args.out, list(RESULT_FILES.values()), args.overwrite)
     case = load_sample_case()
+    check_destination(args.out, result_file_names(len(case.geometry.views)), args.overwrite)
     settings = settings_from_args(args)
     print(f"SDFCAR demo: bundled sample case ({case.directory}), {settings.run.preset} preset, mode {settings.run.mode}, "
           f"{settings.optimisation.steps} steps", file=sys.stderr)

@@ -1,0 +1,224 @@
+"""Reprojection QA per view: where the result's projection and the view's mask disagree, in mm².
+
+One Dice per view cannot tell a misdrawn mask from a wrong angle or a ghost branch; the place and
+size of the disagreement can. Per view (``reprojection_qa``) the pixels split into
+
+* agree        — vessel in the mask and in the projection of the result;
+* result only  — the result casts a shadow the mask lacks (a ghost branch, or a mask that misses
+                 a vessel);
+* mask only    — the mask shows vessel the result does not explain (a vessel only this view
+                 shows, a mask drawn on another frame or cardiac phase, wrong angles).
+
+Areas are in mm² at the isocenter plane (pixel count × the view's isocenter pixel spacings), so
+that views of different magnification compare. The largest disagreeing blob of each kind is an
+8-connected component of that kind after an opening with a 3 × 3 square: the one-pixel rims that
+any discretised projection leaves along the vessels' edges are not blobs, a missing or extra
+vessel is.
+
+``qa_overlay_rgb`` draws the three kinds in Okabe–Ito colours (distinguishable with the common
+colour-vision deficiencies) over an optional grey frame, outlines the largest blob of each kind
+and adds a legend strip below the image, so no detector pixel is hidden. ``qa_warnings`` names the
+views whose disagreement exceeds ``WARN_SHARE`` of the mask or ``WARN_BLOB_MM2`` (the levels are
+chosen from clean and broken simulated cases, bench/RESULTS.md section 8).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any, Dict, List, Optional, Sequence, Tuple, Union
+
+import numpy as np
+from scipy import ndimage
+
+from .geometry import CArmView
+
+# Okabe & Ito's palette.
+AGREE_RGB = (0, 158, 115)  # bluish green
+RESULT_ONLY_RGB = (213, 94, 0)  # vermillion
+MASK_ONLY_RGB = (0, 114, 178)  # blue
+OUTLINE_RGB = (240, 228, 66)  # yellow: the box around the largest blob of each kind
+LEGEND_BACKGROUND_RGB = (0, 0, 0)
+LEGEND_TEXT_RGB = (255, 255, 255)
+FRAME_GREY_MAX = 150  # the frame underneath stays darker than the colours drawn over it
+
+LEGEND = (("both", AGREE_RGB), ("result only", RESULT_ONLY_RGB), ("mask only", MASK_ONLY_RGB),
+          ("largest blob", OUTLINE_RGB))
+LEGEND_LINE_PX = 12
+LEGEND_HEIGHT_PX = LEGEND_LINE_PX * (len(LEGEND) + 1) + 4  # a title line and one line per entry
+LEGEND_WIDTH_PX = 200
+
+WARN_SHARE = 0.10  # result-only or mask-only area above this share of the mask's area
+WARN_BLOB_MM2 = 5.0  # a disagreeing blob (after the opening) larger than this at the isocenter
+
+_EIGHT = np.ones((3, 3), dtype=bool)
+KINDS = ("result_only", "mask_only")
+
+
+def qa_file_name(view_number: int) -> str:
+    """The overlay's file name in the result folder (views count from 1)."""
+    return f"qa_view{view_number}.png"
+
+
+def _as_bool(image: np.ndarray, name: str, shape: Optional[Tuple[int, ...]] = None) -> np.ndarray:
+    a = np.asarray(image)
+    if a.ndim != 2:
+        raise ValueError(f"{name} must be a 2D (rows, cols) image, got shape {a.shape}")
+    if shape is not None and a.shape != shape:
+        raise ValueError(f"{name} has shape {a.shape} but the other image has {shape}; give images of the same view")
+    return a != 0
+
+
+def largest_blob(disagreement: np.ndarray, pixel_area_mm2: float) -> Optional[Dict[str, Any]]:
+    """The largest 8-connected blob of ``disagreement`` after a 3 × 3 opening, or None when none is left."""
+    opened = ndimage.binary_opening(disagreement, structure=_EIGHT)
+    labels, count = ndimage.label(opened, structure=_EIGHT)
+    if count == 0:
+        return None
+    sizes = np.bincount(labels.reshape(-1), minlength=count + 1)[1:]
+    index = int(np.argmax(sizes)) + 1
+    rows, cols = np.nonzero(labels == index)
+    return {
+        "pixels": int(rows.size),
+        "area_mm2": float(rows.size * pixel_area_mm2),
+        "centroid_rc": [float(rows.mean()), float(cols.mean())],
+        # inclusive pixel bounds: [row_min, col_min, row_max, col_max]
+        "bbox_rc": [int(rows.min()), int(cols.min()), int(rows.max()), int(cols.max())],
+    }
+
+
+def reprojection_qa(projected_mask: np.ndarray, mask: np.ndarray, view: CArmView) -> Dict[str, Any]:
+    """Agreement of one view's mask with the projection of the result (see the module docstring)."""
+    projected = _as_bool(projected_mask, "the projected mask")
+    reference = _as_bool(mask, "the mask", projected.shape)
+    if projected.shape != tuple(view.detector_shape):
+        raise ValueError(f"the images have shape {projected.shape} but the view's detector is "
+                         f"{tuple(view.detector_shape)}; give the images of this view")
+    spacing = view.isocenter_pixel_spacing_mm
+    pixel_area = float(spacing[0] * spacing[1])
+    parts = {"agree": projected & reference, "result_only": projected & ~reference, "mask_only": reference & ~projected}
+    counts = {k: int(v.sum()) for k, v in parts.items()}
+    mask_pixels = int(reference.sum())
+    total = 2 * counts["agree"] + counts["result_only"] + counts["mask_only"]
+    out: Dict[str, Any] = {
+        "area_plane": "isocenter",
+        "pixel_area_mm2": pixel_area,
+        "pixels": counts,
+        "area_mm2": {k: v * pixel_area for k, v in counts.items()},
+        "mask_area_mm2": mask_pixels * pixel_area,
+        "result_area_mm2": int(projected.sum()) * pixel_area,
+        # Empty on both sides is perfect agreement.
+        "dice": 2.0 * counts["agree"] / total if total else 1.0,
+        "share_of_mask": {k: counts[k] / mask_pixels if mask_pixels else float(counts[k] > 0) for k in KINDS},
+        "largest_blob": {k: largest_blob(parts[k], pixel_area) for k in KINDS},
+    }
+    return out
+
+
+def qa_warnings(per_view: Sequence[Dict[str, Any]], share: float = WARN_SHARE,
+                blob_mm2: float = WARN_BLOB_MM2) -> List[str]:
+    """A warning per view whose disagreement exceeds ``share`` of its mask or has a blob over ``blob_mm2``."""
+    out = []
+    for n, qa in enumerate(per_view, start=1):
+        for kind in KINDS:
+            blob = qa["largest_blob"][kind]
+            big_share = qa["share_of_mask"][kind] > share
+            big_blob = blob is not None and blob["area_mm2"] > blob_mm2
+            if not (big_share or big_blob):
+                continue
+            where = ""
+            if blob is not None:
+                r, c = blob["centroid_rc"]
+                where = f"; its largest blob, {blob['area_mm2']:.1f} mm², is at row {r:.0f}, column {c:.0f}"
+            amount = f"{qa['area_mm2'][kind]:.1f} mm² ({100 * qa['share_of_mask'][kind]:.0f} % of the mask's area)"
+            if kind == "mask_only":
+                out.append(
+                    f"view {n}: the result does not explain {amount} of the mask{where} ({qa_file_name(n)}, blue); "
+                    "check that the mask was drawn on this view's frame and cardiac phase, the view's angles "
+                    "(LAO +, RAO −, CRA +, CAU −) and SID/SOD, or whether that vessel is seen in this view only")
+            else:
+                out.append(
+                    f"view {n}: the result casts {amount} of shadow outside the mask{where} ({qa_file_name(n)}, "
+                    "vermillion); check for a ghost branch in the 3D result, a vessel the mask missed, "
+                    "and the view's angles")
+    return out
+
+
+def _grey(frame: np.ndarray, shape: Tuple[int, int]) -> np.ndarray:
+    f = np.asarray(frame, dtype=np.float64)
+    if f.shape != shape:
+        raise ValueError(f"the frame has shape {f.shape} but the masks have {shape}; give the frame of this view")
+    finite = f[np.isfinite(f)]
+    lo, hi = (np.percentile(finite, [1, 99]) if finite.size else (0.0, 1.0))
+    scaled = np.clip((np.nan_to_num(f, nan=lo) - lo) / max(hi - lo, 1e-12), 0.0, 1.0)
+    return np.round(scaled * FRAME_GREY_MAX).astype(np.uint8)
+
+
+def _outline(image: np.ndarray, bbox: Sequence[int], rows: int, cols: int) -> None:
+    """A one-pixel box two pixels outside ``bbox`` (clipped to the detector), so the blob stays visible."""
+    r0, c0 = max(bbox[0] - 2, 0), max(bbox[1] - 2, 0)
+    r1, c1 = min(bbox[2] + 2, rows - 1), min(bbox[3] + 2, cols - 1)
+    image[r0, c0:c1 + 1] = OUTLINE_RGB
+    image[r1, c0:c1 + 1] = OUTLINE_RGB
+    image[r0:r1 + 1, c0] = OUTLINE_RGB
+    image[r0:r1 + 1, c1] = OUTLINE_RGB
+
+
+def _legend(width: int, title: str) -> np.ndarray:
+    from PIL import Image, ImageDraw, ImageFont  # pillow comes with imageio; only the legend needs it
+
+    font = ImageFont.load_default()
+    # Wide enough for the title even on a small detector.
+    width = max(width, int(np.ceil(ImageDraw.Draw(Image.new("RGB", (1, 1))).textlength(title, font=font))) + 8)
+    strip = Image.new("RGB", (width, LEGEND_HEIGHT_PX), LEGEND_BACKGROUND_RGB)
+    draw = ImageDraw.Draw(strip)
+    draw.text((4, 2), title, fill=LEGEND_TEXT_RGB, font=font)
+    for n, (label, colour) in enumerate(LEGEND, start=1):
+        top = 2 + n * LEGEND_LINE_PX
+        draw.rectangle([4, top + 1, 13, top + 9], fill=colour)
+        draw.text((18, top), label, fill=LEGEND_TEXT_RGB, font=font)
+    return np.asarray(strip, dtype=np.uint8)
+
+
+def qa_overlay_rgb(frame: Optional[np.ndarray], projected_mask: np.ndarray, mask: np.ndarray,
+                   title: str = "") -> np.ndarray:
+    """RGB uint8 image: the detector (rows × cols, colours as in ``LEGEND``) above a legend strip.
+
+    The image is ``(rows + LEGEND_HEIGHT_PX, max(cols, LEGEND_WIDTH_PX, title width), 3)``; detector pixel
+    (r, c) is image pixel (r, c). Without a frame the background is black.
+    """
+    projected = _as_bool(projected_mask, "the projected mask")
+    reference = _as_bool(mask, "the mask", projected.shape)
+    rows, cols = projected.shape
+    detector = np.zeros((rows, cols, 3), dtype=np.uint8)
+    if frame is not None:
+        detector[...] = _grey(frame, (rows, cols))[..., None]
+    parts = {"result_only": projected & ~reference, "mask_only": reference & ~projected}
+    detector[projected & reference] = AGREE_RGB
+    detector[parts["result_only"]] = RESULT_ONLY_RGB
+    detector[parts["mask_only"]] = MASK_ONLY_RGB
+    for kind in KINDS:
+        blob = largest_blob(parts[kind], 1.0)
+        if blob is not None:
+            _outline(detector, blob["bbox_rc"], rows, cols)
+    legend = _legend(max(cols, LEGEND_WIDTH_PX), title)
+    image = np.zeros((rows + LEGEND_HEIGHT_PX, legend.shape[1], 3), dtype=np.uint8)
+    image[:rows, :cols] = detector
+    image[rows:] = legend
+    return image
+
+
+def qa_title(view_number: int, qa: Dict[str, Any]) -> str:
+    """One line for the legend: the view, Dice and the two disagreeing areas."""
+    a = qa["area_mm2"]
+    return (f"view {view_number}: Dice {qa['dice']:.3f}, result only {a['result_only']:.1f} mm2, "
+            f"mask only {a['mask_only']:.1f} mm2")
+
+
+def write_qa_png(path: Union[str, Path], frame: Optional[np.ndarray], projected_mask: np.ndarray, mask: np.ndarray,
+                 title: str = "") -> Path:
+    """Write ``qa_overlay_rgb`` as a PNG; returns the path."""
+    import imageio.v3 as iio  # as in io.py: the PNG writer is only needed when writing
+
+    path = Path(path)
+    iio.imwrite(path, qa_overlay_rgb(frame, projected_mask, mask, title), extension=".png")
+    return path
