@@ -463,12 +463,14 @@ class Geometry:
 
 # --- standard acquisition protocols -------------------------------------------------------------
 
-#: Named view pairs: (primary, secondary, SID, SOD) per view. "paper" is the NeCA/SDF-CAR
+#: Named view sets (pairs, and a triple): (primary, secondary, SID, SOD) per view. "paper" is the NeCA/SDF-CAR
 #: simulation protocol; the others are clinically typical coronary pairs.
 VIEW_PAIRS: Dict[str, List[Tuple[float, float, float, float]]] = {
     "paper": [(29.7, 0.1, 993.0, 757.06), (2.0, 29.0, 1055.0, 756.99)],
     "lao30-rao30": [(30.0, 0.0, 1000.0, 757.0), (-30.0, 0.0, 1000.0, 757.0)],
     "lao50cra25-rao50cra25": [(50.0, 25.0, 1000.0, 757.0), (-50.0, 25.0, 1000.0, 757.0)],
+    # the pair above plus an AP cranial view: a third view rules out ghosts two views allow
+    "lao30-rao30-cra30": [(30.0, 0.0, 1000.0, 757.0), (-30.0, 0.0, 1000.0, 757.0), (0.0, 30.0, 1000.0, 757.0)],
 }
 
 

@@ -338,6 +338,7 @@ PROTOCOLS: Dict[str, Tuple[str, str]] = {
     "paper": ("paper", "line_integral"),
     "clinical-lao30-rao30": ("lao30-rao30", "mask"),
     "clinical-lao50cra25-rao50cra25": ("lao50cra25-rao50cra25", "mask"),
+    "clinical-lao30-rao30-cra30": ("lao30-rao30-cra30", "mask"),
     "realistic-lao30-rao30": ("lao30-rao30", "mask"),
     "realistic-lao50cra25-rao50cra25": ("lao50cra25-rao50cra25", "mask"),
     "realistic-static-lao30-rao30": ("lao30-rao30", "mask"),
