@@ -12,9 +12,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from conftest import TINY_DETECTOR, tiny_geometry_dict, write_json
+from conftest import TINY_DETECTOR, TINY_DETECTOR_SPACING_MM, TINY_SHAPE, TINY_SPACING_MM, tiny_geometry_dict, write_json
 from SDFCARLib.cli import main
-from SDFCARLib.geometry import VIEW_PAIRS, Geometry
+from SDFCARLib.geometry import VIEW_PAIRS, Geometry, standard_geometry
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -134,7 +134,7 @@ def test_invalid_json_and_wrong_view_count_are_refused(tmp_path, capsys, mask_fi
     data["views"].append(dict(data["views"][0]))
     code, _, err = run(capsys, "reconstruct", "--geometry", write_json(tmp_path / "three.json", data),
                        "--mask1", mask_files[0], "--mask2", mask_files[1], "--out", tmp_path / "out")
-    _assert_bad_input(code, err, "describes 3 view(s) but reconstruct takes two")
+    _assert_bad_input(code, err, "describes 3 view(s) but 2 image(s) were given")
     assert not (tmp_path / "out").exists()
 
 
@@ -407,3 +407,27 @@ def test_reconstruct_places_the_grid_on_the_masks(tmp_path, mask_files, capsys):
     kept = json.loads((tmp_path / "kept" / "report.json").read_text())
     assert kept["grid"]["placement"] is None and kept["grid"]["source"].startswith("user")
     assert kept["geometry"]["volume"] == tiny_geometry_dict()["volume"]
+
+
+def test_reconstruct_takes_any_number_of_views(tiny_case, tmp_path, capsys):
+    from SDFCARLib.io import write_volume_nrrd
+
+    geometry = standard_geometry("lao30-rao30-cra30", volume_shape=TINY_SHAPE, spacing_mm=TINY_SPACING_MM,
+                                 detector_shape=TINY_DETECTOR, detector_spacing_mm=TINY_DETECTOR_SPACING_MM)
+    geometry_json = write_json(tmp_path / "geometry3.json", geometry.to_dict())
+    label = write_volume_nrrd(tmp_path / "label.nrrd", tiny_case.label, tiny_case.geometry.volume)
+    assert main(["simulate", "--label", str(label), "--geometry", str(geometry_json), "--out", str(tmp_path / "views")]) == 0
+    masks = [tmp_path / "views" / f"view{n}_mask.png" for n in (1, 2, 3)]
+    out = tmp_path / "result3"
+    code, _, err = run(capsys, "reconstruct", "--geometry", geometry_json, "--mask", *masks, "--out", out,
+                       "--steps", 3, "--no-progress", "--label", label)
+    assert code == 0, err
+    report = json.loads((out / "report.json").read_text())
+    assert len(report["reprojection_dice"]) == 3 and len(report["inputs"]["targets"]) == 3
+    assert (out / "qa_view3.png").exists()
+    # one image per view, and one way of giving them
+    code, _, err = run(capsys, "reconstruct", "--geometry", geometry_json, "--mask", *masks[:2], "--out", tmp_path / "r2")
+    _assert_bad_input(code, err, "describes 3 view(s) but 2 image(s) were given")
+    code, _, err = run(capsys, "reconstruct", "--geometry", geometry_json, "--mask", *masks, "--mask1", masks[0],
+                       "--out", tmp_path / "r3")
+    _assert_bad_input(code, err, "either as --mask A B … or as --mask1/--mask2")

@@ -47,15 +47,19 @@ def build_parser() -> argparse.ArgumentParser:
     commands = parser.add_subparsers(dest="command", metavar="command")
     commands.required = True
 
-    p = commands.add_parser("reconstruct", parents=[common], help="reconstruct the vessel tree from two views",
-                            description="Reconstruct the 3D vessel tree seen in two views and write occupancy.nrrd, "
+    p = commands.add_parser("reconstruct", parents=[common], help="reconstruct the vessel tree from two or more views",
+                            description="Reconstruct the 3D vessel tree seen in two or more views and write occupancy.nrrd, "
                                         "field.nrrd, segmentation.seg.nrrd, surface.vtk, report.json and scene.mrml.")
-    p.add_argument("--geometry", help="GEOM.json with the volume grid and the two views (or give --dicom1/--dicom2)")
+    p.add_argument("--geometry", help="GEOM.json with the volume grid and the views (or give --dicom1/--dicom2)")
     add_dicom_arguments(p, required=False)
     p.add_argument("--mask1", help="vessel mask of view 1 (PNG/TIFF/NRRD, non-zero = vessel)")
     p.add_argument("--mask2", help="vessel mask of view 2")
     p.add_argument("--lineint1", help="line-integral image of view 1 (mm; NRRD/TIFF), instead of --mask1")
     p.add_argument("--lineint2", help="line-integral image of view 2, instead of --mask2")
+    p.add_argument("--mask", dest="masks", nargs="+", metavar="MASK",
+                   help="the vessel masks of all views, in the order of GEOM.json's views (any number, e.g. three)")
+    p.add_argument("--lineint", dest="lineints", nargs="+", metavar="IMAGE",
+                   help="the line-integral images of all views, in the order of GEOM.json's views")
     p.add_argument("--auto-masks", action="store_true",
                    help="with --dicom1/--dicom2: make the masks with the segment pipeline (written as auto_maskN*.png "
                         "in --out, their parameters in report.json) instead of --mask1/--mask2")

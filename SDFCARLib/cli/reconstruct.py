@@ -15,12 +15,20 @@ from ..dicom import cli_geometry_from_args, write_geometry_json
 from ..settings import MASK_THRESHOLD_MM
 from .common import EXIT_OK, absolute_path, print_provenance, print_summary, run_reconstruction, settings_from_args
 
+def _given(args: argparse.Namespace, flag: str) -> List[Optional[str]]:
+    """The paths of ``--mask M1 M2 …`` (any number of views), or of ``--mask1/--mask2`` (two)."""
+    listed, first, second = getattr(args, f"{flag}s", None), getattr(args, f"{flag}1"), getattr(args, f"{flag}2")
+    if listed and (first or second):
+        raise ValueError(f"give the images either as --{flag} A B … or as --{flag}1/--{flag}2, not both")
+    return list(listed) if listed else [first, second]
+
+
 def _read_targets(args: argparse.Namespace, geometry) -> Tuple[List[np.ndarray], str, List[np.ndarray]]:
     """The per-view targets, their kind, and the views' masks (for the visual-hull baseline)."""
     from ..io import read_line_integral, read_mask
 
-    masks_given = [args.mask1, args.mask2]
-    lineints_given = [args.lineint1, args.lineint2]
+    masks_given = _given(args, "mask")
+    lineints_given = _given(args, "lineint")
     kind = args.target_kind
     if kind is None:
         kind = "line_integral" if any(lineints_given) and not any(masks_given) else "mask"
@@ -32,9 +40,10 @@ def _read_targets(args: argparse.Namespace, geometry) -> Tuple[List[np.ndarray],
     missing = [f"{flag}{n}" for n, path in enumerate(chosen, start=1) if not path]
     if missing:
         raise ValueError(f"missing {' and '.join(missing)}: give one {'mask' if kind == 'mask' else 'line-integral image'} per view")
-    if len(geometry.views) != 2:
-        raise ValueError(f"{args.geometry or 'the geometry'} describes {len(geometry.views)} view(s) but reconstruct takes two "
-                         f"({flag}1 and {flag}2); list exactly two views in GEOM.json")
+    if len(chosen) != len(geometry.views):
+        raise ValueError(f"{args.geometry or 'the geometry'} describes {len(geometry.views)} view(s) but {len(chosen)} "
+                         f"image(s) were given; give one per view, in the order of GEOM.json's views "
+                         f"({flag} A B C … for any number of views)")
     if kind == "mask":
         targets = [read_mask(path, view.detector_shape, what=f"view {n} mask")
                    for n, (path, view) in enumerate(zip(chosen, geometry.views), start=1)]
@@ -141,7 +150,7 @@ def _auto_masks(args: argparse.Namespace, geometry, provenance) -> List[Tuple[Di
 
     if not (args.dicom1 and args.dicom2):
         raise ValueError("--auto-masks segments the frames of --dicom1 and --dicom2; give both (or give --mask1/--mask2)")
-    if any([args.mask1, args.mask2, args.lineint1, args.lineint2]):
+    if any(_given(args, "mask") + _given(args, "lineint")):
         raise ValueError("--auto-masks makes the masks itself; remove --mask1/--mask2 (or --lineint1/--lineint2)")
     auto = []
     for n, (view, info) in enumerate(zip(geometry.views, provenance["views"]), start=1):
@@ -181,7 +190,7 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
     inputs = {"geometry": absolute_path(args.geometry), "label": absolute_path(args.label),
               "dicom": [absolute_path(args.dicom1), absolute_path(args.dicom2)] if args.dicom1 else None,
               "geometry_provenance": provenance,
-              "targets": [absolute_path(p) for p in ([args.mask1, args.mask2] if kind == "mask" else [args.lineint1, args.lineint2])]}
+              "targets": [absolute_path(p) for p in _given(args, "mask" if kind == "mask" else "lineint")]}
     if auto:
         inputs["targets"] = [f"auto_mask{n}.png" for n in (1, 2)]
         inputs["auto_masks"] = [dict(a.parameters, frame=f) for f, _, a in auto]
