@@ -38,6 +38,8 @@ import numpy as np
 from scipy import ndimage
 from skimage.graph import MCP_Geometric
 
+from .metrics import component_labels
+
 # Cost per mm inside the segmentation: not zero, so that among paths through vessel the short
 # one is taken, but far below −log(0.5) ≈ 0.69, the cheapest step across a gap.
 _INSIDE_COST = 1e-3
@@ -50,12 +52,6 @@ class ReconnectSettings:
     max_gap_mm: float = 4.0  # longest stretch outside the segmentation a bridge may cross
     min_occupancy: float = 0.1  # lowest geometric-mean occupancy along that stretch
     threshold: float = 0.5  # the segmentation's occupancy threshold
-
-
-def component_labels(segmentation: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
-    """26-connected component labels (0 background) and the voxel count of each label 1..n."""
-    labels, count = ndimage.label(np.asarray(segmentation, bool), structure=np.ones((3, 3, 3), dtype=bool))
-    return labels, np.bincount(labels.reshape(-1), minlength=count + 1)[1:]
 
 
 def field_values(occupancy: np.ndarray, field_kind: str, alpha: float) -> np.ndarray:

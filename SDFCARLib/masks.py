@@ -60,6 +60,25 @@ class MaskError(ValueError):
     """A mask cannot be used; the message names the problem and the fix."""
 
 
+def single_grey_image(array: Any, not_numeric: str, colour: str, not_2d: str) -> np.ndarray:
+    """The 2-D grey image in ``array``: RGB(A) with equal colour channels and singleton axes are
+    accepted; otherwise a ``MaskError`` with the caller's message, its ``{dtype}``, ``{channels}`` or
+    ``{shape}`` filled in (by replacement: a file name in the message may hold braces)."""
+    a = np.asarray(array)
+    if a.dtype == object or not (np.issubdtype(a.dtype, np.number) or a.dtype == bool):
+        raise MaskError(not_numeric.replace("{dtype}", str(a.dtype)))
+    if a.ndim == 3 and a.shape[-1] in (3, 4):
+        rgb = a[..., :3]
+        if not (np.array_equal(rgb[..., 0], rgb[..., 1]) and np.array_equal(rgb[..., 0], rgb[..., 2])):
+            raise MaskError(colour.replace("{channels}", str(a.shape[-1])))
+        a = rgb[..., 0]
+    if a.ndim == 3 and 1 in (a.shape[0], a.shape[-1]):
+        a = a.reshape(a.shape[1:] if a.shape[0] == 1 else a.shape[:-1])
+    if a.ndim != 2:
+        raise MaskError(not_2d.replace("{shape}", str(a.shape)))
+    return a
+
+
 def binarise_mask(
     array: Any,
     detector_shape: Optional[Sequence[int]] = None,
@@ -71,19 +90,10 @@ def binarise_mask(
     ``label``: keep only pixels equal to this value; None: every non-zero pixel is vessel.
     ``detector_shape``: (rows, cols) the mask must have. ``source`` names the input in messages.
     """
-    a = np.asarray(array)
-    if a.dtype == object or not (np.issubdtype(a.dtype, np.number) or a.dtype == bool):
-        raise MaskError(f"{source}: data type {a.dtype} is not numeric; give a label image with numbers")
-    if a.ndim == 3 and a.shape[-1] in (3, 4):
-        colour = a[..., :3]
-        if not (np.array_equal(colour[..., 0], colour[..., 1]) and np.array_equal(colour[..., 0], colour[..., 2])):
-            raise MaskError(f"{source}: a colour image ({a.shape[-1]} channels with different values) is not a mask; "
-                            "save the segmentation as a single-channel label image")
-        a = colour[..., 0]
-    if a.ndim == 3 and 1 in (a.shape[0], a.shape[-1]):
-        a = a.reshape(a.shape[1:] if a.shape[0] == 1 else a.shape[:-1])
-    if a.ndim != 2:
-        raise MaskError(f"{source}: a mask is a 2-D image (rows, cols), got shape {a.shape}; give one view's mask")
+    a = single_grey_image(array, f"{source}: data type {{dtype}} is not numeric; give a label image with numbers",
+                          f"{source}: a colour image ({{channels}} channels with different values) is not a mask; "
+                          "save the segmentation as a single-channel label image",
+                          f"{source}: a mask is a 2-D image (rows, cols), got shape {{shape}}; give one view's mask")
     if detector_shape is not None:
         expected = tuple(int(v) for v in detector_shape)
         if a.shape != expected:
@@ -168,19 +178,10 @@ class AngioMask:
 
 
 def _frame_array(frame: Any) -> np.ndarray:
-    a = np.asarray(frame)
-    if a.dtype == object or not (np.issubdtype(a.dtype, np.number) or a.dtype == bool):
-        raise MaskError(f"the frame has data type {a.dtype}, not numbers; give a grey-level X-ray frame")
-    if a.ndim == 3 and a.shape[-1] in (3, 4):
-        colour = a[..., :3]
-        if not (np.array_equal(colour[..., 0], colour[..., 1]) and np.array_equal(colour[..., 0], colour[..., 2])):
-            raise MaskError(f"the frame is a colour image ({a.shape[-1]} channels that differ); X-ray frames are "
-                            "grey: give the original grey-level frame (DICOM or a single-channel PNG/TIFF)")
-        a = colour[..., 0]
-    if a.ndim == 3 and 1 in (a.shape[0], a.shape[-1]):
-        a = a.reshape(a.shape[1:] if a.shape[0] == 1 else a.shape[:-1])
-    if a.ndim != 2:
-        raise MaskError(f"a frame is one 2-D image (rows, cols), got shape {a.shape}; pick one frame of the run")
+    a = single_grey_image(frame, "the frame has data type {dtype}, not numbers; give a grey-level X-ray frame",
+                          "the frame is a colour image ({channels} channels that differ); X-ray frames are grey: give "
+                          "the original grey-level frame (DICOM or a single-channel PNG/TIFF)",
+                          "a frame is one 2-D image (rows, cols), got shape {shape}; pick one frame of the run")
     if min(a.shape) < 32:
         raise MaskError(f"the frame is {a.shape[0]}×{a.shape[1]} pixels, too small for vessel detection (32 or more a side)")
     image = a.astype(np.float64)

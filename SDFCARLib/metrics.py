@@ -28,7 +28,7 @@ Undefined values (for example Chamfer distance of an empty prediction) are NaN, 
 
 from __future__ import annotations
 
-from typing import Dict, Optional, Sequence
+from typing import Dict, Optional, Sequence, Tuple
 
 import numpy as np
 from scipy import ndimage
@@ -91,13 +91,20 @@ def skeleton_dice(pred: np.ndarray, label: np.ndarray) -> float:
     return 1.0 if denominator == 0 else float(2.0 * np.logical_and(sp, sl).sum() / denominator)
 
 
+def component_labels(volume: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
+    """26-connected component labels (0 background) and the voxel count of each label 1..n.
+
+    26-connectivity: diagonal voxel contacts along a thin oblique vessel are still one vessel."""
+    labels, count = ndimage.label(_bool(volume), structure=np.ones((3, 3, 3), dtype=bool))
+    return labels, np.bincount(labels.reshape(-1), minlength=count + 1)[1:]
+
+
 def component_counts(volume: np.ndarray) -> Dict[str, float]:
     """Number of 26-connected components of ``volume`` and the share of its voxels in the largest (NaN if empty)."""
-    v = _bool(volume)
-    labels, count = ndimage.label(v, structure=np.ones((3, 3, 3), dtype=bool))
+    _, sizes = component_labels(volume)
+    count = sizes.size
     if count == 0:
         return {"components": 0, "largest_component_fraction": NAN}
-    sizes = np.bincount(labels.reshape(-1), minlength=count + 1)[1:]
     return {"components": int(count), "largest_component_fraction": float(sizes.max() / sizes.sum())}
 
 

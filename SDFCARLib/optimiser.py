@@ -47,7 +47,7 @@ from .consistency import consistency_warnings, view_consistency
 from .mask_checks import mask_warnings, support_masks
 from .masks import MaskError, binarise_mask
 from .connectivity import ReconnectSettings, field_values, reconnect_fragments
-from .metrics import component_counts, mask_dice
+from .metrics import component_counts
 from .projector import ConeBeamProjector, project_volume
 from .qa import qa_warnings, reprojection_qa
 from .pruning import PruneSettings, prune_redundant_branches, removal_zone
@@ -399,9 +399,3 @@ def reprojected_masks(segmentation: np.ndarray, geometry: Geometry,
     volume = segmentation.astype(np.float32)
     return [project_volume(volume, view, geometry.volume) > mask_threshold_mm for view in geometry.views]
 
-
-def reprojection_dice(segmentation: np.ndarray, geometry: Geometry, targets: Sequence[np.ndarray], kind: str,
-                      mask_threshold_mm: float = MASK_THRESHOLD_MM) -> List[float]:
-    """Per view, Dice of the segmentation's projected mask against the view's vessel pixels."""
-    references = [target > 0 if kind == "mask" else target > mask_threshold_mm for target in targets]
-    return [mask_dice(p, r) for p, r in zip(reprojected_masks(segmentation, geometry, mask_threshold_mm), references)]

@@ -5,7 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from SDFCARLib.connectivity import ReconnectSettings, component_labels, field_values, reconnect_fragments
+from SDFCARLib.connectivity import ReconnectSettings, field_values, reconnect_fragments
+from SDFCARLib.metrics import component_labels
 from SDFCARLib.geometry import CArmView, Geometry, VolumeGrid
 from SDFCARLib.metrics import component_counts, volume_metrics
 from SDFCARLib.optimiser import reconstruct

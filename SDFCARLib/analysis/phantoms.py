@@ -28,7 +28,7 @@ Concentric vs eccentric
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Dict, Optional, Sequence, Tuple
+from typing import Dict, Optional, Sequence
 
 import numpy as np
 
@@ -267,9 +267,3 @@ def stenosed_tree(tree: CentrelineTree, branch_name: str, stenosis_pct: float, l
                  "diameter_stenosis_pct": stenosis_pct, "lesion_start_mm": start,
                  "lesion_end_mm": start + lesion_length_mm, "lesion_length_mm": lesion_length_mm}
     return AnalyticPhantom(CentrelineTree(branches, f"{tree.name}-stenosis"), truth)
-
-
-def straight_segment_direction(points_mm: np.ndarray) -> Tuple[np.ndarray, float]:
-    """Unit direction and length of the chord of a polyline (for analytic foreshortening)."""
-    chord = np.asarray(points_mm, float)[-1] - np.asarray(points_mm, float)[0]
-    return chord / np.linalg.norm(chord), float(np.linalg.norm(chord))

@@ -108,15 +108,6 @@ def protocol_geometry(protocol: str, suite_kind: str, grid: Optional[GridOptions
 
 
 # --- folder suites: label volumes -------------------------------------------------------------------
-def _connected_components(label: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
-    from scipy import ndimage
-
-    # 26-connectivity: diagonal voxel contacts along a thin oblique vessel are still one vessel.
-    components, count = ndimage.label(label, structure=np.ones((3, 3, 3), dtype=bool))
-    sizes = np.bincount(components.reshape(-1), minlength=count + 1)[1:]
-    return components, sizes
-
-
 def _resample_nearest(mask: np.ndarray, spacing_in: Sequence[float], spacing_out: float) -> np.ndarray:
     """``mask`` (its voxels' faces spanning the array) resampled by nearest neighbour to ``spacing_out``.
 
@@ -169,7 +160,9 @@ def preprocess_label_volume(label: np.ndarray, grid: VolumeGrid, spacing_mm: flo
     label = np.asarray(label).astype(bool)
     if label.ndim != 3 or label.shape != tuple(grid.shape):
         raise BenchmarkError(f"{name}: label shape {label.shape} does not match its grid {tuple(grid.shape)}")
-    components, sizes = _connected_components(label)
+    from ..metrics import component_labels  # scipy: kept out of the CLI's start
+
+    components, sizes = component_labels(label)
     if sizes.size < 2:
         raise BenchmarkError(
             f"{name}: the label has {sizes.size} connected component(s); the folder suite needs the left and right "
