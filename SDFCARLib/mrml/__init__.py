@@ -12,6 +12,7 @@ Modules (every public name is re-exported here, so ``mrml.X`` works for all of t
                  ``write_result_scene``, reading a segment back on an LPS grid
     ``inputs``   frames and masks from volume, segmentation and sequence nodes; DICOM references
     ``carm``     the C-arm set-up drawn in 3D (sources, detectors with their frames, beams)
+    ``parameter_views``  the Slicer module's views 3, 4, … in its parameter node
 """
 
 from __future__ import annotations
@@ -23,6 +24,9 @@ from .inputs import (add_frame_volume_node, add_mask_segmentation_node, dicom_fr
                      dicom_instance_uid, frame_from_sequence, frame_from_volume_node,
                      mask_from_segmentation_node, mask_from_volume_node, sequence_frame_node,
                      sequence_of_proxy_node, set_segment_mask)
+from .parameter_views import (FIRST_STORED_VIEW, MAX_VIEWS, VIEW_FIELDS, VIEW_NODE_FIELDS, VIEW_VALUE_FIELDS,
+                              ViewParameters, add_view, get_view, get_view_value, remove_view, set_view_count,
+                              set_view_value, view_count)
 from .results import (SEGMENT_COLOR, SEGMENT_NAME, ResultNodes, _oriented_labelmap, _segment_labelmap,
                       add_model_node, add_reconstruction_to_scene, add_segmentation_node, add_volume_node,
                       segment_contains_lps, segmentation_mask_lps, segmentation_surface, write_result_scene)
@@ -46,4 +50,7 @@ __all__ = [
     "sequence_frame_node", "sequence_of_proxy_node", "set_segment_mask",
     # carm
     "VIEW_COLORS", "CArmNodes", "add_carm_geometry_to_scene", "beam_polydata", "detector_image_polydata",
+    # parameter_views
+    "FIRST_STORED_VIEW", "MAX_VIEWS", "VIEW_FIELDS", "VIEW_NODE_FIELDS", "VIEW_VALUE_FIELDS", "ViewParameters",
+    "add_view", "get_view", "get_view_value", "remove_view", "set_view_count", "set_view_value", "view_count",
 ]

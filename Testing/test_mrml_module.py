@@ -1,0 +1,138 @@
+"""The Slicer module's scene pieces against the real MRML of slicer-core (headless).
+
+Views 3, 4, … in the module's parameter node (``mrml.parameter_views``), the reprojection-QA
+overlays as volumes (``mrml.qa_overlays``), a result's folder found from its node, and the 3D-QCA
+nodes grouped in one folder: what the module does in Slicer, on a real scene, saved and reloaded.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+slicer = pytest.importorskip("slicer", reason="the MRML tests need the slicer-core package (pip install slicer-core)")
+
+from SDFCARLib import mrml  # noqa: E402
+from SDFCARLib.mrml import parameter_views as pv  # noqa: E402
+
+
+@pytest.fixture()
+def scene():
+    return mrml.new_scene()
+
+
+def _module_node(scene, name="SDFCAR"):
+    node = scene.AddNewNodeByClass("vtkMRMLScriptedModuleNode", name)
+    node.SetModuleName("SDFCAR")
+    return node
+
+
+def _frame(scene, name, shape=(8, 10)):
+    return mrml.add_frame_volume_node(scene, np.arange(np.prod(shape), dtype=np.float32).reshape(shape), name)
+
+
+def _label(scene, name, shape=(8, 10)):
+    mask = np.zeros(shape, np.uint8)
+    mask[2:5, 3:7] = 1
+    return mrml.add_frame_volume_node(scene, mask, name, class_name="vtkMRMLLabelMapVolumeNode")
+
+
+# --- views 3, 4, … in the parameter node ---------------------------------------------------------------
+def test_a_node_without_extra_views_has_two(scene):
+    node = _module_node(scene)
+    assert pv.view_count(node) == 2
+    with pytest.raises(mrml.MRMLBridgeError, match="no view 3"):
+        pv.get_view(node, 3)
+    with pytest.raises(mrml.MRMLBridgeError, match="wrapper"):
+        pv.get_view(node, 2)
+
+
+def test_add_set_and_read_back_views(scene):
+    node = _module_node(scene)
+    frame, label = _frame(scene, "f3"), _label(scene, "m3")
+    assert pv.add_view(node, {"frame": frame, "primaryAngle": 0.0, "secondaryAngle": 30.0}) == 3
+    assert pv.add_view(node) == 4
+    pv.set_view_value(node, 3, "mask", label)
+    pv.set_view_value(node, 4, "sid", 1200)
+    pv.set_view_value(node, 4, "frameIndex", 5)
+    three, four = pv.get_view(node, 3), pv.get_view(node, 4)
+    assert (three.frame, three.mask, three.secondaryAngle) == (frame, label, 30.0)
+    assert (four.frame, four.mask, four.sid, four.frameIndex) == (None, None, 1200.0, 5)
+    assert isinstance(four.frameIndex, int) and isinstance(four.sid, float)
+    # The same names and text the wrapper uses for views 1 and 2.
+    assert node.GetParameter("secondaryAngle3") == "30.0" and node.GetNodeReferenceID("mask3") == label.GetID()
+    assert pv.view_count(node) == 4
+
+
+def test_values_are_checked_like_the_wrapper_fields(scene):
+    node = _module_node(scene)
+    pv.add_view(node)
+    with pytest.raises(mrml.MRMLBridgeError, match="sid 0 mm is outside 1 mm to 5000 mm"):
+        pv.set_view_value(node, 3, "sid", 0)
+    with pytest.raises(mrml.MRMLBridgeError, match="whole number"):
+        pv.set_view_value(node, 3, "frameIndex", 1.5)
+    with pytest.raises(mrml.MRMLBridgeError, match="vtkMRMLSegmentationNode or a vtkMRMLLabelMapVolumeNode"):
+        pv.set_view_value(node, 3, "mask", _frame(scene, "grey"))
+    with pytest.raises(mrml.MRMLBridgeError, match="no field 'angle'"):
+        pv.set_view_value(node, 3, "angle", 1.0)
+    outside = slicer.vtkMRMLScalarVolumeNode()
+    outside.SetName("not added")
+    with pytest.raises(mrml.MRMLBridgeError, match="not in the scene"):
+        pv.set_view_value(node, 3, "frame", outside)
+    # A failed add leaves the node as it was.
+    before = pv.view_count(node)
+    with pytest.raises(mrml.MRMLBridgeError):
+        pv.add_view(node, {"sod": -1.0})
+    assert pv.view_count(node) == before and not node.HasParameter("sod4")
+
+
+def test_removing_a_middle_view_moves_the_later_ones_up(scene):
+    node = _module_node(scene)
+    frames = [_frame(scene, f"f{n}") for n in (3, 4, 5)]
+    for n, frame in enumerate(frames, start=3):
+        pv.add_view(node, {"frame": frame, "primaryAngle": float(n)})
+    pv.remove_view(node, 3)
+    assert pv.view_count(node) == 4
+    assert [pv.get_view(node, n).frame for n in (3, 4)] == frames[1:]
+    assert [pv.get_view(node, n).primaryAngle for n in (3, 4)] == [4.0, 5.0]
+    assert not node.HasParameter("primaryAngle5") and node.GetNodeReference("frame5") is None
+    # The user's frame nodes stay in the scene: only the parameters moved.
+    assert all(scene.GetNodeByID(f.GetID()) is f for f in frames)
+    pv.set_view_count(node, 2)
+    assert pv.view_count(node) == 2 and not node.HasParameter("viewCount")
+
+
+def test_deleting_a_frame_node_clears_its_reference(scene):
+    node = _module_node(scene)
+    frame = _frame(scene, "f3")
+    pv.add_view(node, {"frame": frame})
+    scene.RemoveNode(frame)
+    assert pv.get_view(node, 3).frame is None
+
+
+@pytest.mark.parametrize("suffix", [".mrml", ".mrb"])
+def test_extra_views_survive_save_and_reload(scene, tmp_path, suffix):
+    node = _module_node(scene)
+    # Views 1 and 2 as the wrapper stores them, next to the stored views.
+    node.SetParameter("primaryAngle1", "30.0")
+    frame, label = _frame(scene, "view 3"), _label(scene, "view 3 mask")
+    pv.add_view(node, {"frame": frame, "mask": label, "primaryAngle": -5.5, "secondaryAngle": 31.0, "sid": 1100.0,
+                       "sod": 760.0, "pixelSpacingRow": 0.3, "pixelSpacingCol": 0.35, "frameIndex": 2})
+    pv.add_view(node, {"primaryAngle": 90.0})
+    path = mrml.save_scene(scene, tmp_path / f"scene{suffix}")
+    loaded = mrml.load_scene(mrml.new_scene(), path)
+    again = loaded.GetFirstNodeByName("SDFCAR")
+    assert pv.view_count(again) == 4 and again.GetParameter("primaryAngle1") == "30.0"
+    three = pv.get_view(again, 3)
+    assert three.frame.GetName() == "view 3" and three.mask.GetName() == "view 3 mask"
+    assert three.mask.IsA("vtkMRMLLabelMapVolumeNode")
+    assert (three.primaryAngle, three.secondaryAngle, three.sid, three.sod) == (-5.5, 31.0, 1100.0, 760.0)
+    assert (three.pixelSpacingRow, three.pixelSpacingCol, three.frameIndex) == (0.3, 0.35, 2)
+    assert pv.get_view(again, 4).primaryAngle == 90.0 and pv.get_view(again, 4).frame is None
+
+
+def test_a_damaged_view_count_is_named(scene):
+    node = _module_node(scene)
+    node.SetParameter("viewCount", "three")
+    with pytest.raises(mrml.MRMLBridgeError, match="viewCount is 'three'"):
+        pv.view_count(node)
