@@ -222,3 +222,59 @@ def write_qa_png(path: Union[str, Path], frame: Optional[np.ndarray], projected_
     path = Path(path)
     iio.imwrite(path, qa_overlay_rgb(frame, projected_mask, mask, title), extension=".png")
     return path
+
+
+def view_warnings(warnings: Sequence[str], view_number: int) -> List[str]:
+    """The warnings of a report that name view ``view_number`` (they start with "view <n>:")."""
+    prefix = f"view {view_number}:"
+    return [str(w) for w in warnings if str(w).startswith(prefix)]
+
+
+def qa_summary(report: Dict[str, Any]) -> List[Dict[str, Any]]:
+    """Per view of a report.json: Dice, the disagreeing areas and shares, the file and the view's warnings.
+
+    One dict per view, in view order: ``view``, ``dice``, ``result_only_mm2``, ``mask_only_mm2``,
+    ``result_only_share``, ``mask_only_share`` (of the mask's area), ``largest_blob_mm2`` (the larger
+    of the two kinds, or None), ``file`` (the overlay's name) and ``warnings``. [] for a report
+    without reprojection QA (written before it existed).
+    """
+    per_view = report.get("reprojection_qa") or []
+    warnings = report.get("warnings") or []
+    rows = []
+    for n, qa in enumerate(per_view, start=1):
+        if not isinstance(qa, dict):
+            continue
+        areas = qa.get("area_mm2") or {}
+        shares = qa.get("share_of_mask") or {}
+        blobs = [b["area_mm2"] for b in (qa.get("largest_blob") or {}).values() if isinstance(b, dict) and "area_mm2" in b]
+        rows.append({
+            "view": n,
+            "dice": qa.get("dice"),
+            "result_only_mm2": areas.get("result_only"),
+            "mask_only_mm2": areas.get("mask_only"),
+            "result_only_share": shares.get("result_only"),
+            "mask_only_share": shares.get("mask_only"),
+            "largest_blob_mm2": max(blobs) if blobs else None,
+            "file": qa_file_name(n),
+            "warnings": view_warnings(warnings, n),
+        })
+    return rows
+
+
+def _formatted(value: Any, pattern: str, scale: float = 1.0) -> str:
+    return pattern.format(scale * value) if isinstance(value, (int, float)) and not isinstance(value, bool) else "?"
+
+
+def qa_summary_lines(report: Dict[str, Any]) -> List[str]:
+    """One line per view for a status panel: Dice, result-only and mask-only areas, warning count."""
+    lines = []
+    for row in qa_summary(report):
+        line = (f"View {row['view']}: Dice {_formatted(row['dice'], '{:.3f}')}, "
+                f"result only {_formatted(row['result_only_mm2'], '{:.1f}')} mm² "
+                f"({_formatted(row['result_only_share'], '{:.0f}', 100)} % of the mask), "
+                f"mask only {_formatted(row['mask_only_mm2'], '{:.1f}')} mm² "
+                f"({_formatted(row['mask_only_share'], '{:.0f}', 100)} %)")
+        if row["warnings"]:
+            line += f"; {len(row['warnings'])} warning(s)"
+        lines.append(line)
+    return lines

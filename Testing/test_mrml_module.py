@@ -136,3 +136,112 @@ def test_a_damaged_view_count_is_named(scene):
     node.SetParameter("viewCount", "three")
     with pytest.raises(mrml.MRMLBridgeError, match="viewCount is 'three'"):
         pv.view_count(node)
+
+
+# --- QA overlays ------------------------------------------------------------------------------------------
+def _qa_result(tmp_path, views=3):
+    """A result folder as outputs.write_reconstruction leaves it: qa_view<n>.png and report.json."""
+    import json
+
+    from SDFCARLib.geometry import CArmView, Geometry, VolumeGrid
+    from SDFCARLib.qa import qa_title, qa_warnings, reprojection_qa, write_qa_png
+
+    shape = (40, 48)
+    geometry = Geometry(VolumeGrid((8, 8, 8), (1.0, 1.0, 1.0)),
+                        tuple(CArmView(30.0 * n, 0.0, 1000.0, 750.0, (0.5, 0.25), shape) for n in range(views)))
+    folder = tmp_path / "result"
+    folder.mkdir()
+    qa, masks = [], []
+    for n, view in enumerate(geometry.views, start=1):
+        mask = np.zeros(shape, bool)
+        mask[10:20, 5:30] = True
+        projected = mask.copy()
+        if n == 2:  # a ghost branch in view 2 only
+            projected[25:35, 10:30] = True
+        qa.append(reprojection_qa(projected, mask, view))
+        masks.append((projected, mask))
+    for n, (projected, mask) in enumerate(masks, start=1):
+        write_qa_png(folder / f"qa_view{n}.png", None, projected, mask, qa_title(n, qa[n - 1]))
+    report = {"reprojection_qa": qa, "warnings": ["view 1: the mask has 3 specks"] + qa_warnings(qa),
+              "files": {f"qa_view{n}": f"qa_view{n}.png" for n in range(1, views + 1)}}
+    (folder / "report.json").write_text(json.dumps(report), encoding="utf-8")
+    return folder, geometry
+
+
+def test_qa_summary_per_view_with_its_warnings(tmp_path):
+    import json
+
+    from SDFCARLib.qa import qa_summary, qa_summary_lines
+
+    folder, _ = _qa_result(tmp_path)
+    report = json.loads((folder / "report.json").read_text())
+    rows = qa_summary(report)
+    assert [r["view"] for r in rows] == [1, 2, 3]
+    assert rows[0]["dice"] == pytest.approx(1.0) and rows[0]["warnings"] == ["view 1: the mask has 3 specks"]
+    assert rows[1]["result_only_mm2"] == pytest.approx(200 * 0.5 * 0.25 * 750 / 1000 * 750 / 1000, rel=1e-6)
+    assert rows[1]["warnings"] and all(w.startswith("view 2:") for w in rows[1]["warnings"])
+    lines = qa_summary_lines(report)
+    assert lines[0].startswith("View 1: Dice 1.000") and "warning(s)" in lines[1] and "warning" not in lines[2]
+    assert qa_summary({}) == [] and qa_summary_lines({"reprojection_qa": [None]}) == []
+
+
+def test_qa_overlays_become_colour_volumes_on_their_frames(scene, tmp_path):
+    from vtk.util import numpy_support
+
+    from SDFCARLib import qa
+
+    folder, geometry = _qa_result(tmp_path)
+    frame = mrml.add_frame_volume_node(scene, np.zeros((40, 48), np.float32), "frame 2", (0.5, 0.25))
+    frame.SetOrigin(10.0, 20.0, 30.0)
+    before = scene.GetNumberOfNodes()
+    nodes = mrml.add_qa_overlays_to_scene(scene, folder, "Case", geometry, frame_nodes=[None, frame])
+    assert [n.GetName() for n in nodes] == ["Case QA view 1", "Case QA view 2", "Case QA view 3"]
+    two = nodes[1]
+    assert two.IsA("vtkMRMLVectorVolumeNode") and two.GetImageData().GetNumberOfScalarComponents() == 3
+    dims = two.GetImageData().GetDimensions()
+    assert dims[1] == 40 + qa.LEGEND_HEIGHT_PX and dims[2] == 1
+    rgb = numpy_support.vtk_to_numpy(two.GetImageData().GetPointData().GetScalars()).reshape(dims[1], dims[0], 3)
+    # Detector pixel (row, col) is voxel (i=col, j=row): the ghost is vermillion, the mask green.
+    assert tuple(rgb[30, 20]) == qa.RESULT_ONLY_RGB and tuple(rgb[15, 20]) == qa.AGREE_RGB
+    # On the frame: same IJK→RAS as the frame node; without one, the view's pixel spacing.
+    for node, reference in ((two, frame),):
+        a, b = mrml.scene._vtk_matrix(np.eye(4)), mrml.scene._vtk_matrix(np.eye(4))
+        node.GetIJKToRASMatrix(a)
+        reference.GetIJKToRASMatrix(b)
+        assert np.allclose(mrml.scene._numpy_matrix(a), mrml.scene._numpy_matrix(b))
+    assert np.allclose(nodes[0].GetSpacing(), (0.25, 0.5, 1.0))
+    assert nodes[1].GetAttribute("SDFCAR.role") == "qa-overlay" and nodes[1].GetAttribute("SDFCAR.view") == "2"
+    assert float(nodes[0].GetAttribute("SDFCAR.qa.dice")) == pytest.approx(1.0)
+    assert "view 2:" in nodes[1].GetAttribute("SDFCAR.qa.warnings")
+    display = two.GetDisplayNode()
+    assert display.IsA("vtkMRMLVectorVolumeDisplayNode") and (display.GetWindow(), display.GetLevel()) == (255.0, 127.5)
+    # A second load adds new nodes and keeps the first ones.
+    again = mrml.add_qa_overlays_to_scene(scene, folder, "Case", geometry)
+    assert scene.GetNumberOfNodes() > before and all(scene.GetNodeByID(n.GetID()) is n for n in nodes + again)
+
+
+def test_qa_overlays_from_a_job_mapping_and_scene_reload(scene, tmp_path):
+    folder, geometry = _qa_result(tmp_path, views=2)
+    files = {"report": str(folder / "report.json"), "qa_view1": str(folder / "qa_view1.png"),
+             "qa_view2": str(folder / "qa_view2.png"), "segmentation": str(folder / "segmentation.seg.nrrd")}
+    nodes = mrml.add_qa_overlays_to_scene(scene, files, "Job", geometry)
+    assert len(nodes) == 2
+    path = mrml.save_scene(scene, tmp_path / "qa.mrb")
+    loaded = mrml.load_scene(mrml.new_scene(), path)
+    node = loaded.GetFirstNodeByName("Job QA view 2")
+    assert node is not None and node.GetImageData().GetNumberOfScalarComponents() == 3
+    assert node.GetAttribute("SDFCAR.role") == "qa-overlay"
+
+
+def test_qa_overlays_fail_cleanly(scene, tmp_path):
+    folder, geometry = _qa_result(tmp_path, views=2)
+    (folder / "qa_view2.png").write_bytes(b"not a png")
+    before = [scene.GetNthNode(i).GetID() for i in range(scene.GetNumberOfNodes())]
+    with pytest.raises(mrml.MRMLBridgeError, match="qa_view2.png"):
+        mrml.add_qa_overlays_to_scene(scene, folder, "Broken", geometry)
+    assert [scene.GetNthNode(i).GetID() for i in range(scene.GetNumberOfNodes())] == before
+    empty = tmp_path / "old"
+    empty.mkdir()
+    assert mrml.add_qa_overlays_to_scene(scene, empty, "Old") == []
+    with pytest.raises(mrml.MRMLBridgeError, match="does not exist"):
+        mrml.add_qa_overlays_to_scene(scene, tmp_path / "missing", "Missing")

@@ -13,6 +13,7 @@ Modules (every public name is re-exported here, so ``mrml.X`` works for all of t
     ``inputs``   frames and masks from volume, segmentation and sequence nodes; DICOM references
     ``carm``     the C-arm set-up drawn in 3D (sources, detectors with their frames, beams)
     ``parameter_views``  the Slicer module's views 3, 4, … in its parameter node
+    ``qa_overlays``  a result's reprojection-QA overlays (qa_view<n>.png) as colour volumes
 """
 
 from __future__ import annotations
@@ -27,6 +28,7 @@ from .inputs import (add_frame_volume_node, add_mask_segmentation_node, dicom_fr
 from .parameter_views import (FIRST_STORED_VIEW, MAX_VIEWS, VIEW_FIELDS, VIEW_NODE_FIELDS, VIEW_VALUE_FIELDS,
                               ViewParameters, add_view, get_view, get_view_value, remove_view, set_view_count,
                               set_view_value, view_count)
+from .qa_overlays import add_qa_overlays_to_scene, qa_overlay_files, read_report, read_rgb_png
 from .results import (SEGMENT_COLOR, SEGMENT_NAME, ResultNodes, _oriented_labelmap, _segment_labelmap,
                       add_model_node, add_reconstruction_to_scene, add_segmentation_node, add_volume_node,
                       segment_contains_lps, segmentation_mask_lps, segmentation_surface, write_result_scene)
@@ -53,4 +55,6 @@ __all__ = [
     # parameter_views
     "FIRST_STORED_VIEW", "MAX_VIEWS", "VIEW_FIELDS", "VIEW_NODE_FIELDS", "VIEW_VALUE_FIELDS", "ViewParameters",
     "add_view", "get_view", "get_view_value", "remove_view", "set_view_count", "set_view_value", "view_count",
+    # qa_overlays
+    "add_qa_overlays_to_scene", "qa_overlay_files", "read_report", "read_rgb_png",
 ]
