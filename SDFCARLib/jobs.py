@@ -25,6 +25,11 @@ Inputs travel as files, never as pickled objects, so the worker can be any Pytho
     paths = job.result()           # or raises JobFailed with the worker's message and traceback
 
 ``run_job(job_dir)`` runs a prepared folder synchronously in this process (tests, small cases).
+
+The 3D-QCA of a finished result (``analysis.outputs.analyse_result_dir``, several seconds) runs the
+same way, so that the Slicer module stays responsive: ``AnalysisJob.start(job_dir, result_dir)``
+writes ``analysis_job.json`` (and the view masks as mask<n>.png when given as arrays) instead of
+job.json and the view images; progress, status.json, cancel and result() are the same.
 """
 
 from __future__ import annotations
@@ -236,6 +241,10 @@ class ReconstructionJob:
         """Start the worker on a prepared folder (validated first). ``python``: interpreter to use."""
         job_dir = Path(job_dir).resolve()
         validate_job_folder(job_dir)
+        return cls._spawn(job_dir, "worker", python)
+
+    @classmethod
+    def _spawn(cls, job_dir: Path, command: str, python: Optional[str]):
         if (job_dir / "status.json").exists() or (job_dir / "progress.jsonl").exists():
             raise JobFolderError(f"{job_dir} has already been run; prepare a new job folder")
         (job_dir / "INCOMPLETE").touch()
@@ -246,7 +255,7 @@ class ReconstructionJob:
         log = open(job_dir / "worker.log", "ab")
         kwargs: Dict[str, Any] = {"stdout": log, "stderr": subprocess.STDOUT, "stdin": subprocess.DEVNULL, "env": env}
         kwargs.update(worker_process_options(os.name == "nt"))
-        process = subprocess.Popen([python or sys.executable, "-m", "SDFCARLib.jobs", "worker", str(job_dir)], **kwargs)
+        process = subprocess.Popen([python or sys.executable, "-m", "SDFCARLib.jobs", command, str(job_dir)], **kwargs)
         job = cls(job_dir, process)
         job._log = log
         return job
@@ -368,11 +377,150 @@ class ReconstructionJob:
         raise JobFailed(message, status.get("traceback", ""))
 
 
+# --- 3D-QCA of a result, in the background ----------------------------------------------------------
+ANALYSIS_MANIFEST = "analysis_job.json"
+
+
+def free_analysis_folder(result_dir: PathLike) -> Path:
+    """``result_dir/analysis``, or analysis-2, analysis-3, … when taken: an earlier analysis is never replaced."""
+    result_dir = Path(result_dir)
+    candidate, n = result_dir / "analysis", 1
+    while candidate.exists():
+        n += 1
+        candidate = result_dir / f"analysis-{n}"
+    return candidate
+
+
+def job_masks(job_dir: PathLike) -> Optional[List[np.ndarray]]:
+    """The view masks of a reconstruction job folder (view<n>.npy), or None when it ran on line integrals
+    or its files are gone."""
+    job_dir = Path(job_dir)
+    try:
+        manifest = json.loads((job_dir / "job.json").read_text(encoding="utf-8"))
+    except (OSError, json.JSONDecodeError):
+        return None
+    if not isinstance(manifest, dict) or manifest.get("target_kind", "mask") != "mask":
+        return None
+    count = int(manifest.get("views") or 0)
+    paths = [job_dir / f"view{n}.npy" for n in range(1, count + 1)]
+    if not paths or not all(p.is_file() for p in paths):
+        return None
+    try:
+        return [np.load(p, allow_pickle=False) != 0 for p in paths]
+    except (ValueError, OSError):
+        return None
+
+
+def prepare_analysis_job(job_dir: PathLike, result_dir: PathLike, out_dir: Optional[PathLike] = None,
+                         masks: Optional[Sequence[Any]] = None, options: Optional[Dict[str, Any]] = None) -> Path:
+    """Write an analysis job folder: the result to analyse, where to write, the view masks (arrays are
+    written as mask<n>.png; paths are kept), ``analyse_result_dir`` keyword options."""
+    from .io import write_mask_png
+
+    job_dir = Path(job_dir)
+    result_dir = Path(result_dir).absolute()
+    if (job_dir / "job.json").exists() or (job_dir / ANALYSIS_MANIFEST).exists():
+        raise JobFolderError(f"{job_dir} already holds a job; choose a new folder for a new job")
+    if not result_dir.is_dir():
+        raise JobFolderError(f"result folder {result_dir} does not exist; the result's files were moved or deleted")
+    if not any((result_dir / f).is_file() for f in ("occupancy.nrrd", "segmentation.seg.nrrd")):
+        raise JobFolderError(f"{result_dir} holds neither occupancy.nrrd nor segmentation.seg.nrrd: it is not the "
+                             "folder of a reconstruction")
+    out = Path(out_dir).absolute() if out_dir is not None else free_analysis_folder(result_dir)
+    job_dir.mkdir(parents=True, exist_ok=True)
+    mask_files: Optional[List[str]] = None
+    if masks is not None:
+        mask_files = []
+        for n, mask in enumerate(masks, start=1):
+            if isinstance(mask, (str, Path)):
+                mask_files.append(str(Path(mask).absolute()))
+            else:
+                mask_files.append(str(write_mask_png(job_dir / f"mask{n}.png", np.asarray(mask))))
+    write_json(job_dir / ANALYSIS_MANIFEST, {"result_dir": str(result_dir), "out_dir": str(out), "masks": mask_files,
+                                             "options": dict(options or {})})
+    return job_dir
+
+
+def _load_analysis_job(job_dir: Path) -> Dict[str, Any]:
+    path = job_dir / ANALYSIS_MANIFEST
+    if not path.is_file():
+        raise JobFolderError(f"{job_dir} has no {ANALYSIS_MANIFEST}; create the folder with prepare_analysis_job()")
+    try:
+        manifest = json.loads(path.read_text(encoding="utf-8"))
+    except json.JSONDecodeError as exc:
+        raise JobFolderError(f"{path} is not valid JSON: {exc.msg}") from exc
+    if not isinstance(manifest, dict) or not manifest.get("result_dir") or not manifest.get("out_dir"):
+        raise JobFolderError(f"{path} must name result_dir and out_dir")
+    return manifest
+
+
+def run_analysis_job(job_dir: PathLike, progress: Optional[Callable[[Dict[str, Any]], None]] = None) -> Dict[str, str]:
+    """Run a prepared analysis job folder in this process; returns {file name: path} and "folder"."""
+    from .analysis.outputs import analyse_result_dir
+
+    job_dir = Path(job_dir)
+    (job_dir / "INCOMPLETE").touch()
+    progress_file = open(job_dir / "progress.jsonl", "ab")
+
+    def on_progress(info: Dict[str, Any]) -> None:
+        progress_file.write((json.dumps(info) + "\n").encode("utf-8"))
+        progress_file.flush()
+        if progress is not None:
+            progress(info)
+
+    try:
+        manifest = _load_analysis_job(job_dir)
+        on_progress({"phase": "analyse", "step": 0, "total": 1})
+        files = analyse_result_dir(manifest["result_dir"], manifest["out_dir"], overwrite=False,
+                                   masks=manifest.get("masks") or None, **dict(manifest.get("options") or {}))
+        paths = {name: str(path) for name, path in files.items()}
+        paths["folder"] = str(Path(manifest["out_dir"]))
+        write_json(job_dir / "status.json", {"state": "finished", "message": "", "outputs": paths})
+        (job_dir / "INCOMPLETE").unlink()
+        on_progress({"phase": "done", "step": 1, "total": 1})
+        return paths
+    except BaseException as exc:  # noqa: BLE001 - the status file must say why, whatever it was
+        write_json(job_dir / "status.json", {"state": "failed", "message": f"{type(exc).__name__}: {exc}",
+                                              "traceback": traceback.format_exc()})
+        raise
+    finally:
+        progress_file.close()
+
+
+def _analysis_main(job_dir: str) -> int:
+    # No SIGTERM handler: the analysis has no step to stop at, so cancel() simply ends the process.
+    try:
+        run_analysis_job(job_dir)
+    except BaseException:  # noqa: BLE001 - status.json already holds the error
+        return 1
+    return 0
+
+
+class AnalysisJob(ReconstructionJob):
+    """Handle on a worker process running the 3D-QCA of a result (module docstring)."""
+
+    @classmethod
+    def start(cls, job_dir: PathLike, result_dir: PathLike, out_dir: Optional[PathLike] = None,  # type: ignore[override]
+              masks: Optional[Sequence[Any]] = None, options: Optional[Dict[str, Any]] = None,
+              python: Optional[str] = None) -> "AnalysisJob":
+        """Write the job folder and start the worker. Bad inputs raise before any start."""
+        prepare_analysis_job(job_dir, result_dir, out_dir, masks, options)
+        return cls.launch(job_dir, python)
+
+    @classmethod
+    def launch(cls, job_dir: PathLike, python: Optional[str] = None) -> "AnalysisJob":
+        job_dir = Path(job_dir).resolve()
+        _load_analysis_job(job_dir)
+        return cls._spawn(job_dir, "analyse", python)
+
+
 def main(argv: Optional[List[str]] = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     if len(argv) == 2 and argv[0] == "worker":
         return _worker_main(argv[1])
-    sys.stderr.write("usage: python -m SDFCARLib.jobs worker JOB_DIR\n")
+    if len(argv) == 2 and argv[0] == "analyse":
+        return _analysis_main(argv[1])
+    sys.stderr.write("usage: python -m SDFCARLib.jobs worker|analyse JOB_DIR\n")
     return 2
 
 

@@ -159,3 +159,68 @@ def test_bad_job_folders_are_rejected_before_start(tiny_case, tmp_path):
         ReconstructionJob.start(tmp_path / "mode", tiny_case.geometry, tiny_case.masks, dict(SMALL, mode="nope"))
     # Nothing was started: no progress or status files anywhere.
     assert not list(tmp_path.glob("*/progress.jsonl")) and not list(tmp_path.glob("*/status.json"))
+
+
+# --- the 3D-QCA of a result in a worker process ------------------------------------------------------
+def test_analysis_job_writes_a_new_folder_each_time(tmp_path):
+    from test_analysis import _result_folder
+
+    from SDFCARLib.jobs import AnalysisJob, free_analysis_folder
+
+    folder, phantom = _result_folder(tmp_path)
+    options = {"view_step_deg": 10.0, "ostium_mm": list(phantom.truth["ostium_mm"])}
+    job = AnalysisJob.start(tmp_path / "qca-job", folder, options=options)
+    assert job.wait(300) == "finished", (job.job_dir / "worker.log").read_text()
+    files = job.result()
+    assert files["folder"] == str(folder / "analysis") and Path(files["analysis.json"]).is_file()
+    assert job.poll()["phase"] == "done"
+    data = json.loads(Path(files["analysis.json"]).read_text())
+    assert data["lesions"] and data["best_view"]
+    # An earlier analysis is never replaced: the next one goes beside it.
+    assert free_analysis_folder(folder) == folder / "analysis-2"
+
+
+def test_analysis_job_reports_the_worker_error(tmp_path):
+    from test_analysis import _result_folder
+
+    from SDFCARLib.jobs import AnalysisJob, prepare_analysis_job, run_analysis_job
+
+    folder, _ = _result_folder(tmp_path)
+    # One mask for a two-view result: the analysis refuses it, and the job says why.
+    job = AnalysisJob.start(tmp_path / "bad", folder, masks=[np.ones((8, 8), bool)], options={"view_step_deg": 30.0})
+    assert job.wait(300) == "failed"
+    with pytest.raises(JobFailed, match="1 masks for 2 views"):
+        job.result()
+    with pytest.raises(JobFolderError, match="does not exist"):
+        prepare_analysis_job(tmp_path / "none", tmp_path / "missing")
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(JobFolderError, match="not the folder of a reconstruction"):
+        prepare_analysis_job(tmp_path / "none", tmp_path / "empty")
+    with pytest.raises(JobFolderError, match="already holds a job"):
+        prepare_analysis_job(tmp_path / "bad", folder)
+    with pytest.raises(JobFolderError, match="has no analysis_job.json"):
+        run_analysis_job(tmp_path / "empty")
+    assert json.loads((tmp_path / "empty" / "status.json").read_text())["state"] == "failed"
+
+
+def test_job_masks_of_a_reconstruction_folder(tiny_case, tmp_path):
+    from SDFCARLib.jobs import job_masks
+
+    prepare_job(tmp_path / "job", tiny_case.geometry, tiny_case.masks, SMALL, name="tiny")
+    masks = job_masks(tmp_path / "job")
+    assert len(masks) == 2 and all(np.array_equal(m, t != 0) for m, t in zip(masks, tiny_case.masks))
+    assert job_masks(tmp_path / "nowhere") is None
+
+
+def test_a_three_view_job_runs_and_writes_three_overlays(tmp_path):
+    """The module hands the worker one mask per view, however many views (here three)."""
+    grid = VolumeGrid((24, 24, 24), (2.0, 2.0, 2.0))
+    views = [CArmView(a, b, 1000.0, 750.0, (1.0, 1.0), (64, 64)) for a, b in ((30.0, 0.0), (-30.0, 0.0), (0.0, 30.0))]
+    tube = CentrelineTree([Branch(np.array([[-12.0, 0, -10], [10.0, 4, 12]]), np.array([3.0, 2.5]))])
+    case = make_case(tube, Geometry(grid, views))
+    job_dir = prepare_job(tmp_path / "job", case.geometry, case.masks, dict(SMALL, steps=10), name="three")
+    assert json.loads((job_dir / "job.json").read_text())["views"] == 3
+    files = run_job(job_dir)
+    assert {"qa_view1", "qa_view2", "qa_view3"} <= set(files)
+    report = json.loads(Path(files["report"]).read_text())
+    assert len(report["reprojection_qa"]) == 3 and len(report["geometry"]["views"]) == 3
