@@ -245,3 +245,89 @@ def test_qa_overlays_fail_cleanly(scene, tmp_path):
     assert mrml.add_qa_overlays_to_scene(scene, empty, "Old") == []
     with pytest.raises(mrml.MRMLBridgeError, match="does not exist"):
         mrml.add_qa_overlays_to_scene(scene, tmp_path / "missing", "Missing")
+
+
+# --- a result's folder, its 3D-QCA in the scene ------------------------------------------------------------
+def test_result_folder_of_a_node(scene, tmp_path):
+    folder = tmp_path / "job" / "output"
+    folder.mkdir(parents=True)
+    (folder / "report.json").write_text("{}", encoding="utf-8")
+    node = scene.AddNewNodeByClass("vtkMRMLSegmentationNode", "r")
+    assert mrml.result_folder_of(node) is None and mrml.result_folder_of(None) is None
+    node.SetAttribute("SDFCAR.jobFolder", str(tmp_path / "job"))  # results loaded by older versions
+    assert mrml.result_folder_of(node) == folder
+    node.SetAttribute("SDFCAR.resultFolder", str(tmp_path / "gone"))  # moved away: the next clue counts
+    assert mrml.result_folder_of(node) == folder
+    opened = scene.AddNewNodeByClass("vtkMRMLSegmentationNode", "from scene.mrml")
+    storage = scene.AddNewNodeByClass("vtkMRMLSegmentationStorageNode")
+    storage.SetFileName(str(folder / "segmentation.seg.nrrd"))
+    opened.SetAndObserveStorageNodeID(storage.GetID())
+    assert mrml.result_folder_of(opened) == folder
+
+
+def _give_new_nodes_items(scene):
+    """As Slicer's subject-hierarchy plugins do: every node added gets an item under the scene."""
+    import vtk
+
+    hierarchy = slicer.vtkMRMLSubjectHierarchyNode.GetSubjectHierarchyNode(scene)
+
+    @vtk.calldata_type(vtk.VTK_OBJECT)
+    def on_added(caller, event, node):
+        if node.IsA("vtkMRMLStorableNode") or node.IsA("vtkMRMLPlotChartNode") or node.IsA("vtkMRMLPlotSeriesNode"):
+            if node.GetHideFromEditors() == 0 and hierarchy.GetItemByDataNode(node) == hierarchy.GetInvalidItemID():
+                hierarchy.CreateItem(hierarchy.GetSceneItemID(), node)
+
+    return scene.AddObserver(slicer.vtkMRMLScene.NodeAddedEvent, on_added)
+
+
+@pytest.mark.parametrize("items", ["bare scene", "items as in Slicer"])
+def test_analysis_in_one_folder_linked_to_its_result(scene, tmp_path, items):
+    from test_analysis import _result_folder
+
+    from SDFCARLib.analysis.mrml_nodes import add_analysis_to_scene, set_camera_to_angles, suggested_view_of
+    from SDFCARLib.analysis.outputs import analyse_result_dir
+
+    folder, phantom = _result_folder(tmp_path)
+    analyse_result_dir(folder, view_step_deg=10.0, ostium_mm=phantom.truth["ostium_mm"])
+    if items != "bare scene":
+        _give_new_nodes_items(scene)
+    result = scene.AddNewNodeByClass("vtkMRMLSegmentationNode", "Case")
+    with pytest.raises(ValueError, match="press Analyse"):
+        suggested_view_of(result)
+    nodes = add_analysis_to_scene(scene, folder / "analysis", "Case", result_node=result)
+    hierarchy = slicer.vtkMRMLSubjectHierarchyNode.GetSubjectHierarchyNode(scene)
+    assert hierarchy.GetItemName(nodes["folder"]) == "Case QCA"
+    grouped = [nodes["table"], nodes["chart"], nodes["view_map"], *nodes["curves"], *nodes["series"]]
+    if items != "bare scene":
+        assert hierarchy.GetItemParent(hierarchy.GetItemByDataNode(result)) == hierarchy.GetSceneItemID()
+    assert all(hierarchy.GetItemParent(hierarchy.GetItemByDataNode(n)) == nodes["folder"] for n in grouped)
+    # The plot: one series per branch, diameter against arc length from the branch's profile table.
+    series = nodes["series"][0]
+    table = scene.GetNodeByID(series.GetTableNodeID())
+    assert (series.GetXColumnName(), series.GetYColumnName()) == ("arc_mm", "diameter_3d_mm")
+    assert table.GetNumberOfRows() > 10 and nodes["chart"].GetNthPlotSeriesNodeID(0) == series.GetID()
+    assert result.GetAttribute("SDFCAR.analysisFolder") == str((folder / "analysis").absolute())
+    best = suggested_view_of(result)
+    assert best == nodes["best_view"]
+    camera = scene.AddNewNodeByClass("vtkMRMLCameraNode")
+    camera.SetFocalPoint(1.0, 2.0, 3.0)
+    camera.SetPosition(1.0, 502.0, 3.0)
+    set_camera_to_angles(camera, best["primary_deg"], best["secondary_deg"])
+    direction = np.subtract(camera.GetPosition(), camera.GetFocalPoint())
+    assert np.linalg.norm(direction) == pytest.approx(500.0) and np.allclose(camera.GetFocalPoint(), (1, 2, 3))
+    # A second analysis adds its own nodes beside the first.
+    again = add_analysis_to_scene(scene, folder / "analysis", "Case", result_node=result)
+    assert again["folder"] != nodes["folder"] and scene.GetNodeByID(nodes["table"].GetID()) is nodes["table"]
+
+
+def test_a_missing_analysis_leaves_the_scene_unchanged(scene, tmp_path):
+    from SDFCARLib.analysis.mrml_nodes import add_analysis_to_scene, suggested_view_of
+
+    before = scene.GetNumberOfNodes()
+    with pytest.raises(FileNotFoundError, match="analyse"):
+        add_analysis_to_scene(scene, tmp_path, "Nothing")
+    assert scene.GetNumberOfNodes() == before
+    result = scene.AddNewNodeByClass("vtkMRMLSegmentationNode", "r")
+    result.SetAttribute("SDFCAR.analysisFolder", str(tmp_path / "deleted"))
+    with pytest.raises(FileNotFoundError, match="moved or deleted"):
+        suggested_view_of(result)

@@ -14,6 +14,10 @@ per-branch CSV profiles) and adds
                                       secondary) in degrees as a one-slice image; attributes
                                       hold the suggested angles
 
+``add_analysis_to_scene`` is what the Slicer module calls: the same nodes, all or nothing, in one
+subject-hierarchy folder, linked to the result segmentation (``SDFCAR.analysisFolder``), which
+``suggested_view_of`` reads back.
+
 ``camera_for_angles`` gives the 3D camera that shows the tree as the C-arm at (α, β) does and
 ``set_camera_to_angles`` applies it to a camera node — the Slicer module's "show suggested view"
 button calls it with the analysis's best angles.
@@ -220,3 +224,72 @@ def set_camera_to_angles(camera_node, primary_deg: float, secondary_deg: float, 
     camera_node.SetFocalPoint(*cam["focal_point"])
     camera_node.SetPosition(*cam["position"])
     camera_node.SetViewUp(*cam["view_up"])
+
+
+def read_best_view(analysis_dir: PathLike) -> Optional[Dict[str, Any]]:
+    """The suggested view (``best_view``: primary_deg, secondary_deg, label, …) of an analysis folder, or None."""
+    path = Path(analysis_dir) / "analysis.json"
+    if not path.is_file():
+        raise FileNotFoundError(f"{path} not found: the analysis folder was moved or deleted; run the analysis again")
+    best = json.loads(path.read_text(encoding="utf-8")).get("best_view")
+    return best if isinstance(best, dict) and "primary_deg" in best and "secondary_deg" in best else None
+
+
+def add_analysis_to_scene(scene, analysis_dir: PathLike, name: str = "SDFCAR", result_node=None,
+                          point_step_mm: float = 2.0) -> Dict[str, Any]:
+    """``add_analysis_nodes`` for the Slicer module: all or nothing, grouped, linked to the result.
+
+    The nodes go into one subject-hierarchy folder "<name> QCA" (item ID under "folder"), so that
+    a tree of many branches does not flood the Data module; ``result_node`` (the result's
+    segmentation) gets the attribute ``SDFCAR.analysisFolder``, which the module reads to show
+    the suggested view after a scene reload. On error the scene is left as it was. Nodes already in
+    the scene (an earlier analysis included) are never changed.
+    """
+    from ..mrml import prepare_scene, scene_transaction
+
+    slicer = _slicer_module()
+    folder = Path(analysis_dir).absolute()
+    prepare_scene(scene)
+    with scene_transaction(scene):
+        nodes = add_analysis_nodes(scene, folder, name=name, point_step_mm=point_step_mm)
+        for key in ("curves", "series"):
+            for node in nodes[key]:
+                node.SetAttribute("SDFCAR.analysisFolder", str(folder))
+        for node in (nodes["table"], nodes["chart"], nodes["view_map"]):
+            if node is not None:
+                node.SetAttribute("SDFCAR.analysisFolder", str(folder))
+    hierarchy = slicer.vtkMRMLSubjectHierarchyNode.GetSubjectHierarchyNode(scene)
+    item = None
+    if hierarchy is not None:
+        item = hierarchy.CreateFolderItem(hierarchy.GetSceneItemID(), f"{name} QCA")
+        members = [*nodes["curves"], nodes["table"], nodes["chart"], *nodes["series"], nodes["view_map"]]
+        members += [scene.GetNodeByID(s.GetTableNodeID()) for s in nodes["series"]]
+        invalid = hierarchy.GetInvalidItemID()
+        for node in members:
+            if node is None:
+                continue
+            node_item = hierarchy.GetItemByDataNode(node)
+            if node_item == invalid:
+                # Slicer's subject-hierarchy plugins give every new node an item; a bare scene does not.
+                hierarchy.CreateItem(item, node)
+            else:
+                hierarchy.SetItemParent(node_item, item)
+    if result_node is not None:
+        result_node.SetAttribute("SDFCAR.analysisFolder", str(folder))
+    nodes["folder"] = item
+    return nodes
+
+
+def suggested_view_of(result_node) -> Dict[str, Any]:
+    """The suggested C-arm view of the latest analysis of a result node (``SDFCAR.analysisFolder``).
+
+    Raises ValueError naming what is missing: no analysis yet, its folder gone, or no view map.
+    """
+    folder = result_node.GetAttribute("SDFCAR.analysisFolder") if result_node is not None else None
+    if not folder:
+        raise ValueError("this result has not been analysed yet: press Analyse first")
+    best = read_best_view(folder)
+    if best is None:
+        raise ValueError(f"the analysis in {folder} has no suggested view (the result has no C-arm geometry in its "
+                         "report.json, so no view map was made)")
+    return best

@@ -30,7 +30,7 @@ from .parameter_views import (FIRST_STORED_VIEW, MAX_VIEWS, VIEW_FIELDS, VIEW_NO
                               set_view_value, view_count)
 from .qa_overlays import add_qa_overlays_to_scene, qa_overlay_files, read_report, read_rgb_png
 from .results import (SEGMENT_COLOR, SEGMENT_NAME, ResultNodes, _oriented_labelmap, _segment_labelmap,
-                      add_model_node, add_reconstruction_to_scene, add_segmentation_node, add_volume_node,
+                      add_model_node, add_reconstruction_to_scene, add_segmentation_node, add_volume_node, result_folder_of,
                       segment_contains_lps, segmentation_mask_lps, segmentation_surface, write_result_scene)
 from .scene import (ATTRIBUTE_PREFIX, LPS_TO_RAS, SCENE_FILE_VERSION, MRMLBridgeError, PathLike, _image_data,
                     _numpy_matrix, _slicer, _vtk_matrix, ijk_to_ras_matrix, load_scene, lps_to_ras, new_scene,
@@ -45,7 +45,7 @@ __all__ = [
     # results
     "RESULT_FILES", "SEGMENT_COLOR", "SEGMENT_NAME", "ResultNodes", "add_model_node", "add_reconstruction_to_scene",
     "add_segmentation_node", "add_volume_node", "segment_contains_lps", "segmentation_mask_lps",
-    "segmentation_surface", "write_result_scene",
+    "result_folder_of", "segmentation_surface", "write_result_scene",
     # inputs
     "add_frame_volume_node", "add_mask_segmentation_node", "dicom_frame_reference", "dicom_instance_uid",
     "frame_from_sequence", "frame_from_volume_node", "mask_from_segmentation_node", "mask_from_volume_node",

@@ -249,6 +249,31 @@ def _add_result_files(scene, files: Dict[str, Path], name: str, include_occupanc
     return ResultNodes(segmentation, model, occupancy, segment_id), report
 
 
+def result_folder_of(node) -> Optional[Path]:
+    """The folder of the result files a result node came from, or None when it cannot be told.
+
+    In order: the ``SDFCAR.resultFolder`` attribute (the Slicer module sets it), the ``output``
+    folder of ``SDFCAR.jobFolder`` (results loaded before that attribute existed), the folder of the
+    node's segmentation file when report.json lies beside it (a result's scene.mrml opened in
+    Slicer). The folder is returned only if it still exists.
+    """
+    if node is None:
+        return None
+    candidates = []
+    for attribute, sub in (("SDFCAR.resultFolder", ""), ("SDFCAR.jobFolder", "output")):
+        value = node.GetAttribute(attribute)
+        if value:
+            candidates.append(Path(value) / sub if sub else Path(value))
+    storage = node.GetStorageNode() if hasattr(node, "GetStorageNode") else None
+    file_name = storage.GetFileName() if storage is not None else None
+    if file_name:
+        candidates.append(Path(file_name).parent)
+    for folder in candidates:
+        if folder.is_dir() and (folder / RESULT_FILES["report"]).is_file():
+            return folder
+    return None
+
+
 # --- segmentation read-back ------------------------------------------------------------------------------
 def segmentation_mask_lps(segmentation_node, grid: VolumeGrid, segment_id: Optional[str] = None) -> np.ndarray:
     """Boolean ``[i, j, k]`` mask of a segment sampled at the voxel centres of an LPS grid."""
