@@ -61,6 +61,7 @@ def test_add_set_and_read_back_views(scene):
     assert isinstance(four.frameIndex, int) and isinstance(four.sid, float)
     # The same names and text the wrapper uses for views 1 and 2.
     assert node.GetParameter("secondaryAngle3") == "30.0" and node.GetNodeReferenceID("mask3") == label.GetID()
+    assert node.GetParameter("frame4Index") == "5" and pv.parameter_name("frameIndex", 1) == "frame1Index"
     assert pv.view_count(node) == 4
 
 

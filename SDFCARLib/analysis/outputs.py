@@ -23,7 +23,7 @@ import csv
 import io as _io
 import json
 from pathlib import Path
-from typing import Any, Dict, Optional, Sequence, Union
+from typing import Any, Dict, List, Optional, Sequence, Union
 
 import numpy as np
 
@@ -198,6 +198,22 @@ def _masks_for(report: Dict[str, Any], geometry: Optional[Geometry], masks: Opti
     if len(paths) != len(geometry.views):
         raise InputError(f"{len(paths)} masks for {len(geometry.views)} views: give one mask per view, in the views' order")
     return [read_mask(p, geometry.views[i].detector_shape, f"mask of view {i + 1}") for i, p in enumerate(paths)], None
+
+
+def analysis_summary_lines(data: Dict[str, Any]) -> List[str]:
+    """The headline of an analysis.json: the tree, each lesion, the suggested view (the command line
+    prints these lines; the Slicer module shows them)."""
+    tree = data.get("tree") or {}
+    lines = [f"3D-QCA: {tree.get('branches', 0)} branches, {float(tree.get('total_length_mm', 0.0)):.1f} mm of centreline"]
+    for lesion in data.get("lesions") or []:
+        lines.append(f"  branch {lesion['branch_id']}: MLD {lesion['mld_mm']:.2f} mm, reference {lesion['reference_diameter_mm']:.2f} mm, "
+                     f"DS {lesion['diameter_stenosis_pct']:.0f}%, AS {lesion['area_stenosis_pct']:.0f}%, "
+                     f"length {lesion['length_mm']:.1f} mm")
+    best = data.get("best_view")
+    if best:
+        lines.append(f"  suggested view: {best['label']} (foreshortening {100 * best['foreshortening']:.1f}%, "
+                     f"overlap {100 * best['overlap']:.0f}%)")
+    return lines
 
 
 def analyse_result_dir(result_dir: PathLike, out_dir: Optional[PathLike] = None, overwrite: bool = False,

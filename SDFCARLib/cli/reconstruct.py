@@ -211,18 +211,12 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
 
 
 def _print_analysis(result_dir: str, out: Optional[str], overwrite: bool, **options: Any) -> None:
-    from ..analysis.outputs import analyse_result_dir
+    from ..analysis.outputs import analyse_result_dir, analysis_summary_lines
 
     files = analyse_result_dir(result_dir, out, overwrite=overwrite, **options)
     data = json.loads(files["analysis.json"].read_text(encoding="utf-8"))
-    print(f"3D-QCA: {data['tree']['branches']} branches, {data['tree']['total_length_mm']:.1f} mm of centreline")
-    for lesion in data["lesions"]:
-        print(f"  branch {lesion['branch_id']}: MLD {lesion['mld_mm']:.2f} mm, reference {lesion['reference_diameter_mm']:.2f} mm, "
-              f"DS {lesion['diameter_stenosis_pct']:.0f}%, AS {lesion['area_stenosis_pct']:.0f}%, length {lesion['length_mm']:.1f} mm")
-    if data.get("best_view"):
-        best = data["best_view"]
-        print(f"  suggested view: {best['label']} (foreshortening {100 * best['foreshortening']:.1f}%, "
-              f"overlap {100 * best['overlap']:.0f}%)")
+    for line in analysis_summary_lines(data):
+        print(line)
     print(f"wrote {len(files)} files to {files['analysis.json'].parent}")
 
 

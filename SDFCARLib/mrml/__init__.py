@@ -28,7 +28,7 @@ from .inputs import (add_frame_volume_node, add_mask_segmentation_node, dicom_fr
 from .parameter_views import (FIRST_STORED_VIEW, MAX_VIEWS, VIEW_FIELDS, VIEW_NODE_FIELDS, VIEW_VALUE_FIELDS,
                               ViewParameters, add_view, get_view, get_view_value, remove_view, set_view_count,
                               set_view_value, view_count)
-from .qa_overlays import add_qa_overlays_to_scene, qa_overlay_files, read_report, read_rgb_png
+from .qa_overlays import add_qa_overlays_to_scene, qa_overlay_files, qa_overlay_nodes, read_report, read_rgb_png
 from .results import (SEGMENT_COLOR, SEGMENT_NAME, ResultNodes, _oriented_labelmap, _segment_labelmap,
                       add_model_node, add_reconstruction_to_scene, add_segmentation_node, add_volume_node, result_folder_of,
                       segment_contains_lps, segmentation_mask_lps, segmentation_surface, write_result_scene)
@@ -56,5 +56,5 @@ __all__ = [
     "FIRST_STORED_VIEW", "MAX_VIEWS", "VIEW_FIELDS", "VIEW_NODE_FIELDS", "VIEW_VALUE_FIELDS", "ViewParameters",
     "add_view", "get_view", "get_view_value", "remove_view", "set_view_count", "set_view_value", "view_count",
     # qa_overlays
-    "add_qa_overlays_to_scene", "qa_overlay_files", "read_report", "read_rgb_png",
+    "add_qa_overlays_to_scene", "qa_overlay_files", "qa_overlay_nodes", "read_report", "read_rgb_png",
 ]

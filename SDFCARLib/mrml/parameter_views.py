@@ -7,9 +7,11 @@ the same names the wrapper uses for views 1 and 2:
 
     viewCount               total number of views (absent: 2)
     frame<n>, mask<n>       node references (role = name), as the wrapper stores a node
-    frameIndex<n>, primaryAngle<n>, secondaryAngle<n>, sid<n>, sod<n>,
+    frame<n>Index, primaryAngle<n>, secondaryAngle<n>, sid<n>, sod<n>,
     pixelSpacingRow<n>, pixelSpacingCol<n>
                             parameters holding ``str(value)``, as the wrapper stores a number
+                            (the field ``frameIndex`` is named ``frame<n>Index``, as the wrapper's
+                            ``frame1Index``)
 
 Why not a ``List[...]`` field of the wrapper: Slicer 5.4–5.8 have a list serializer but no GUI
 connector for lists, and a list of nodes or of parameter packs cannot be bound to the rows the
@@ -74,9 +76,12 @@ class ViewParameters:
 
 
 def parameter_name(field: str, view_number: int) -> str:
-    """The parameter (or reference role) name of a view's field: ``primaryAngle3``, ``frame4``, …"""
+    """The parameter (or reference role) name of a view's field, as the wrapper names those of views
+    1 and 2: ``primaryAngle3``, ``frame4``, ``frame3Index``."""
     if field not in VIEW_FIELDS:
         raise MRMLBridgeError(f"a view has no field {field!r}; the fields are {', '.join(VIEW_FIELDS)}")
+    if field == "frameIndex":
+        return f"frame{int(view_number)}Index"
     return f"{field}{int(view_number)}"
 
 

@@ -18,9 +18,10 @@ from typing import Any, Dict, List, Mapping, Optional, Sequence, Union
 
 import numpy as np
 
-from ..geometry import Geometry
+from ..geometry import Geometry, GeometryError
 from ..qa import qa_summary
-from .scene import MRMLBridgeError, PathLike, _set_attributes, _vtk_matrix, prepare_scene, scene_transaction
+from .scene import (MRMLBridgeError, PathLike, _set_attributes, _vtk_matrix, nodes_by_class, prepare_scene,
+                    scene_transaction)
 
 _QA_KEY = re.compile(r"^qa_view(\d+)$")
 
@@ -106,8 +107,8 @@ def add_qa_overlays_to_scene(
 ) -> List[Any]:
     """Add a result's QA overlays as RGB volume nodes, one per view (module docstring); return them.
 
-    ``result``: a result folder or a job's output mapping; ``geometry``: the views (pixel spacing);
-    ``frame_nodes``: the views' frame volume nodes (None where unknown) to lay each overlay on its
+    ``result``: a result folder or a job's output mapping; ``geometry``: the views (pixel spacing;
+    default: the geometry in report.json); ``frame_nodes``: the views' frame volume nodes (None where unknown) to lay each overlay on its
     frame. A result without overlays (written before they existed) adds nothing. New nodes are
     added on every call; nodes already in the scene are never changed. On error the scene is left
     as it was.
@@ -116,6 +117,11 @@ def add_qa_overlays_to_scene(
     if not files:
         return []
     report = read_report(result)
+    if geometry is None and isinstance(report.get("geometry"), dict):
+        try:
+            geometry = Geometry.from_dict(report["geometry"])
+        except GeometryError:  # only the pixel spacing is taken from it; 1 mm without
+            geometry = None
     summaries = {row["view"]: row for row in qa_summary(report)}
     frames = list(frame_nodes or [])
     prepare_scene(scene)
@@ -145,4 +151,19 @@ def add_qa_overlays_to_scene(
     return nodes
 
 
-__all__ = ["add_qa_overlays_to_scene", "qa_overlay_files", "read_report", "read_rgb_png"]
+def qa_overlay_nodes(scene, result_folder: PathLike) -> Dict[int, Any]:
+    """{view number: overlay node} of the QA overlays in ``scene`` made from ``result_folder``
+    (``SDFCAR.resultFolder`` attribute); the latest added wins when a view was loaded twice."""
+    folder = str(Path(result_folder))
+    found: Dict[int, Any] = {}
+    for node in nodes_by_class(scene, "vtkMRMLVectorVolumeNode"):
+        if node.GetAttribute("SDFCAR.role") != "qa-overlay" or node.GetAttribute("SDFCAR.resultFolder") != folder:
+            continue
+        try:
+            found[int(node.GetAttribute("SDFCAR.view"))] = node
+        except (TypeError, ValueError):
+            continue
+    return dict(sorted(found.items()))
+
+
+__all__ = ["qa_overlay_nodes", "add_qa_overlays_to_scene", "qa_overlay_files", "read_report", "read_rgb_png"]
