@@ -1,7 +1,8 @@
-"""SDFCAR: 3D coronary artery tree from two X-ray angiography views (SDF-CAR), as a Slicer module.
+"""SDFCAR: 3D coronary artery tree from two or more X-ray angiography views (SDF-CAR), as a Slicer module.
 
 A thin GUI over SDFCARLib: every computation lives in the library (``SDFCARLib.mrml`` for the scene,
-``SDFCARLib.jobs`` for the background reconstruction); this file only wires widgets to it.
+``SDFCARLib.jobs`` for the background reconstruction and 3D-QCA, ``SDFCARLib.analysis`` for the
+QCA nodes); this file only wires widgets to it.
 """
 
 import json
@@ -11,7 +12,7 @@ import re
 import sys
 import time
 from pathlib import Path
-from typing import Annotated, Union
+from typing import Annotated, Optional, Union
 
 import qt
 import vtk
@@ -59,6 +60,9 @@ REQUIREMENTS = {
 #: What each action needs, so a user who only loads the sample case is not asked for torch.
 SAMPLE_REQUIREMENTS = ["nrrd", "imageio"]
 VESSELNESS_REQUIREMENTS = ["skimage"]
+# The 3D-QCA reads the result's NRRD files, skeletonises it and writes the masks as PNG files for
+# the worker; matplotlib is optional there (the figures are skipped without it, Slicer plots instead).
+ANALYSIS_REQUIREMENTS = ["skimage", "nrrd", "imageio"]
 # The lists come from the library's torch-free settings module, so the GUI offers what the engine runs.
 PRESETS = list(SDFCARSettings.PRESETS)
 MODES = list(SDFCARSettings.MODES)
@@ -73,11 +77,14 @@ class SDFCAR(ScriptedLoadableModule):
         self.parent.dependencies = []
         self.parent.contributors = ["The SDFCAR authors"]
         self.parent.helpText = """
-Reconstructs the 3D coronary artery tree from two X-ray angiography views by per-patient
-self-supervised optimisation of a signed-distance field (SDF-CAR). Choose the two frames (DICOM
-XA runs or images) and their vessel masks, check the C-arm geometry (filled from the DICOM tags),
-and press Apply. The result is a segmentation ("Coronary tree") and a surface model, with the
-settings, losses and versions stored as node attributes (SDFCAR.*).
+Reconstructs the 3D coronary artery tree from two or more X-ray angiography views by per-patient
+self-supervised optimisation of a signed-distance field (SDF-CAR). Choose the frames (DICOM XA
+runs or images) and their vessel masks — two views, plus any number under "Additional views" —
+check the C-arm geometry (filled from the DICOM tags), and press Apply. The result is a
+segmentation ("Coronary tree") and a surface model, with the settings, losses and versions stored
+as node attributes (SDFCAR.*), and per view an overlay of the mask against the result's
+projection (reprojection QA). "Analyse" measures the tree (3D-QCA: centrelines with diameters,
+lesions, a diameter plot) and suggests the C-arm view that shows the worst lesion best.
 Method: "SDF-CAR: 3D Coronary Artery Reconstruction from Two Views with a Hybrid SDF-Occupancy
 Implicit Representation" (MIDL 2026 submission); please cite it (see Acknowledgment).
 """
@@ -204,6 +211,98 @@ class SDFCARParameterNode:
     outputDirectory: Path
     includeOccupancy: bool = False
     showCArm: bool = True
+    # Views 3, 4, … are stored beside these fields with the node's own API (SDFCARLib.mrml.parameter_views).
+    result: Optional[vtkMRMLSegmentationNode]  # the result the Results section shows and analyses
+    analyseAfterReconstruction: bool = False
+
+
+class AdditionalViewRow:
+    """The widgets of one view after the first two, built in Python because their number changes
+    (the .ui holds views 1 and 2). The ranges, decimals and units are those of the .ui's fields for
+    views 1 and 2 (Testing/test_module_static.py checks them against SDFCARLib.mrml.parameter_views)."""
+
+    #: (field, minimum, maximum, decimals, step, suffix, tooltip), in the order of the .ui's rows.
+    NUMBER_FIELDS = (
+        ("primaryAngle", -180.0, 180.0, 1, 1.0, "°", "Primary angle: LAO positive, RAO negative"),
+        ("secondaryAngle", -90.0, 90.0, 1, 1.0, "°", "Secondary angle: cranial positive, caudal negative"),
+        ("sid", 1.0, 5000.0, 1, 1.0, " mm", "Source to detector distance"),
+        ("sod", 1.0, 5000.0, 1, 1.0, " mm", "Source to isocenter distance"),
+        ("pixelSpacingRow", 0.001, 10.0, 4, 0.001, " mm", "Detector pixel spacing between rows"),
+        ("pixelSpacingCol", 0.001, 10.0, 4, 0.001, " mm", "Detector pixel spacing between columns"),
+    )
+
+    def __init__(self, n):
+        self.n = n
+        self.updating = False  # True while the widgets are set from the parameter node
+        self.box = qt.QGroupBox(f"View {n}")
+        form = qt.QFormLayout(self.box)
+        self.frameSelector = self._nodeSelector(["vtkMRMLScalarVolumeNode"],
+                                                f"The X-ray frame of view {n}: a 2D image, or a cine run loaded by the DICOM module (sequence)")
+        form.addRow("Frame:", self.frameSelector)
+        self.frameIndexSpinBox = qt.QSpinBox()
+        self.frameIndexSpinBox.setRange(-1, 100000)
+        self.frameIndexSpinBox.specialValueText = "shown"
+        self.frameIndexSpinBox.toolTip = "For a cine run: the frame (0-based) to reconstruct from; 'shown' takes the frame on display"
+        form.addRow("Frame index:", self.frameIndexSpinBox)
+        self.maskSelector = self._nodeSelector(["vtkMRMLSegmentationNode", "vtkMRMLLabelMapVolumeNode"],
+                                               f"The vessels of frame {n}: a segmentation on the frame or a labelmap")
+        self.editMaskButton = qt.QPushButton("Edit")
+        self.editMaskButton.toolTip = f"Paint the vessels of frame {n} in Segment Editor (creates the segmentation if needed)"
+        self.vesselnessButton = qt.QPushButton("Vesselness")
+        self.vesselnessButton.toolTip = f"Seed the mask of frame {n} with a vesselness filter; refine it with Edit"
+        maskRow = qt.QHBoxLayout()
+        for widget in (self.maskSelector, self.editMaskButton, self.vesselnessButton):
+            maskRow.addWidget(widget)
+        form.addRow("Mask:", maskRow)
+        self.spinBoxes = {}
+        for field, minimum, maximum, decimals, step, suffix, tooltip in self.NUMBER_FIELDS:
+            spinBox = qt.QDoubleSpinBox()
+            spinBox.decimals = decimals  # before the range: the range is rounded to the decimals
+            spinBox.setRange(minimum, maximum)
+            spinBox.singleStep = step
+            spinBox.suffix = suffix
+            spinBox.toolTip = tooltip
+            self.spinBoxes[field] = spinBox
+        for label, fields in (("Angles:", ("primaryAngle", "secondaryAngle")), ("SID, SOD:", ("sid", "sod")),
+                              ("Pixel spacing:", ("pixelSpacingRow", "pixelSpacingCol"))):
+            row = qt.QHBoxLayout()
+            for field in fields:
+                row.addWidget(self.spinBoxes[field])
+            form.addRow(label, row)
+        self.removeButton = qt.QPushButton(f"Remove view {n}")
+        self.removeButton.toolTip = "Remove this view from the reconstruction (its frame and mask stay in the scene)"
+        form.addRow(self.removeButton)
+
+    @staticmethod
+    def _nodeSelector(nodeTypes, toolTip):
+        selector = slicer.qMRMLNodeComboBox()
+        selector.nodeTypes = nodeTypes
+        selector.showChildNodeTypes = False
+        # None allowed: with a first node chosen automatically, adding a view would pick a frame unasked.
+        selector.noneEnabled = True
+        selector.addEnabled = False
+        selector.removeEnabled = False
+        selector.renameEnabled = True
+        selector.toolTip = toolTip
+        selector.setMRMLScene(slicer.mrmlScene)
+        return selector
+
+    def setValues(self, view):
+        """Show a ViewParameters (SDFCARLib.mrml.parameter_views) without writing it back."""
+        self.updating = True
+        try:
+            if self.frameSelector.currentNode() is not view.frame:
+                self.frameSelector.setCurrentNode(view.frame)
+            if self.maskSelector.currentNode() is not view.mask:
+                self.maskSelector.setCurrentNode(view.mask)
+            self.frameIndexSpinBox.value = int(view.frameIndex)
+            for field, spinBox in self.spinBoxes.items():
+                spinBox.value = float(getattr(view, field))
+            hasFrame = view.frame is not None
+            self.editMaskButton.enabled = hasFrame
+            self.vesselnessButton.enabled = hasFrame
+        finally:
+            self.updating = False
 
 
 class SDFCARWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
@@ -215,7 +314,11 @@ class SDFCARWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
         self._parameterNodeGuiTag = None
         self._job = None
         self._jobContext = None
-        # Progress comes from the worker process; polling keeps the GUI responsive.
+        self._analysisJob = None
+        self._analysisContext = None
+        self._viewRows = []
+        self._resultPanelKey = None
+        # Progress comes from the worker processes; polling keeps the GUI responsive.
         self._timer = qt.QTimer()
         self._timer.setInterval(500)
         self._timer.timeout.connect(self.onPollJob)
@@ -227,24 +330,34 @@ class SDFCARWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
         self.ui = slicer.util.childWidgetVariables(uiWidget)
         uiWidget.setMRMLScene(slicer.mrmlScene)
         self.logic = SDFCARLogic()
-
         self.addObserver(slicer.mrmlScene, slicer.mrmlScene.StartCloseEvent, self.onSceneStartClose)
         self.addObserver(slicer.mrmlScene, slicer.mrmlScene.EndCloseEvent, self.onSceneEndClose)
+        self.connectWidgets()
+        self.initializeParameterNode()
+
+    def connectWidgets(self):
+        """Connect the .ui's widgets to the handlers (separate from setup() so tests can run it)."""
+        # Only SDFCAR results (their segmentations carry SDFCAR.role = segmentation) are offered.
+        self.ui.resultSelector.addAttribute("vtkMRMLSegmentationNode", "SDFCAR.role", "segmentation")
         self.ui.editMask1Button.connect("clicked(bool)", lambda: self.onEditMask(1))
         self.ui.editMask2Button.connect("clicked(bool)", lambda: self.onEditMask(2))
         self.ui.vesselness1Button.connect("clicked(bool)", lambda: self.onVesselness(1))
         self.ui.vesselness2Button.connect("clicked(bool)", lambda: self.onVesselness(2))
+        self.ui.addViewButton.connect("clicked(bool)", self.onAddView)
         self.ui.readGeometryButton.connect("clicked(bool)", self.onReadGeometry)
         self.ui.showCArmButton.connect("clicked(bool)", self.onShowCArm)
         self.ui.applyButton.connect("clicked(bool)", self.onApplyButton)
+        self.ui.showQAButton.connect("clicked(bool)", self.onShowQA)
+        self.ui.analyseButton.connect("clicked(bool)", self.onAnalyse)
+        self.ui.suggestedViewButton.connect("clicked(bool)", self.onSuggestedView)
         self.ui.progressBar.setVisible(False)
-        self.initializeParameterNode()
 
     def cleanup(self):
         self.removeObservers()
         self._timer.stop()
-        if self._job is not None and self._job.state == "running":
-            self._job.cancel()
+        for job in (self._job, self._analysisJob):
+            if job is not None and job.state == "running":
+                job.cancel()
 
     def enter(self):
         self.initializeParameterNode()
@@ -271,43 +384,93 @@ class SDFCARWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
             self._parameterNodeGuiTag = None
             self.removeObserver(self._parameterNode, vtk.vtkCommand.ModifiedEvent, self._checkCanApply)
         self._parameterNode = inputParameterNode
+        self._resultPanelKey = None
         if self._parameterNode:
             self._parameterNodeGuiTag = self._parameterNode.connectParametersToGui(parameterWidgets(self.ui))
             self.addObserver(self._parameterNode, vtk.vtkCommand.ModifiedEvent, self._checkCanApply)
-            self._checkCanApply()
+        # Called without a node too: a closed scene leaves no rows of views 3, 4, … behind.
+        self._checkCanApply()
 
     def _checkCanApply(self, caller=None, event=None):
         p = self._parameterNode
+        self._syncViewRows()
         for n in (1, 2):
             hasFrame = bool(p and getattr(p, f"frame{n}"))
             getattr(self.ui, f"editMask{n}Button").enabled = hasFrame
             getattr(self.ui, f"vesselness{n}Button").enabled = hasFrame
+        self._updateResultPanel()
         if self._job is not None:
             self.ui.applyButton.enabled = True  # it is the Cancel button now
             return
-        ready = bool(p and p.frame1 and p.mask1 and p.frame2 and p.mask2)
-        self.ui.applyButton.enabled = ready
-        self.ui.applyButton.toolTip = "Reconstruct the coronary tree" if ready else "Choose both frames and their masks"
+        missing = self.logic.missingInputs(p) if p else "no parameter node"
+        self.ui.applyButton.enabled = not missing
+        self.ui.applyButton.toolTip = "Reconstruct the coronary tree" if not missing else missing
+
+    # --- views 3, 4, … ----------------------------------------------------------------------------
+    def _syncViewRows(self):
+        """One row of widgets per view after the first two, showing the parameter node's values."""
+        p = self._parameterNode
+        count = self.logic.viewCount(p) if p else 2
+        container = self.ui.additionalViewsWidget.layout()
+        while len(self._viewRows) < count - 2:
+            row = AdditionalViewRow(len(self._viewRows) + 3)
+            self._connectViewRow(row)
+            container.addWidget(row.box)
+            self._viewRows.append(row)
+        while len(self._viewRows) > max(count - 2, 0):
+            row = self._viewRows.pop()
+            row.box.setParent(None)
+            row.box.deleteLater()
+        for row in self._viewRows:
+            row.setValues(self.logic.viewParameters(p, row.n))
+
+    def _connectViewRow(self, row):
+        n = row.n
+        row.frameSelector.connect("currentNodeChanged(vtkMRMLNode*)", lambda node: self.onViewValueChanged(row, "frame", node))
+        row.maskSelector.connect("currentNodeChanged(vtkMRMLNode*)", lambda node: self.onViewValueChanged(row, "mask", node))
+        row.frameIndexSpinBox.connect("valueChanged(int)", lambda value: self.onViewValueChanged(row, "frameIndex", value))
+        for field, spinBox in row.spinBoxes.items():
+            spinBox.connect("valueChanged(double)", lambda value, field=field: self.onViewValueChanged(row, field, value))
+        row.editMaskButton.connect("clicked(bool)", lambda: self.onEditMask(n))
+        row.vesselnessButton.connect("clicked(bool)", lambda: self.onVesselness(n))
+        row.removeButton.connect("clicked(bool)", lambda: self.onRemoveView(n))
+
+    def onViewValueChanged(self, row, field, value):
+        if row.updating or self._parameterNode is None:
+            return
+        with slicer.util.tryWithErrorDisplay(f"Could not set the {field} of view {row.n}."):
+            self.logic.setViewValue(self._parameterNode, row.n, field, value)
+
+    def onAddView(self):
+        with slicer.util.tryWithErrorDisplay("Could not add a view."):
+            n = self.logic.addView(self._parameterNode)
+            self.ui.statusLabel.text = (f"View {n} added (SID, SOD and pixel spacing copied from view {n - 1}): choose its "
+                                        "frame and mask and enter its angles.")
+
+    def onRemoveView(self, n):
+        with slicer.util.tryWithErrorDisplay(f"Could not remove view {n}."):
+            self.logic.removeView(self._parameterNode, n)
+            self.ui.statusLabel.text = f"View {n} removed; its frame and mask are still in the scene."
 
     # --- masks and geometry ---------------------------------------------------------------------
     def onEditMask(self, n):
         with slicer.util.tryWithErrorDisplay(f"Could not open the mask of frame {n} for editing.", waitCursor=True):
             p = self._parameterNode
-            frame = getattr(p, f"frame{n}")
-            segmentation = self.logic.maskSegmentation(frame, getattr(p, f"mask{n}"))
-            setattr(p, f"mask{n}", segmentation)
-            self.logic.editInSegmentEditor(segmentation, frame, getattr(p, f"frame{n}Index"))
+            frame = self.logic.viewValue(p, n, "frame")
+            segmentation = self.logic.maskSegmentation(frame, self.logic.viewValue(p, n, "mask"))
+            self.logic.setViewValue(p, n, "mask", segmentation)
+            self.logic.editInSegmentEditor(segmentation, frame, self.logic.viewValue(p, n, "frameIndex"))
 
     def onVesselness(self, n):
         with slicer.util.tryWithErrorDisplay(f"Vesselness could not segment frame {n}.", waitCursor=True):
             if not self.logic.ensureDependencies(VESSELNESS_REQUIREMENTS):
                 return
             p = self._parameterNode
+            view = self.logic.viewParameters(p, n)
             segmentation, parameters = self.logic.vesselnessMask(
-                getattr(p, f"frame{n}"), getattr(p, f"frame{n}Index"), getattr(p, f"mask{n}"),
-                pixelSpacingMm=(getattr(p, f"pixelSpacingRow{n}"), getattr(p, f"pixelSpacingCol{n}")),
-                magnification=getattr(p, f"sid{n}") / getattr(p, f"sod{n}"))
-            setattr(p, f"mask{n}", segmentation)
+                view.frame, view.frameIndex, view.mask, pixelSpacingMm=(view.pixelSpacingRow, view.pixelSpacingCol),
+                magnification=view.sid / view.sod)
+            self.logic.setViewValue(p, n, "mask", segmentation)
             self.ui.statusLabel.text = (f"Vessel mask: {100 * parameters['vessel_fraction']:.1f} % of frame {n} in "
                                         f"{parameters['components']} piece(s), collimator excluded; refine it with Edit.")
 
@@ -336,10 +499,15 @@ class SDFCARWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
             self._timer.start()
 
     def onPollJob(self):
-        job = self._job
-        if job is None:
+        if self._job is not None:
+            self._pollReconstruction()
+        if self._analysisJob is not None:
+            self._pollAnalysis()
+        if self._job is None and self._analysisJob is None:
             self._timer.stop()
-            return
+
+    def _pollReconstruction(self):
+        job = self._job
         info = job.poll()
         if info:
             self.ui.progressBar.maximum = max(1, int(info.get("total") or 1))
@@ -348,7 +516,6 @@ class SDFCARWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
         state = job.state
         if state == "running":
             return
-        self._timer.stop()
         self._job, context = None, self._jobContext
         self.ui.applyButton.text = "Apply"
         self.ui.progressBar.setVisible(False)
@@ -364,14 +531,94 @@ class SDFCARWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
             self.ui.statusLabel.text = "Failed: the scene is unchanged."
             slicer.util.errorDisplay(f"The reconstruction failed: {exc.message}", detailedText=exc.traceback_text)
             return
+        nodes = None
         with slicer.util.tryWithErrorDisplay("The reconstruction finished but its results could not be loaded.", waitCursor=True):
-            self.logic.addResults(files, context)
-            self.ui.statusLabel.text = f"Done: '{context['name']}' is in the scene (files in {context['jobDir']})."
+            nodes = self.logic.addResults(files, context)
+            self.ui.statusLabel.text = (f"Done: '{context['name']}' is in the scene (files in {context['jobDir']}); "
+                                        "its reprojection QA is under Results.")
+        if nodes is not None and self._parameterNode is not None:
+            self._parameterNode.result = nodes.segmentation  # the Results section shows the new result
         warnings = reportWarnings(files)
         if warnings:
             self.ui.statusLabel.text += f" {len(warnings)} warning(s)."
             slicer.util.warningDisplay("The reconstruction finished with warnings:\n\n" + "\n\n".join(warnings),
                                        windowTitle="SDFCAR")
+        if nodes is not None and context.get("analyse"):
+            with slicer.util.tryWithErrorDisplay("The result is in the scene, but its analysis could not start.", waitCursor=True):
+                if self.logic.ensureDependencies(ANALYSIS_REQUIREMENTS):
+                    self._startAnalysis(nodes.segmentation)
+
+    # --- results: QA and 3D-QCA -------------------------------------------------------------------
+    def _updateResultPanel(self):
+        p = self._parameterNode
+        node = p.result if p else None
+        running = self._analysisJob is not None
+        self.ui.showQAButton.enabled = node is not None
+        self.ui.analyseButton.enabled = node is not None and not running
+        self.ui.suggestedViewButton.enabled = bool(node is not None and node.GetAttribute("SDFCAR.analysisFolder"))
+        # None in _resultPanelKey means "not shown yet", so no result has its own key.
+        key = ("no result",) if node is None else (node.GetID(), node.GetAttribute("SDFCAR.resultFolder"),
+                                                   node.GetAttribute("SDFCAR.analysisFolder"))
+        if key == self._resultPanelKey:
+            return  # report.json and analysis.json are read once per result, not on every edit
+        self._resultPanelKey = key
+        if node is None:
+            self.ui.qaLabel.text = "Choose a result (or reconstruct one)."
+            self.ui.analysisLabel.text = ""
+            return
+        qaText, views = self.logic.resultQAText(node)
+        self.ui.qaLabel.text = qaText
+        self.ui.qaViewSpinBox.maximum = max(1, views)
+        self.ui.analysisLabel.text = self.logic.analysisText(node)
+
+    def onShowQA(self):
+        with slicer.util.tryWithErrorDisplay("Could not show the QA overlay.", waitCursor=True):
+            self.logic.showQAOverlay(self._parameterNode.result, int(self.ui.qaViewSpinBox.value))
+
+    def onAnalyse(self):
+        with slicer.util.tryWithErrorDisplay("Could not start the analysis.", waitCursor=True):
+            if not self.logic.ensureDependencies(ANALYSIS_REQUIREMENTS):
+                return
+            self._startAnalysis(self._parameterNode.result)
+
+    def _startAnalysis(self, resultNode):
+        # Not wrapped in tryWithErrorDisplay: each caller shows its own message (the wrapper re-raises).
+        self._analysisJob, self._analysisContext = self.logic.startAnalysis(resultNode)
+        self.ui.analyseButton.enabled = False
+        self.ui.statusLabel.text = f"Analysing '{resultNode.GetName()}' (3D-QCA)…"
+        self._timer.start()
+
+    def _pollAnalysis(self):
+        job = self._analysisJob
+        job.poll()
+        state = job.state
+        if state == "running":
+            return
+        self._analysisJob, context = None, self._analysisContext
+        self._resultPanelKey = None
+        self._checkCanApply()
+        if state == "cancelled":
+            self.ui.statusLabel.text = "Analysis cancelled."
+            return
+        import SDFCARLib.jobs
+
+        try:
+            files = job.result()
+        except SDFCARLib.jobs.JobFailed as exc:
+            self.ui.statusLabel.text = "The analysis failed: the scene is unchanged."
+            slicer.util.errorDisplay(f"The 3D-QCA failed: {exc.message}", detailedText=exc.traceback_text)
+            return
+        with slicer.util.tryWithErrorDisplay("The analysis finished but its results could not be loaded.", waitCursor=True):
+            self.logic.addAnalysis(files, context)
+            self.ui.statusLabel.text = (f"3D-QCA of '{context['name']}' done: curves, table and diameter plot are in the scene "
+                                        f"(folder '{context['name']} QCA'; files in {files['folder']}).")
+        self._resultPanelKey = None
+        self._checkCanApply()
+
+    def onSuggestedView(self):
+        with slicer.util.tryWithErrorDisplay("Could not show the suggested view.", waitCursor=True):
+            best = self.logic.showSuggestedView(self._parameterNode.result)
+            self.ui.statusLabel.text = f"3D view: the suggested C-arm view {best.get('label', '')} (as the detector sees it)."
 
 
 def parameterWidgets(ui):
@@ -557,35 +804,95 @@ class SDFCARLogic(ScriptedLoadableModuleLogic):
         segmentation.SetAttribute("SDFCAR.vesselness", str(parameters))
         return segmentation, parameters
 
-    # --- geometry ---------------------------------------------------------------------------------
+    # --- views ------------------------------------------------------------------------------------
+    # Views 1 and 2 are fields of the parameter-node wrapper; views 3, 4, … are stored beside them
+    # (SDFCARLib.mrml.parameter_views). These methods read and write any view the same way.
     @staticmethod
-    def geometryFromParameters(p, detectorShapes):
+    def viewCount(p):
+        from SDFCARLib.mrml import parameter_views
+
+        return parameter_views.view_count(p.parameterNode)
+
+    @staticmethod
+    def viewValue(p, n, field):
+        from SDFCARLib.mrml import parameter_views
+
+        if n < parameter_views.FIRST_STORED_VIEW:
+            return getattr(p, parameter_views.parameter_name(field, n))
+        return parameter_views.get_view_value(p.parameterNode, n, field)
+
+    @staticmethod
+    def setViewValue(p, n, field, value):
+        from SDFCARLib.mrml import parameter_views
+
+        if n < parameter_views.FIRST_STORED_VIEW:
+            kind = parameter_views.VIEW_VALUE_FIELDS.get(field, (None,))[0]
+            setattr(p, parameter_views.parameter_name(field, n), kind(value) if kind is not None else value)
+        else:
+            parameter_views.set_view_value(p.parameterNode, n, field, value)
+
+    def viewParameters(self, p, n):
+        """All fields of view ``n`` (SDFCARLib.mrml.parameter_views.ViewParameters)."""
+        from SDFCARLib.mrml import parameter_views
+
+        if n >= parameter_views.FIRST_STORED_VIEW:
+            return parameter_views.get_view(p.parameterNode, n)
+        return parameter_views.ViewParameters(**{f: self.viewValue(p, n, f) for f in parameter_views.VIEW_FIELDS})
+
+    def addView(self, p, values=None):
+        """Append a view; SID, SOD and pixel spacing start as the last view's (same C-arm). Returns its number."""
+        from SDFCARLib.mrml import parameter_views
+
+        last = self.viewParameters(p, self.viewCount(p))
+        start = {f: getattr(last, f) for f in ("sid", "sod", "pixelSpacingRow", "pixelSpacingCol")}
+        start.update(values or {})
+        return parameter_views.add_view(p.parameterNode, start)
+
+    @staticmethod
+    def removeView(p, n):
+        """Remove view ``n`` (3 or later); later views move up. Its frame and mask nodes stay in the scene."""
+        from SDFCARLib.mrml import parameter_views
+
+        parameter_views.remove_view(p.parameterNode, n)
+
+    def missingInputs(self, p):
+        """What Apply still needs, as a sentence ("" when every view has its frame and mask)."""
+        for n in range(1, self.viewCount(p) + 1):
+            if not self.viewValue(p, n, "frame"):
+                return f"Choose the frame of view {n}" + (" (or remove the view)" if n > 2 else "")
+            if not self.viewValue(p, n, "mask"):
+                return f"Choose the mask of view {n}, or make one with Edit or Vesselness"
+        return ""
+
+    # --- geometry ---------------------------------------------------------------------------------
+    def geometryFromParameters(self, p, detectorShapes):
         """The Geometry the parameters describe (volume centre entered in RAS, kept in LPS)."""
         from SDFCARLib import mrml
         from SDFCARLib.geometry import CArmView, Geometry, VolumeGrid
 
         views = []
         for n, shape in enumerate(detectorShapes, start=1):
-            views.append(CArmView(
-                getattr(p, f"primaryAngle{n}"), getattr(p, f"secondaryAngle{n}"), getattr(p, f"sid{n}"), getattr(p, f"sod{n}"),
-                (getattr(p, f"pixelSpacingRow{n}"), getattr(p, f"pixelSpacingCol{n}")), tuple(int(s) for s in shape)))
+            v = self.viewParameters(p, n)
+            views.append(CArmView(v.primaryAngle, v.secondaryAngle, v.sid, v.sod, (v.pixelSpacingRow, v.pixelSpacingCol),
+                                  tuple(int(s) for s in shape)))
         center = mrml.ras_to_lps([p.centerR, p.centerA, p.centerS])
         grid = VolumeGrid((int(p.volumeSize),) * 3, (float(p.voxelSpacing),) * 3, tuple(float(c) for c in center))
         return Geometry(grid, tuple(views))
 
-    @staticmethod
-    def setViewParameters(p, n, view):
-        setattr(p, f"primaryAngle{n}", float(view.primary_deg))
-        setattr(p, f"secondaryAngle{n}", float(view.secondary_deg))
-        setattr(p, f"sid{n}", float(view.sid_mm))
-        setattr(p, f"sod{n}", float(view.sod_mm))
-        setattr(p, f"pixelSpacingRow{n}", float(view.pixel_spacing_mm[0]))
-        setattr(p, f"pixelSpacingCol{n}", float(view.pixel_spacing_mm[1]))
+    def setViewParameters(self, p, n, view):
+        for field, value in (("primaryAngle", view.primary_deg), ("secondaryAngle", view.secondary_deg), ("sid", view.sid_mm),
+                             ("sod", view.sod_mm), ("pixelSpacingRow", view.pixel_spacing_mm[0]),
+                             ("pixelSpacingCol", view.pixel_spacing_mm[1])):
+            self.setViewValue(p, n, field, float(value))
 
     def setGeometryParameters(self, p, geometry):
+        """Fill the fields from a Geometry; the module gets as many views as it has (views beyond
+        them are removed from the parameters, their nodes stay in the scene)."""
         from SDFCARLib import mrml
+        from SDFCARLib.mrml import parameter_views
 
-        for n, view in enumerate(geometry.views[:2], start=1):
+        parameter_views.set_view_count(p.parameterNode, len(geometry.views))
+        for n, view in enumerate(geometry.views, start=1):
             self.setViewParameters(p, n, view)
         p.volumeSize = int(max(geometry.volume.shape))
         p.voxelSpacing = float(max(geometry.volume.spacing_mm))
@@ -597,8 +904,9 @@ class SDFCARLogic(ScriptedLoadableModuleLogic):
         from SDFCARLib.dicom import view_from_dicom
 
         notes = []
-        for n in (1, 2):
-            uid, fileFrame = mrml.dicom_frame_reference(slicer.mrmlScene, getattr(p, f"frame{n}"), getattr(p, f"frame{n}Index"))
+        for n in range(1, self.viewCount(p) + 1):
+            uid, fileFrame = mrml.dicom_frame_reference(slicer.mrmlScene, self.viewValue(p, n, "frame"),
+                                                        self.viewValue(p, n, "frameIndex"))
             # slicer.dicomDatabase does not exist while the DICOM module is disabled.
             database = getattr(slicer, "dicomDatabase", None)
             if uid and not database:
@@ -613,11 +921,27 @@ class SDFCARLogic(ScriptedLoadableModuleLogic):
             notes += [f"View {n}: {note}" for note in provenance.get("notes", [])]
         return notes
 
-    def inputs(self, p):
-        """(geometry, masks, frames) of the parameter node's choices, as arrays (rows, cols)."""
-        frames = [self.frameArray(p.frame1, p.frame1Index), self.frameArray(p.frame2, p.frame2Index)]
-        masks = [self.maskArray(p.mask1, p.frame1, p.frame1Index), self.maskArray(p.mask2, p.frame2, p.frame2Index)]
-        return self.geometryFromParameters(p, [m.shape for m in masks]), masks, frames
+    def _viewInputs(self, frameNodes, maskNodes, frameIndices):
+        """(frames, masks, nodes holding the frames) as arrays, one per view; errors name the view."""
+        frames, masks, shown = [], [], []
+        for n, (frame, mask, index) in enumerate(zip(frameNodes, maskNodes, frameIndices), start=1):
+            try:
+                frames.append(self.frameArray(frame, index))
+                masks.append(self.maskArray(mask, frame, index))
+                shown.append(self.frameNode(frame, index))
+            except ValueError as exc:
+                raise type(exc)(f"view {n}: {exc}") from exc
+        return frames, masks, shown
+
+    def inputs(self, p, withFrameNodes=False):
+        """(geometry, masks, frames) of the parameter node's choices for every view, as arrays (rows, cols);
+        with ``withFrameNodes`` also the volume nodes holding the chosen frames."""
+        count = self.viewCount(p)
+        views = [self.viewParameters(p, n) for n in range(1, count + 1)]
+        frames, masks, shown = self._viewInputs([v.frame for v in views], [v.mask for v in views],
+                                                [v.frameIndex for v in views])
+        geometry = self.geometryFromParameters(p, [m.shape for m in masks])
+        return (geometry, masks, frames, shown) if withFrameNodes else (geometry, masks, frames)
 
     def showCArm(self, p):
         """Show the C-arm set-up of the current choices (replacing an earlier display of it)."""
@@ -657,44 +981,197 @@ class SDFCARLogic(ScriptedLoadableModuleLogic):
 
     def startReconstruction(self, p):
         """Start a background job; returns (job, context for ``addResults``)."""
-        geometry, masks, frames = self.inputs(p)
+        geometry, masks, frames, frameNodes = self.inputs(p, withFrameNodes=True)
         jobDir = self.jobDirectory(p)
         job = self._startJob(jobDir, geometry, masks, self.settings(p), p.outputName)
-        context = {"name": p.outputName, "geometry": geometry, "frames": frames, "jobDir": str(jobDir),
-                   "includeOccupancy": p.includeOccupancy, "showCArm": p.showCArm}
+        context = {"name": p.outputName, "geometry": geometry, "frames": frames, "frameNodes": frameNodes,
+                   "jobDir": str(jobDir), "includeOccupancy": p.includeOccupancy, "showCArm": p.showCArm,
+                   "analyse": p.analyseAfterReconstruction}
         return job, context
 
     def addResults(self, files, context):
-        """A job's result files into the scene (all or nothing) and into the 3D view."""
+        """A job's result files into the scene: segmentation, surface and optionally the C-arm all
+        or nothing, then the QA overlay of each view (a damaged overlay is logged, the result kept),
+        then into the 3D view."""
         from SDFCARLib import mrml
 
         scene = slicer.mrmlScene
+        resultFolder = str(Path(files["segmentation"]).parent)
+        # Where the files are, so that Analyse and the QA panel find them after a scene reload.
+        where = {"jobFolder": context["jobDir"], "resultFolder": resultFolder}
         with mrml.scene_transaction(scene):
             nodes = mrml.add_reconstruction_to_scene(scene, files, context["name"], include_occupancy=context["includeOccupancy"],
-                                                     attributes={"jobFolder": context["jobDir"]})
+                                                     attributes=where)
             if context["showCArm"]:
                 mrml.add_carm_geometry_to_scene(scene, context["geometry"], images=context["frames"], name=f"{context['name']} C-arm")
+        try:
+            # Outside the transaction: a damaged overlay must not cost the user the result itself.
+            mrml.add_qa_overlays_to_scene(scene, files, context["name"], context["geometry"],
+                                          frame_nodes=context.get("frameNodes"), attributes=where)
+        except mrml.MRMLBridgeError as exc:
+            logging.warning(f"SDFCAR: the QA overlays of '{context['name']}' were not loaded: {exc}")
         layoutManager = slicer.app.layoutManager()
         if layoutManager is not None and layoutManager.threeDViewCount > 0:
             layoutManager.threeDWidget(0).threeDView().resetFocalPoint()
         return nodes
 
-    def reconstruct(self, frame1, mask1, frame2, mask2, geometry, settings=None, name="Coronary tree",
-                    frameIndices=(-1, -1), jobDir=None, showCArm=True, includeOccupancy=False, timeout=None):
-        """Console use: reconstruct and wait; returns SDFCARLib.mrml.ResultNodes.
+    def reconstructViews(self, frames, masks, geometry, settings=None, name="Coronary tree", frameIndices=None, jobDir=None,
+                         showCArm=True, includeOccupancy=False, timeout=None):
+        """Console use, any number of views: reconstruct and wait; returns SDFCARLib.mrml.ResultNodes.
 
-        ``geometry``: an SDFCARLib Geometry whose detectors match the frames (e.g.
-        ``Geometry.load("geometry.json")``); ``settings``: a dict (preset, mode, device, steps, seed).
+        ``frames``, ``masks``: one volume node (frame) and one segmentation or labelmap node (mask)
+        per view of ``geometry``, in its order; ``frameIndices``: per view the frame of a cine run
+        (-1 or None: the frame on display); ``geometry``: an SDFCARLib Geometry whose detectors
+        match the frames (e.g. ``Geometry.load("geometry.json")``); ``settings``: a dict (preset,
+        mode, device, steps, seed).
         """
-        frames = [self.frameArray(frame1, frameIndices[0]), self.frameArray(frame2, frameIndices[1])]
-        masks = [self.maskArray(mask1, frame1, frameIndices[0]), self.maskArray(mask2, frame2, frameIndices[1])]
+        frames, masks = list(frames), list(masks)
+        count = len(geometry.views)
+        indices = list(frameIndices) if frameIndices is not None else [-1] * len(frames)
+        if not (len(frames) == len(masks) == len(indices) == count):
+            raise ValueError(f"{len(frames)} frame(s), {len(masks)} mask(s) and {len(indices)} frame index(es) for a geometry "
+                             f"of {count} views: give one frame, one mask and one index per view, in the geometry's order")
+        frameArrays, maskArrays, frameNodes = self._viewInputs(frames, masks, indices)
         jobDir = Path(jobDir) if jobDir else Path(slicer.app.temporaryPath) / "SDFCAR" / f"console-{time.strftime('%Y%m%d-%H%M%S')}"
-        job = self._startJob(jobDir, geometry, masks, settings or {"preset": "fast"}, name)
+        job = self._startJob(jobDir, geometry, maskArrays, settings or {"preset": "fast"}, name)
         if job.wait(timeout) == "running":
             job.cancel()
-        context = {"name": name, "geometry": geometry, "frames": frames, "jobDir": str(jobDir),
+        context = {"name": name, "geometry": geometry, "frames": frameArrays, "frameNodes": frameNodes, "jobDir": str(jobDir),
                    "includeOccupancy": includeOccupancy, "showCArm": showCArm}
         return self.addResults(job.result(), context)
+
+    def reconstruct(self, frame1, mask1, frame2, mask2, geometry, settings=None, name="Coronary tree",
+                    frameIndices=(-1, -1), jobDir=None, showCArm=True, includeOccupancy=False, timeout=None):
+        """Console use with two views (see ``reconstructViews`` for any number): reconstruct and wait."""
+        return self.reconstructViews([frame1, frame2], [mask1, mask2], geometry, settings, name, list(frameIndices), jobDir,
+                                     showCArm, includeOccupancy, timeout)
+
+    # --- results: QA and 3D-QCA -------------------------------------------------------------------
+    @staticmethod
+    def resultFolder(resultNode):
+        """The folder of a result node's files; raises ValueError saying why it cannot be found."""
+        from SDFCARLib import mrml
+
+        if resultNode is None:
+            raise ValueError("choose a result first (Results > Result), or reconstruct one")
+        folder = mrml.result_folder_of(resultNode)
+        if folder is None:
+            raise ValueError(f"the files of result '{resultNode.GetName()}' were not found (moved or deleted, or it was not "
+                             "made by SDFCAR); open the result folder's scene.mrml, or reconstruct again")
+        return folder
+
+    def resultQAText(self, resultNode):
+        """(text for the Results section: per-view QA numbers and the run's warnings, number of views)."""
+        from SDFCARLib import mrml
+        from SDFCARLib.qa import qa_summary_lines
+
+        try:
+            report = mrml.read_report(self.resultFolder(resultNode))
+        except ValueError as exc:
+            return str(exc)[0].upper() + str(exc)[1:] + ".", 1
+        lines = qa_summary_lines(report)
+        views = len(lines) or len((report.get("geometry") or {}).get("views") or []) or 1
+        if not lines:
+            lines = ["This result has no reprojection QA (made by an SDFCAR version before it existed)."]
+        warnings = [str(w) for w in report.get("warnings") or []]
+        if warnings:
+            lines += ["", f"{len(warnings)} warning(s):"] + [f"• {w}" for w in warnings]
+        return "\n".join(lines), views
+
+    @staticmethod
+    def analysisText(resultNode):
+        """Summary of the result's latest 3D-QCA (or what to do when there is none)."""
+        from SDFCARLib.analysis.outputs import analysis_summary_lines
+
+        folder = resultNode.GetAttribute("SDFCAR.analysisFolder") if resultNode is not None else None
+        if not folder:
+            return "Not analysed yet: press Analyse."
+        analysis = Path(folder) / "analysis.json"
+        try:
+            return "\n".join(analysis_summary_lines(json.loads(analysis.read_text(encoding="utf-8"))))
+        except (OSError, ValueError) as exc:
+            return f"The analysis in {folder} cannot be read ({exc}); press Analyse to run it again."
+
+    def showQAOverlay(self, resultNode, viewNumber):
+        """Show the QA overlay of a view in the slice views (loaded from the result folder when the scene lacks it)."""
+        from SDFCARLib import mrml
+
+        folder = self.resultFolder(resultNode)
+        overlays = mrml.qa_overlay_nodes(slicer.mrmlScene, folder)
+        if viewNumber not in overlays:
+            where = {"resultFolder": str(folder)}
+            if resultNode.GetAttribute("SDFCAR.jobFolder"):
+                where["jobFolder"] = resultNode.GetAttribute("SDFCAR.jobFolder")
+            mrml.add_qa_overlays_to_scene(slicer.mrmlScene, folder, resultNode.GetName(), attributes=where)
+            overlays = mrml.qa_overlay_nodes(slicer.mrmlScene, folder)
+        if viewNumber not in overlays:
+            raise ValueError(f"result '{resultNode.GetName()}' has no QA overlay of view {viewNumber} (qa_view{viewNumber}.png "
+                             f"in {folder}): it has {len(overlays)} view(s) with overlays")
+        slicer.util.setSliceViewerLayers(background=overlays[viewNumber], fit=True)
+        return overlays[viewNumber]
+
+    @staticmethod
+    def startAnalysis(resultNode, outputDir=None, options=None):
+        """Start the 3D-QCA of a result in a worker process; returns (job, context for ``addAnalysis``).
+
+        The files go to a new folder beside the result's (analysis, analysis-2, …: an earlier
+        analysis is kept). The view masks of the reconstruction job, when its folder is still
+        there, give the 2D diameters."""
+        import shutil
+        import tempfile
+
+        from SDFCARLib.jobs import AnalysisJob, job_masks
+
+        folder = SDFCARLogic.resultFolder(resultNode)
+        jobFolder = resultNode.GetAttribute("SDFCAR.jobFolder")
+        masks = job_masks(jobFolder) if jobFolder else None
+        base = Path(slicer.app.temporaryPath) / "SDFCAR"
+        base.mkdir(parents=True, exist_ok=True)
+        jobDir = Path(tempfile.mkdtemp(prefix=f"analysis-{time.strftime('%Y%m%d-%H%M%S')}-", dir=str(base)))
+        job = AnalysisJob.start(jobDir, folder, outputDir, masks=masks, options=options, python=shutil.which("PythonSlicer"))
+        context = {"name": resultNode.GetName(), "resultNodeID": resultNode.GetID(), "jobDir": str(jobDir),
+                   "resultFolder": str(folder)}
+        return job, context
+
+    def addAnalysis(self, files, context):
+        """A finished analysis into the scene (all or nothing; the result node, if still there, is linked
+        to it) and its diameter plot into the layout."""
+        from SDFCARLib.analysis.mrml_nodes import add_analysis_to_scene
+
+        resultNode = slicer.mrmlScene.GetNodeByID(context["resultNodeID"])
+        nodes = add_analysis_to_scene(slicer.mrmlScene, files["folder"], context["name"], result_node=resultNode)
+        plots = getattr(slicer.modules, "plots", None)
+        if plots is not None and slicer.app.layoutManager() is not None:
+            plots.logic().ShowChartInLayout(nodes["chart"])  # switches to a layout with a plot view if needed
+        return nodes
+
+    def analyse(self, resultNode, outputDir=None, options=None, timeout=None):
+        """Console use: run the 3D-QCA of a result, wait, add its nodes; returns them (a dict, see
+        SDFCARLib.analysis.mrml_nodes.add_analysis_nodes)."""
+        job, context = self.startAnalysis(resultNode, outputDir, options)
+        if job.wait(timeout) == "running":
+            job.cancel()
+        return self.addAnalysis(job.result(), context)
+
+    @staticmethod
+    def showSuggestedView(resultNode, viewIndex=0):
+        """Point the 3D view's camera along the suggested C-arm view of the result's latest analysis,
+        centred on the result; returns the suggested view (primary_deg, secondary_deg, label, …)."""
+        from SDFCARLib.analysis.mrml_nodes import set_camera_to_angles, suggested_view_of
+
+        best = suggested_view_of(resultNode)
+        layoutManager = slicer.app.layoutManager()
+        if layoutManager is None or layoutManager.threeDViewCount <= viewIndex:
+            raise ValueError("there is no 3D view to point: choose a layout with a 3D view (View > Layout)")
+        view = layoutManager.threeDWidget(viewIndex).threeDView()
+        camera = view.cameraNode()
+        bounds = [0.0] * 6
+        resultNode.GetRASBounds(bounds)
+        if bounds[0] <= bounds[1]:  # a valid box: look at the tree, not at the whole C-arm set-up
+            camera.SetFocalPoint((bounds[0] + bounds[1]) / 2, (bounds[2] + bounds[3]) / 2, (bounds[4] + bounds[5]) / 2)
+        set_camera_to_angles(camera, best["primary_deg"], best["secondary_deg"])
+        camera.ResetClippingRange()
+        return best
 
     # --- sample data and self-test ----------------------------------------------------------------
     def loadSampleCase(self):
@@ -713,8 +1190,8 @@ class SDFCARLogic(ScriptedLoadableModuleLogic):
                 frame = mrml.add_frame_volume_node(scene, mask.astype("uint8") * 255, f"SDFCAR sample view {n}", view.pixel_spacing_mm)
                 label = mrml.add_frame_volume_node(scene, mask, f"SDFCAR sample view {n} mask", view.pixel_spacing_mm,
                                                    class_name="vtkMRMLLabelMapVolumeNode")
-                setattr(p, f"frame{n}", frame)
-                setattr(p, f"mask{n}", label)
+                self.setViewValue(p, n, "frame", frame)
+                self.setViewValue(p, n, "mask", label)
             truth = mrml.add_segmentation_node(scene, case.label, case.geometry.volume, "SDFCAR sample ground truth",
                                                segment_name="Ground truth", color=(0.2, 0.8, 0.2))
             truth.GetDisplayNode().SetVisibility(False)

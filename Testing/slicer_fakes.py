@@ -9,6 +9,12 @@ module (Base/Python/slicer/parameterNodeWrapper/wrapper.py and guiConnectors.py 
   per choice) and reads ``choices[currentIndex]``, so a connector still connected when another
   one is built writes ``choices[-1]`` (clear: index -1), then ``choices[0]`` (first item).
 
+The parameter node also has the raw ``vtkMRMLScriptedModuleNode`` calls the module uses for views
+3, 4, … (SetParameter, GetParameter, HasParameter, UnsetParameter, node references), node
+references resolving through the fake scene (``FakeNode`` registers itself there). The Qt widgets
+the module builds in Python for those views record their signal connections, so a test can emit
+``currentNodeChanged`` or ``valueChanged`` as the user would.
+
 Everything else is a no-op recorder. Use ``install(monkeypatch)``; it returns the loaded module.
 """
 
@@ -42,18 +48,85 @@ class Signal:
 
 
 class Widget:
-    def __init__(self, name, parameter=None):
+    """A Qt widget as the module uses it: properties as attributes, connections recorded by signal."""
+
+    def __init__(self, name="", parameter=None, *args):
         self.name = name
         self._properties = {"SlicerParameterName": parameter}
         self.enabled = True
         self.toolTip = ""
-        self.text = ""
+        self.text = name if isinstance(name, str) else ""
+        self.value = 0
+        self.maximum = 99
+        self.parent = None
+        self.deleted = False
+        self._layout = None
+        self._current = None
+        self.slots = {}
 
     def property(self, key):
         return self._properties.get(key)
 
     def connect(self, signal, slot):
-        pass
+        self.slots.setdefault(signal, []).append(slot)
+
+    def emit(self, signal, *args):
+        """What the user's action does: the connected slots run with the signal's arguments, as
+        many as the slot takes (PythonQt passes a Python function at most its co_argcount
+        arguments, a bound method one fewer: PythonQtSignalTarget::call)."""
+        import inspect
+
+        for slot in self.slots.get(signal, []):
+            parameters = inspect.signature(slot).parameters.values()
+            if any(p.kind == p.VAR_POSITIONAL for p in parameters):
+                slot(*args)
+                continue
+            count = sum(p.kind in (p.POSITIONAL_ONLY, p.POSITIONAL_OR_KEYWORD) for p in parameters)
+            slot(*args[:count])
+
+    def setRange(self, minimum, maximum):
+        self.minimum, self.maximum = minimum, maximum
+
+    def setVisible(self, visible):
+        self.visible = visible
+
+    def setMRMLScene(self, scene):
+        self.scene = scene
+
+    def addAttribute(self, nodeType, name, value=None):
+        self._properties.setdefault("attributes", []).append((nodeType, name, value))
+
+    def currentNode(self):
+        return self._current
+
+    def setCurrentNode(self, node):
+        if node is not self._current:
+            self._current = node
+            self.emit("currentNodeChanged(vtkMRMLNode*)", node)
+
+    def layout(self):
+        if self._layout is None:
+            self._layout = Layout()
+        return self._layout
+
+    def setParent(self, parent):
+        self.parent = parent
+
+    def deleteLater(self):
+        self.deleted = True
+
+
+class Layout:
+    def __init__(self, parent=None):
+        self.items = []
+        if parent is not None:
+            parent._layout = self
+
+    def addWidget(self, widget):
+        self.items.append(widget)
+
+    def addRow(self, *items):
+        self.items.extend(items)
 
 
 class ComboBox(Widget):
@@ -146,11 +219,101 @@ class OtherConnector:
         pass
 
 
+class FakeNode:
+    """An MRML node in the fake scene: ID, name, class (IsA), attributes."""
+
+    _count = 0
+
+    def __init__(self, class_name, name):
+        FakeNode._count += 1
+        self._class, self._name, self._id = class_name, name, f"{class_name}{FakeNode._count}"
+        self._attributes = {}
+        SCENE[self._id] = self
+
+    def GetID(self):
+        return self._id
+
+    def GetName(self):
+        return self._name
+
+    def GetClassName(self):
+        return self._class
+
+    def IsA(self, class_name):
+        return class_name == self._class
+
+    def GetAttribute(self, name):
+        return self._attributes.get(name)
+
+    def SetAttribute(self, name, value):
+        self._attributes[name] = value
+
+
+SCENE = {}  # node ID -> FakeNode
+
+
 class ParameterNode:
-    """The MRML parameter node: values shared by every wrapper made on it."""
+    """The MRML parameter node: values shared by every wrapper made on it, and the raw calls of
+    vtkMRMLScriptedModuleNode the module makes for views 3, 4, … Like the real node, every change
+    fires the observers (ModifiedEvent), once at the end of a StartModify/EndModify block."""
 
     def __init__(self):
         self.values = {}
+        self.parameters = {}
+        self.references = {}
+        self._modifying = 0
+        self._pending = False
+
+    def Modified(self):
+        if self._modifying:
+            self._pending = True
+            return
+        for callback in list(OBSERVERS):
+            callback()
+
+    def SetParameter(self, name, value):
+        if self.parameters.get(name) != str(value):
+            self.parameters[name] = str(value)
+            self.Modified()
+
+    def GetParameter(self, name):
+        return self.parameters.get(name, "")
+
+    def HasParameter(self, name):
+        return name in self.parameters
+
+    def UnsetParameter(self, name):
+        if self.parameters.pop(name, None) is not None:
+            self.Modified()
+
+    def SetNodeReferenceID(self, role, node_id):
+        if self.references.get(role) != node_id:
+            if node_id is None:
+                self.references.pop(role, None)
+            else:
+                self.references[role] = node_id
+            self.Modified()
+
+    def GetNodeReferenceID(self, role):
+        return self.references.get(role)
+
+    def GetNodeReference(self, role):
+        return SCENE.get(self.references.get(role))
+
+    def RemoveNodeReferenceIDs(self, role):
+        if self.references.pop(role, None) is not None:
+            self.Modified()
+
+    def StartModify(self):
+        self._modifying += 1
+        return self._modifying - 1
+
+    def EndModify(self, previous):
+        self._modifying = previous
+        if not self._modifying and self._pending:
+            self._pending = False
+            self.Modified()
+        return 0
 
 
 def parameterNodeWrapper(cls):
@@ -176,6 +339,7 @@ def parameterNodeWrapper(cls):
             if name not in hints:
                 raise AttributeError(name)
             self.parameterNode.values[name] = value
+            self.parameterNode.Modified()
 
         def _choices(self, name):
             for extra in getattr(hints[name], "__metadata__", ()):
@@ -239,15 +403,20 @@ class ScriptedLoadableModuleTest(unittest.TestCase):  # as in Slicer: a unittest
         pass
 
 
+OBSERVERS = []  # parameter-node observers (the module's _checkCanApply): called on every wrapper write
+
+
 class VTKObservationMixin:
     def __init__(self):
         pass
 
-    def addObserver(self, *args):
-        pass
+    def addObserver(self, obj, event=None, callback=None, *args):
+        if isinstance(obj, ParameterNode) or hasattr(obj, "parameterNode"):
+            OBSERVERS.append(callback)
 
-    def removeObserver(self, *args):
-        pass
+    def removeObserver(self, obj, event=None, callback=None, *args):
+        if callback in OBSERVERS:
+            OBSERVERS.remove(callback)
 
     def removeObservers(self, *args):
         pass
@@ -256,11 +425,15 @@ class VTKObservationMixin:
 class _Recorder:
     def __init__(self):
         self.errors = []
+        self.warnings = []
         self.confirm = True
         self.pipInstalls = []
 
     def errorDisplay(self, text, **kwargs):
         self.errors.append(text)
+
+    def warningDisplay(self, text, **kwargs):
+        self.warnings.append(text)
 
     def confirmOkCancelDisplay(self, text, **kwargs):
         return self.confirm
@@ -290,11 +463,15 @@ def install(monkeypatch):
             raise
 
     node_classes = {n: type(n, (), {}) for n in ("vtkMRMLLabelMapVolumeNode", "vtkMRMLScalarVolumeNode", "vtkMRMLSegmentationNode")}
+    SCENE.clear()
+    OBSERVERS.clear()
     util = _module("slicer.util", VTKObservationMixin=VTKObservationMixin, tryWithErrorDisplay=tryWithErrorDisplay,
-                   errorDisplay=recorder.errorDisplay, confirmOkCancelDisplay=recorder.confirmOkCancelDisplay,
+                   errorDisplay=recorder.errorDisplay, warningDisplay=recorder.warningDisplay,
+                   confirmOkCancelDisplay=recorder.confirmOkCancelDisplay,
                    pip_install=recorder.pip_install)
     slicer = _module("slicer", util=util, app=types.SimpleNamespace(connect=lambda *a: None, temporaryPath="/tmp"),
-                     mrmlScene=types.SimpleNamespace(Clear=lambda *a: None), **node_classes)
+                     mrmlScene=types.SimpleNamespace(Clear=lambda *a: None, GetNodeByID=SCENE.get),
+                     qMRMLNodeComboBox=Widget, **node_classes)
     slicer.__path__ = []  # a package, so "from slicer import packaging" looks for a submodule (absent before 5.12)
     slicer.parameterNodeWrapper = _module("slicer.parameterNodeWrapper", Choice=Choice, WithinRange=WithinRange,
                                           parameterNodeWrapper=parameterNodeWrapper)
@@ -304,7 +481,9 @@ def install(monkeypatch):
         ScriptedLoadableModuleTest=ScriptedLoadableModuleTest)
     for name, module in {"slicer": slicer, "slicer.util": util, "slicer.parameterNodeWrapper": slicer.parameterNodeWrapper,
                          "slicer.ScriptedLoadableModule": slicer.ScriptedLoadableModule,
-                         "qt": _module("qt", QTimer=Timer, QWidget=Widget)}.items():
+                         "qt": _module("qt", QTimer=Timer, QWidget=Widget, QGroupBox=Widget, QPushButton=Widget,
+                                       QSpinBox=Widget, QDoubleSpinBox=Widget, QLabel=Widget, QFormLayout=Layout,
+                                       QHBoxLayout=Layout)}.items():
         monkeypatch.setitem(sys.modules, name, module)
     monkeypatch.delitem(sys.modules, "slicer.packaging", raising=False)
     ScriptedLoadableModuleLogic._node = None
@@ -316,12 +495,16 @@ def install(monkeypatch):
 
 
 def module_ui(module):
-    """The widgets SDFCARWidget touches, with the parameter names of the .ui for the combo boxes."""
+    """Every widget of the .ui under its name (as childWidgetVariables gives them), with its
+    SlicerParameterName; QComboBox widgets are ComboBox (the connector fills them)."""
+    import xml.etree.ElementTree as ET
+
     ui = types.SimpleNamespace()
-    for name in ("editMask1Button", "editMask2Button", "vesselness1Button", "vesselness2Button", "applyButton",
-                 "readGeometryButton", "showCArmButton", "statusLabel", "progressBar"):
-        setattr(ui, name, Widget(name))
-    for name, parameter in (("presetComboBox", "preset"), ("modeComboBox", "mode"), ("deviceComboBox", "device")):
-        setattr(ui, name, ComboBox(name, parameter))
-    ui.outputNameLineEdit = Widget("outputNameLineEdit", "outputName")
+    for element in ET.parse(SCRIPT.parent / "Resources" / "UI" / "SDFCAR.ui").getroot().iter("widget"):
+        parameter = None
+        for prop in element.findall("property"):
+            if prop.get("name") == "SlicerParameterName":
+                parameter = prop.find("string").text
+        cls = ComboBox if element.get("class") == "QComboBox" else Widget
+        setattr(ui, element.get("name"), cls(element.get("name"), parameter))
     return ui

@@ -28,6 +28,7 @@ def _widget(sdfcar):
     widget.ui = slicer_fakes.module_ui(sdfcar)
     widget.logic = sdfcar.SDFCARLogic()
     widget.parent = types.SimpleNamespace(isEntered=True)
+    widget.connectWidgets()  # what setup() connects after loading the .ui
     return widget
 
 
@@ -160,3 +161,230 @@ def test_report_warnings_and_warning_progress_are_shown(sdfcar, tmp_path):
     assert sdfcar.reportWarnings({"report": str(tmp_path / "missing.json")}) == []
     line = sdfcar.describeProgress({"phase": "warning", "message": "view 2: 30 % of the image's border", "step": 0})
     assert line.startswith("Warning: view 2")
+
+
+# --- views 3, 4, … ------------------------------------------------------------------------------------------
+def _node(class_name, name):
+    return slicer_fakes.FakeNode(class_name, name)
+
+
+def _three_views(sdfcar, widget):
+    """Views 1 and 2 complete; view 3 added through the button, with a frame only."""
+    p = widget._parameterNode
+    for n in (1, 2):
+        setattr(p, f"frame{n}", _node("vtkMRMLScalarVolumeNode", f"frame {n}"))
+        setattr(p, f"mask{n}", _node("vtkMRMLLabelMapVolumeNode", f"mask {n}"))
+    p.sid2 = 1100.0
+    widget.ui.addViewButton.emit("clicked(bool)", False)
+    return p
+
+
+def test_add_view_builds_a_row_that_edits_the_parameter_node(sdfcar):
+    widget = _widget(sdfcar)
+    widget.initializeParameterNode()
+    assert widget._viewRows == []
+    p = _three_views(sdfcar, widget)
+    (row,) = widget._viewRows
+    assert row.n == 3 and row.box in widget.ui.additionalViewsWidget.layout().items
+    # SID, SOD and pixel spacing start as the last view's: the same C-arm.
+    assert row.spinBoxes["sid"].value == 1100.0 and sdfcar.SDFCARLogic.viewValue(p, 3, "sid") == 1100.0
+    assert "view 3" in widget.ui.statusLabel.text.lower()
+    # Without a frame and mask for view 3, Apply says what is missing.
+    assert not widget.ui.applyButton.enabled and widget.ui.applyButton.toolTip == "Choose the frame of view 3 (or remove the view)"
+    frame = _node("vtkMRMLScalarVolumeNode", "frame 3")
+    row.frameSelector.setCurrentNode(frame)  # the user picks the frame
+    row.spinBoxes["primaryAngle"].emit("valueChanged(double)", -12.5)
+    row.frameIndexSpinBox.emit("valueChanged(int)", 4)
+    view = widget.logic.viewParameters(p, 3)
+    assert (view.frame, view.primaryAngle, view.frameIndex) == (frame, -12.5, 4)
+    assert p.parameterNode.GetParameter("frame3Index") == "4"
+    widget._checkCanApply()
+    assert row.editMaskButton.enabled and widget.ui.applyButton.toolTip.startswith("Choose the mask of view 3")
+    row.maskSelector.setCurrentNode(_node("vtkMRMLSegmentationNode", "mask 3"))
+    widget._checkCanApply()
+    assert widget.ui.applyButton.enabled and widget.ui.applyButton.toolTip == "Reconstruct the coronary tree"
+
+
+def test_values_from_the_node_do_not_echo_back(sdfcar, monkeypatch):
+    """A value set in the node (a scene loaded, the console) is shown, not written back by the row."""
+    from SDFCARLib.mrml import parameter_views
+
+    widget = _widget(sdfcar)
+    widget.initializeParameterNode()
+    p = _three_views(sdfcar, widget)
+    writes = []
+    monkeypatch.setattr(sdfcar.SDFCARLogic, "setViewValue", staticmethod(lambda *a: writes.append(a)))
+    parameter_views.set_view_value(p.parameterNode, 3, "sod", 800.0)
+    parameter_views.set_view_value(p.parameterNode, 3, "frame", _node("vtkMRMLScalarVolumeNode", "from the console"))
+    row = widget._viewRows[0]
+    assert row.spinBoxes["sod"].value == 800.0 and row.frameSelector.currentNode().GetName() == "from the console"
+    assert writes == []
+
+
+def test_removing_a_middle_view_keeps_the_later_ones_and_the_nodes(sdfcar):
+    widget = _widget(sdfcar)
+    widget.initializeParameterNode()
+    p = _three_views(sdfcar, widget)
+    widget.ui.addViewButton.emit("clicked(bool)", False)
+    three, four = widget._viewRows
+    frame4 = _node("vtkMRMLScalarVolumeNode", "frame 4")
+    four.frameSelector.setCurrentNode(frame4)
+    four.spinBoxes["secondaryAngle"].emit("valueChanged(double)", 30.0)
+    three.removeButton.emit("clicked(bool)", False)
+    assert len(widget._viewRows) == 1 and four.box.deleted
+    (row,) = widget._viewRows
+    assert row.frameSelector.currentNode() is frame4 and row.spinBoxes["secondaryAngle"].value == 30.0
+    assert sdfcar.SDFCARLogic.viewCount(p) == 3 and slicer_fakes.SCENE[frame4.GetID()] is frame4
+    assert "still in the scene" in widget.ui.statusLabel.text
+
+
+def test_a_closed_scene_leaves_no_view_rows(sdfcar):
+    widget = _widget(sdfcar)
+    widget.initializeParameterNode()
+    _three_views(sdfcar, widget)
+    row = widget._viewRows[0]
+    widget.onSceneStartClose(None, None)
+    assert widget._viewRows == [] and row.box.deleted
+
+
+def _fake_inputs(sdfcar, monkeypatch, shape=(20, 30)):
+    import numpy as np
+
+    monkeypatch.setattr(sdfcar.SDFCARLogic, "frameArray", lambda self, node, index=-1: np.zeros(shape, np.float32))
+    monkeypatch.setattr(sdfcar.SDFCARLogic, "maskArray", lambda self, mask, frame, index=-1: np.ones(shape, bool))
+    monkeypatch.setattr(sdfcar.SDFCARLogic, "frameNode", staticmethod(lambda node, index=-1: node))
+
+
+def test_apply_sends_every_view_to_the_job(sdfcar, monkeypatch):
+    _fake_inputs(sdfcar, monkeypatch)
+    widget = _widget(sdfcar)
+    widget.initializeParameterNode()
+    p = _three_views(sdfcar, widget)
+    row = widget._viewRows[0]
+    row.frameSelector.setCurrentNode(_node("vtkMRMLScalarVolumeNode", "frame 3"))
+    row.maskSelector.setCurrentNode(_node("vtkMRMLSegmentationNode", "mask 3"))
+    row.spinBoxes["secondaryAngle"].emit("valueChanged(double)", 30.0)
+    p.analyseAfterReconstruction = True
+    started = {}
+    monkeypatch.setattr(sdfcar.SDFCARLogic, "_startJob", staticmethod(
+        lambda jobDir, geometry, masks, settings, name: started.update(geometry=geometry, masks=masks) or "job"))
+    job, context = widget.logic.startReconstruction(p)
+    geometry = started["geometry"]
+    assert len(started["masks"]) == 3 and len(geometry.views) == 3 and len(context["frameNodes"]) == 3
+    assert (geometry.views[2].secondary_deg, geometry.views[1].sid_mm, geometry.views[2].sid_mm) == (30.0, 1100.0, 1100.0)
+    assert geometry.views[2].detector_shape == (20, 30) and context["analyse"] is True
+
+
+def test_console_reconstruct_views_checks_the_counts(sdfcar, monkeypatch):
+    from SDFCARLib.geometry import standard_geometry
+
+    _fake_inputs(sdfcar, monkeypatch)
+    geometry = standard_geometry("lao30-rao30")
+    frames = [_node("vtkMRMLScalarVolumeNode", f"f{n}") for n in (1, 2, 3)]
+    masks = [_node("vtkMRMLLabelMapVolumeNode", f"m{n}") for n in (1, 2, 3)]
+    with pytest.raises(ValueError, match="3 frame\\(s\\), 3 mask\\(s\\) and 3 frame index\\(es\\) for a geometry of 2 views"):
+        sdfcar.SDFCARLogic().reconstructViews(frames, masks, geometry)
+    calls = []
+    monkeypatch.setattr(sdfcar.SDFCARLogic, "reconstructViews", lambda self, *a: calls.append(a) or "nodes")
+    assert sdfcar.SDFCARLogic().reconstruct(frames[0], masks[0], frames[1], masks[1], geometry, frameIndices=(2, 5)) == "nodes"
+    assert calls[0][0] == frames[:2] and calls[0][1] == masks[:2] and calls[0][5] == [2, 5]
+
+
+def test_the_sample_geometry_sets_the_number_of_views(sdfcar):
+    from SDFCARLib.geometry import standard_geometry
+
+    logic = sdfcar.SDFCARLogic()
+    p = logic.getParameterNode()
+    logic.addView(p)
+    logic.addView(p)
+    geometry = standard_geometry("lao30-rao30")
+    logic.setGeometryParameters(p, geometry)
+    assert logic.viewCount(p) == 2 and p.primaryAngle2 == geometry.views[1].primary_deg
+
+
+# --- results: QA panel, analysis -------------------------------------------------------------------------------
+class _FinishedJob:
+    def __init__(self, files):
+        self.files = files
+        self.state = "finished"
+
+    def poll(self):
+        return {"phase": "done", "step": 1, "total": 1}
+
+    def result(self):
+        return self.files
+
+
+def _result_node(tmp_path, with_analysis=False):
+    import json
+
+    folder = tmp_path / "result"
+    folder.mkdir(exist_ok=True)
+    qa = {"dice": 0.9, "area_mm2": {"result_only": 2.0, "mask_only": 9.5}, "share_of_mask": {"result_only": 0.01,
+                                                                                             "mask_only": 0.12},
+          "largest_blob": {"result_only": None, "mask_only": {"area_mm2": 6.0}}}
+    (folder / "report.json").write_text(json.dumps({"reprojection_qa": [qa, qa, qa],
+                                                    "warnings": ["view 3: the result does not explain 9.5 mm²"]}))
+    node = _node("vtkMRMLSegmentationNode", "Tree")
+    node.SetAttribute("SDFCAR.resultFolder", str(folder))
+    if with_analysis:
+        (folder / "analysis").mkdir()
+        (folder / "analysis" / "analysis.json").write_text(json.dumps(
+            {"tree": {"branches": 3, "total_length_mm": 80.0}, "lesions": [],
+             "best_view": {"primary_deg": 40.0, "secondary_deg": -10.0, "label": "LAO 40 CAU 10", "foreshortening": 0.01,
+                           "overlap": 0.0}}))
+        node.SetAttribute("SDFCAR.analysisFolder", str(folder / "analysis"))
+    return node
+
+
+def test_results_panel_shows_the_qa_of_each_view(sdfcar, tmp_path):
+    widget = _widget(sdfcar)
+    widget.initializeParameterNode()
+    assert widget.ui.qaLabel.text.startswith("Choose a result") and not widget.ui.analyseButton.enabled
+    widget._parameterNode.result = _result_node(tmp_path)
+    widget._checkCanApply()
+    text = widget.ui.qaLabel.text
+    assert text.splitlines()[0].startswith("View 1: Dice 0.900") and "View 3" in text and "1 warning(s):" in text
+    assert widget.ui.qaViewSpinBox.maximum == 3
+    assert widget.ui.analyseButton.enabled and widget.ui.showQAButton.enabled and not widget.ui.suggestedViewButton.enabled
+    assert widget.ui.analysisLabel.text.startswith("Not analysed yet")
+    widget._parameterNode.result = _result_node(tmp_path, with_analysis=True)
+    widget._checkCanApply()
+    assert widget.ui.suggestedViewButton.enabled and "suggested view: LAO 40 CAU 10" in widget.ui.analysisLabel.text
+
+
+def test_a_result_whose_files_are_gone_says_so(sdfcar, tmp_path):
+    widget = _widget(sdfcar)
+    widget.initializeParameterNode()
+    node = _node("vtkMRMLSegmentationNode", "Moved")
+    node.SetAttribute("SDFCAR.resultFolder", str(tmp_path / "gone"))
+    node.GetStorageNode = lambda: None
+    widget._parameterNode.result = node
+    widget._checkCanApply()
+    assert "were not found" in widget.ui.qaLabel.text
+    with pytest.raises(ValueError, match="were not found"):
+        widget.logic.startAnalysis(node)
+
+
+def test_finished_reconstruction_selects_its_result_and_analyses_it(sdfcar, tmp_path, monkeypatch):
+    widget = _widget(sdfcar)
+    widget.initializeParameterNode()
+    result = _result_node(tmp_path)
+    added, analysed = [], []
+    monkeypatch.setattr(sdfcar.SDFCARLogic, "addResults", lambda self, files, context: added.append(files) or
+                        types.SimpleNamespace(segmentation=result))
+    analysis = _FinishedJob({"folder": str(tmp_path / "result" / "analysis")})
+    analysis.state = "running"
+    monkeypatch.setattr(sdfcar.SDFCARLogic, "startAnalysis", staticmethod(
+        lambda node, *a: analysed.append(node) or (analysis, {"name": node.GetName(), "resultNodeID": node.GetID()})))
+    loaded = []
+    monkeypatch.setattr(sdfcar.SDFCARLogic, "addAnalysis", lambda self, files, context: loaded.append(files))
+    widget._job = _FinishedJob({"report": str(tmp_path / "result" / "report.json")})
+    widget._jobContext = {"name": "Tree", "jobDir": str(tmp_path), "analyse": True}
+    widget.onPollJob()
+    assert added and widget._parameterNode.result is result and analysed == [result]
+    assert widget._analysisJob is analysis and not widget.ui.analyseButton.enabled and not loaded
+    analysis.state = "finished"
+    widget.onPollJob()
+    assert loaded and widget._analysisJob is None and widget.ui.analyseButton.enabled
+    assert "3D-QCA of 'Tree' done" in widget.ui.statusLabel.text

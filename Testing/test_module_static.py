@@ -337,3 +337,188 @@ def test_extension_icon_and_screenshots_are_in_the_repository():
             path = one.split("/main/", 1)[1]
             assert (ROOT / path).is_file(), f"EXTENSION_{key} names {path}, which is not in the repository"
             assert path.startswith("Resources/"), "extension-level resources live in the top-level Resources/"
+
+
+# --- views 3, 4, … built in Python --------------------------------------------------------------------------
+def _row_number_fields():
+    tree = ast.parse(source(SCRIPT))
+    for node in ast.walk(tree):
+        if isinstance(node, ast.ClassDef) and node.name == "AdditionalViewRow":
+            for item in node.body:
+                if isinstance(item, ast.Assign) and item.targets[0].id == "NUMBER_FIELDS":
+                    return {row[0]: row[1:] for row in ast.literal_eval(item.value)}
+    raise AssertionError("SDFCAR.py has no AdditionalViewRow.NUMBER_FIELDS")
+
+
+def _ui_spin_box(name):
+    element = ui_widgets()[name][2]
+    out = {}
+    for prop in element.findall("property"):
+        value = prop[0]
+        if value.tag in ("double", "number"):
+            out[prop.get("name")] = float(value.text)
+        elif value.tag == "string":
+            out[prop.get("name")] = value.text or ""
+    return out
+
+
+def test_rows_of_views_3_and_later_match_views_1_and_2():
+    """The Python-built rows, the stored views' checks, the wrapper's fields and the .ui agree per field."""
+    from SDFCARLib.mrml.parameter_views import VIEW_NODE_FIELDS, VIEW_VALUE_FIELDS, parameter_name
+
+    rows = _row_number_fields()
+    parameters = wrapper_parameters()
+    assert set(rows) | {"frameIndex"} == set(VIEW_VALUE_FIELDS)
+    for field, (kind, low, high, _) in VIEW_VALUE_FIELDS.items():
+        for n in (1, 2):
+            name = parameter_name(field, n)
+            assert name in parameters, f"the wrapper has no field {name}: views 3+ would be stored under other names"
+            assert f"Annotated[{kind.__name__}, WithinRange({low!r}, {high!r})]" == parameters[name], (name, parameters[name])
+        spin = _ui_spin_box(f"{parameter_name(field, 1)}SpinBox")
+        assert (spin["minimum"], spin["maximum"]) == (low, high), field
+        if field in rows:
+            r_low, r_high, decimals, step, suffix, tooltip = rows[field]
+            assert (r_low, r_high) == (low, high), field
+            assert (decimals, step, suffix, tooltip) == (spin["decimals"], spin["singleStep"], spin["suffix"], spin["toolTip"]), field
+    assert "self.frameIndexSpinBox.setRange(-1, 100000)" in source(SCRIPT)
+    for field, classes in VIEW_NODE_FIELDS.items():
+        assert all(c in parameters[f"{field}1"] for c in classes), field
+
+
+# --- every Slicer, Qt and VTK name the module uses, read in Slicer's source ----------------------------------
+# Each was read at the tags v5.4.0, v5.6.2, v5.8.1, v5.10.0, v5.12.3 and main of github.com/Slicer/Slicer
+# (the file named), or is plain Qt 5 (Slicer's Qt) API. A new call fails this test until it is read
+# there and added, with the file that declares it.
+VERIFIED_MODULE_NAMES = {
+    "slicer.app": "qSlicerApplication (Base/QTGUI/qSlicerApplication.h)",
+    "slicer.app.connect": "QObject::connect through PythonQt (startupCompleted() signal of qSlicerCoreApplication)",
+    "slicer.app.layoutManager": "qSlicerApplication::layoutManager (Base/QTGUI/qSlicerApplication.h)",
+    "slicer.app.temporaryPath": "qSlicerCoreApplication temporaryPath property (Base/QTCore/qSlicerCoreApplication.h)",
+    "slicer.modules": "module proxies; slicer.modules.plots.logic() is used in Base/Python/slicer/util.py (plot())",
+    "slicer.mrmlScene": "the application scene",
+    "slicer.mrmlScene.AddNewNodeByClass": "vtkMRMLScene (Libs/MRML/Core/vtkMRMLScene.h)",
+    "slicer.mrmlScene.Clear": "vtkMRMLScene",
+    "slicer.mrmlScene.EndCloseEvent": "vtkMRMLScene::SceneEventType",
+    "slicer.mrmlScene.StartCloseEvent": "vtkMRMLScene::SceneEventType",
+    "slicer.mrmlScene.GetFirstNodeByName": "vtkMRMLScene",
+    "slicer.mrmlScene.GetNodeByID": "vtkMRMLScene",
+    "slicer.mrmlScene.RemoveNode": "vtkMRMLScene",
+    "slicer.qMRMLNodeComboBox": "Libs/MRML/Widgets/qMRMLNodeComboBox.h; created from Python in "
+                                "Modules/Scripted/CropVolumeSequence/CropVolumeSequence.py at every tag",
+    "slicer.util": "Base/Python/slicer/util.py",
+    "slicer.util.childWidgetVariables": "util.py", "slicer.util.confirmOkCancelDisplay": "util.py",
+    "slicer.util.errorDisplay": "util.py", "slicer.util.warningDisplay": "util.py",
+    "slicer.util.getModuleWidget": "util.py", "slicer.util.getModuleWidget().editor": "Segment Editor widget",
+    "slicer.util.getNodesByClass": "util.py", "slicer.util.loadUI": "util.py", "slicer.util.pip_install": "util.py",
+    "slicer.util.selectModule": "util.py", "slicer.util.setSliceViewerLayers": "util.py (fit= at every tag)",
+    "slicer.util.tryWithErrorDisplay": "util.py",
+    "qt.QTimer": "Qt", "qt.QGroupBox": "Qt", "qt.QFormLayout": "Qt", "qt.QHBoxLayout": "Qt",
+    "qt.QSpinBox": "Qt", "qt.QDoubleSpinBox": "Qt", "qt.QPushButton": "Qt",
+    "vtk.vtkCommand": "VTK", "vtk.vtkCommand.ModifiedEvent": "VTK",
+}
+# VTK/MRML methods (capitalised) called on nodes, loggers and cameras: the header that declares each.
+VERIFIED_MRML_METHODS = {
+    "AddEmptySegment": "vtkSegmentation", "AddNewNodeByClass": "vtkMRMLScene", "Clear": "vtkMRMLScene",
+    "CreateDefaultDisplayNodes": "vtkMRMLDisplayableNode", "GetAttribute": "vtkMRMLNode", "SetAttribute": "vtkMRMLNode",
+    "GetDisplayNode": "vtkMRMLDisplayableNode", "GetFirstNodeByName": "vtkMRMLScene", "GetID": "vtkMRMLNode",
+    "GetName": "vtkMRMLNode", "GetNodeByID": "vtkMRMLScene", "GetSegmentation": "vtkMRMLSegmentationNode",
+    "IsA": "vtkObject", "RemoveNode": "vtkMRMLScene", "SetVisibility": "vtkMRMLDisplayNode",
+    "SetReferenceImageGeometryParameterFromVolumeNode": "vtkMRMLSegmentationNode",
+    "SetSelectedItemNumber": "vtkMRMLSequenceBrowserNode",
+    "GetRASBounds": "vtkMRMLSegmentationNode (override of vtkMRMLDisplayableNode)",
+    "SetFocalPoint": "vtkMRMLCameraNode", "ResetClippingRange": "vtkMRMLCameraNode",
+    "ShowChartInLayout": "vtkSlicerPlotsLogic (Modules/Loadable/Plots/Logic/vtkSlicerPlotsLogic.h)",
+    "PyTorchUtilsLogic": "the PyTorch extension's PyTorchUtils module",
+}
+# Qt/CTK/qMRML methods called on widgets, layouts, the layout manager and its views.
+VERIFIED_WIDGET_METHODS = {
+    "connect": "PythonQt signal connection", "setRange": "QSpinBox/QDoubleSpinBox", "addRow": "QFormLayout",
+    "addWidget": "QBoxLayout", "setParent": "QWidget", "deleteLater": "QObject", "layout": "QWidget",
+    "setVisible": "QWidget", "setInterval": "QTimer", "start": "QTimer", "stop": "QTimer",
+    "setMRMLScene": "qMRMLNodeComboBox", "currentNode": "qMRMLNodeComboBox", "setCurrentNode": "qMRMLNodeComboBox",
+    "addAttribute": "qMRMLNodeComboBox (Q_INVOKABLE)", "threeDWidget": "qSlicerLayoutManager",
+    "threeDView": "qMRMLThreeDWidget", "resetFocalPoint": "qMRMLThreeDView", "cameraNode": "qMRMLThreeDView (Q_INVOKABLE)",
+    "logic": "qSlicerAbstractCoreModule",
+}
+# Properties set on widgets the module builds in Python (Qt properties, or qMRMLNodeComboBox's Q_PROPERTYs).
+VERIFIED_WIDGET_PROPERTIES = {
+    "specialValueText", "toolTip", "decimals", "singleStep", "suffix", "value", "enabled", "maximum", "text",
+    "nodeTypes", "showChildNodeTypes", "noneEnabled", "addEnabled", "removeEnabled", "renameEnabled",
+}
+VERIFIED_SIGNALS = {"clicked(bool)", "currentNodeChanged(vtkMRMLNode*)", "valueChanged(int)", "valueChanged(double)",
+                    "startupCompleted()"}
+_WIDGET_ROOTS = {"row", "selector", "spinBox", "form", "maskRow", "container", "layoutManager", "view", "plots"}
+
+
+def _chain(node):
+    parts = []
+    while isinstance(node, ast.Attribute):
+        parts.append(node.attr)
+        node = node.value
+    if isinstance(node, ast.Name):
+        return ".".join([node.id] + parts[::-1])
+    if isinstance(node, ast.Call):
+        inner = _chain(node.func)
+        return None if inner is None else ".".join([inner + "()"] + parts[::-1])
+    return None
+
+
+def _module_uses():
+    tree = ast.parse(source(SCRIPT))
+    names, mrml_methods, widget_methods, properties, signals = set(), set(), set(), set(), set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Attribute):
+            chain = _chain(node)
+            if chain and chain.split(".")[0] in ("slicer", "qt", "vtk") and not chain.startswith("slicer.util.VTK"):
+                names.add(chain)
+        if isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute):
+            receiver = _chain(node.func.value) or ""
+            method = node.func.attr
+            if method[:1].isupper() and receiver.split(".")[0] not in ("qt", "self") and receiver != "logic":
+                mrml_methods.add(method)
+            root = receiver.split(".")[0]
+            if (receiver.startswith(("self.ui.", "self._timer")) or root in _WIDGET_ROOTS
+                    or receiver in ("self.frameSelector", "self.maskSelector", "self.frameIndexSpinBox", "self.layout")
+                    or receiver.startswith(("layoutManager.", "plots."))):
+                if method[:1].islower() and method not in ("items", "append", "pop", "setValues"):
+                    widget_methods.add(method)
+            if method == "connect" and node.args and isinstance(node.args[0], ast.Constant):
+                signals.add(node.args[0].value)
+        if isinstance(node, ast.Assign):
+            for target in node.targets:
+                if isinstance(target, ast.Attribute):
+                    receiver = _chain(target.value) or ""
+                    if (receiver.split(".")[0] in _WIDGET_ROOTS or receiver.startswith("self.ui.")
+                            or receiver in ("self.frameIndexSpinBox", "self.editMaskButton", "self.vesselnessButton",
+                                            "self.removeButton")):
+                        properties.add(target.attr)
+    return names, mrml_methods, widget_methods, properties, signals
+
+
+def test_every_slicer_qt_and_vtk_name_the_module_uses_was_verified():
+    names, mrml_methods, widget_methods, properties, signals = _module_uses()
+    assert {"slicer.qMRMLNodeComboBox", "qt.QGroupBox"} <= names and "GetRASBounds" in mrml_methods  # the scan works
+    assert not names - set(VERIFIED_MODULE_NAMES), f"read these in Slicer's source, then list them: {sorted(names - set(VERIFIED_MODULE_NAMES))}"
+    own = {"ViewParameters"}  # SDFCARLib classes
+    unverified = mrml_methods - set(VERIFIED_MRML_METHODS) - own
+    assert not unverified, f"VTK/MRML methods not read in Slicer's source: {sorted(unverified)}"
+    assert not widget_methods - set(VERIFIED_WIDGET_METHODS), sorted(widget_methods - set(VERIFIED_WIDGET_METHODS))
+    assert not properties - VERIFIED_WIDGET_PROPERTIES, sorted(properties - VERIFIED_WIDGET_PROPERTIES)
+    assert not signals - VERIFIED_SIGNALS, sorted(signals - VERIFIED_SIGNALS)
+    # No stale entries: the tables describe what the module uses today.
+    assert not set(VERIFIED_MODULE_NAMES) - names, sorted(set(VERIFIED_MODULE_NAMES) - names)
+    assert not set(VERIFIED_MRML_METHODS) - mrml_methods, sorted(set(VERIFIED_MRML_METHODS) - mrml_methods)
+    assert not set(VERIFIED_WIDGET_METHODS) - widget_methods, sorted(set(VERIFIED_WIDGET_METHODS) - widget_methods)
+
+
+def test_the_results_section_is_wired():
+    """Every button of the Results section has a handler, and the result selector offers SDFCAR results only."""
+    text = source(SCRIPT)
+    for button, handler in (("addViewButton", "onAddView"), ("showQAButton", "onShowQA"), ("analyseButton", "onAnalyse"),
+                            ("suggestedViewButton", "onSuggestedView")):
+        assert f'self.ui.{button}.connect("clicked(bool)", self.{handler})' in text, button
+        assert f"def {handler}(self" in text, handler
+    assert 'self.ui.resultSelector.addAttribute("vtkMRMLSegmentationNode", "SDFCAR.role", "segmentation")' in text
+    assert ui_widgets()["additionalViewsWidget"][0] == "QWidget"
+    layouts = [l.get("class") for l in ui_widgets()["additionalViewsWidget"][2].findall("layout")]
+    assert layouts == ["QVBoxLayout"], "the rows of views 3+ go into this widget's layout"

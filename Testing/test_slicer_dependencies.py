@@ -65,6 +65,15 @@ NOT_ON_SLICER_PATHS = {
 }
 
 
+# Imports on Slicer paths whose absence the code handles, so they are not asked for: (importing
+# module, top-level name): what is lost without them. The blocked-import run of the analysis below
+# checks that the code really goes on without them.
+OPTIONAL_ON_SLICER_PATHS = {
+    ("SDFCARLib.analysis.outputs", "matplotlib"): "the 3D-QCA's PNG figures; analyse_result_dir skips them and says so "
+                                                  "in analysis.json (Slicer plots the diameters itself)",
+}
+
+
 # Telling the standard library apart needs sys.stdlib_module_names (Python 3.10+).
 needs_stdlib_names = pytest.mark.skipif(not hasattr(sys, "stdlib_module_names"), reason="needs Python 3.10+ (sys.stdlib_module_names)")
 
@@ -141,7 +150,7 @@ def test_every_import_on_slicer_paths_is_bundled_or_required():
     found, seen = third_party_imports([WORKER_ENTRY, "SDFCARLib"] + module_library_imports())
     assert {"SDFCARLib.jobs", "SDFCARLib.optimiser", "SDFCARLib.outputs", "SDFCARLib.io", "SDFCARLib.sample_data"} <= seen
     missing = {f"{module}:{line} imports {top}" for (module, top), line in found.items()
-               if top not in allowed and (module, top) not in NOT_ON_SLICER_PATHS}
+               if top not in allowed and (module, top) not in NOT_ON_SLICER_PATHS and (module, top) not in OPTIONAL_ON_SLICER_PATHS}
     assert not missing, ("imported inside Slicer but neither bundled with Slicer nor in SDFCAR.py's REQUIREMENTS "
                          f"(add the pip name there): {sorted(missing)}")
     # The module itself imports only what Slicer provides (everything else lazily through SDFCARLib).
@@ -152,7 +161,7 @@ def test_every_import_on_slicer_paths_is_bundled_or_required():
 @needs_stdlib_names
 def test_exemptions_are_still_needed():
     found, _ = third_party_imports([WORKER_ENTRY, "SDFCARLib"] + module_library_imports())
-    stale = set(NOT_ON_SLICER_PATHS) - set(found)
+    stale = (set(NOT_ON_SLICER_PATHS) | set(OPTIONAL_ON_SLICER_PATHS)) - set(found)
     assert not stale, f"remove these from NOT_ON_SLICER_PATHS, nothing imports them any more: {sorted(stale)}"
 
 
@@ -163,7 +172,7 @@ def test_requirements_are_the_one_list():
     # No second list to drift apart: requirements.txt was never read by the code.
     assert not (ROOT / "SDFCAR" / "Resources" / "requirements.txt").exists()
     text = SCRIPT.read_text(encoding="utf-8")
-    for name in ("SAMPLE_REQUIREMENTS", "VESSELNESS_REQUIREMENTS"):
+    for name in ("SAMPLE_REQUIREMENTS", "VESSELNESS_REQUIREMENTS", "ANALYSIS_REQUIREMENTS"):
         listed = ast.literal_eval(text.split(f"\n{name} = ", 1)[1].split("\n", 1)[0])
         assert set(listed) <= set(reqs), name
 
@@ -243,7 +252,8 @@ def test_blocked_imports_the_worker(tmp_path, tiny_geometry, tiny_case):
 
 @needs_stdlib_names
 def test_blocked_imports_the_modules_library_calls(tmp_path):
-    """What the module's own process runs: the sample case, vesselness, inputs' checks, DICOM tags."""
+    """What the module's own process runs: the sample case, vesselness, inputs' checks, DICOM tags,
+    the views' parameters, the QA overlays and the 3D-QCA nodes."""
     out, blocked = _run_blocked(tmp_path, '''
         import numpy as np
         from SDFCARLib.sample_data import load_sample_case
@@ -251,6 +261,7 @@ def test_blocked_imports_the_modules_library_calls(tmp_path):
         from SDFCARLib.masks import angiogram_mask
         from SDFCARLib.jobs import prepare_job
         import SDFCARLib.dicom, SDFCARLib.selftest, SDFCARLib.mrml
+        import SDFCARLib.analysis.mrml_nodes, SDFCARLib.mrml.parameter_views, SDFCARLib.mrml.qa_overlays
         case = load_sample_case()
         frame, _ = simulate_angiogram(2.0 * case.masks[0], 0.278, 0)
         angiogram_mask(frame, 0.278, 1.32)
@@ -258,6 +269,32 @@ def test_blocked_imports_the_modules_library_calls(tmp_path):
     ''', tmp_path / "job")
     assert not blocked, f"the module imports modules Slicer lacks: {blocked}"
     assert out.returncode == 0, out.stderr[-3000:]
+
+
+@needs_stdlib_names
+def test_blocked_imports_the_analysis_worker(tmp_path):
+    """The module's Analyse runs `python -m SDFCARLib.jobs analyse`: it needs nothing Slicer lacks,
+    and without the optional matplotlib it still finishes (without the figures)."""
+    from test_analysis import _result_folder
+
+    from SDFCARLib.jobs import prepare_analysis_job
+
+    folder, _ = _result_folder(tmp_path)
+    job_dir = prepare_analysis_job(tmp_path / "qca", folder, options={"view_step_deg": 30.0})
+    out, blocked = _run_blocked(tmp_path, '''
+        import runpy
+        sys.argv = ["SDFCARLib.jobs", "analyse", sys.argv[1]]
+        try:
+            runpy.run_module("SDFCARLib.jobs", run_name="__main__", alter_sys=True)
+        except SystemExit as exc:
+            sys.exit(exc.code)
+    ''', job_dir)
+    status = json.loads((job_dir / "status.json").read_text())
+    optional = {top for _, top in OPTIONAL_ON_SLICER_PATHS}
+    assert all(line.rsplit(" ", 1)[-1] in optional for line in blocked), f"the analysis imports modules Slicer lacks: {blocked}"
+    assert out.returncode == 0 and status["state"] == "finished", (status, out.stderr[-3000:])
+    notes = json.loads(Path(status["outputs"]["analysis.json"]).read_text())["notes"]
+    assert any("figures skipped" in n for n in notes)
 
 
 @needs_stdlib_names
