@@ -426,6 +426,7 @@ class _Recorder:
     def __init__(self):
         self.errors = []
         self.warnings = []
+        self.sliceLayers = []
         self.confirm = True
         self.pipInstalls = []
 
@@ -434,6 +435,9 @@ class _Recorder:
 
     def warningDisplay(self, text, **kwargs):
         self.warnings.append(text)
+
+    def setSliceViewerLayers(self, background="keep-current", **kwargs):
+        self.sliceLayers.append(dict(kwargs, background=background))
 
     def confirmOkCancelDisplay(self, text, **kwargs):
         return self.confirm
@@ -448,11 +452,55 @@ def _module(name, **attributes):
     return module
 
 
-def install(monkeypatch):
-    """Put the fakes in sys.modules (undone after the test) and load SDFCAR.py; returns the module."""
+class _RealMRML(types.ModuleType):
+    """The fake ``slicer`` module in front of slicer-core: what the fake does not define (MRML classes,
+    vtkSlicer… logics) comes from the real MRML."""
+
+    def __getattr__(self, name):
+        if name.startswith("__"):
+            raise AttributeError(name)
+        return getattr(self._real, name)
+
+
+class _ThreeDView:
+    def __init__(self, camera):
+        self._camera = camera
+
+    def cameraNode(self):
+        return self._camera
+
+    def resetFocalPoint(self):
+        pass
+
+
+class LayoutManager:
+    """A layout with one 3D view whose camera is a real vtkMRMLCameraNode of the scene."""
+
+    def __init__(self, scene):
+        self.threeDViewCount = 1
+        self.camera = scene.AddNewNodeByClass("vtkMRMLCameraNode", "Camera")
+        self.camera.SetFocalPoint(0.0, 0.0, 0.0)
+        self.camera.SetPosition(0.0, 500.0, 0.0)
+
+    def threeDWidget(self, index):
+        return types.SimpleNamespace(threeDView=lambda: _ThreeDView(self.camera))
+
+
+def install(monkeypatch, real_mrml=False):
+    """Put the fakes in sys.modules (undone after the test) and load SDFCAR.py; returns the module.
+
+    ``real_mrml``: ``slicer.mrmlScene`` is a real slicer-core scene (``module.scene``), the MRML
+    classes are slicer-core's, and the application has a layout manager with one 3D view
+    (``module.layoutManager``), so the logic runs on real MRML; Qt and the wrapper stay fakes.
+    """
     import contextlib
 
     recorder = _Recorder()
+    real = None
+    if real_mrml:
+        import slicer as real  # slicer-core, imported before the fake takes its name
+
+        from SDFCARLib import mrml
 
     @contextlib.contextmanager
     def tryWithErrorDisplay(message=None, show=True, waitCursor=False):
@@ -462,16 +510,27 @@ def install(monkeypatch):
             recorder.errors.append(f"{message}\n\n{exc}")
             raise
 
-    node_classes = {n: type(n, (), {}) for n in ("vtkMRMLLabelMapVolumeNode", "vtkMRMLScalarVolumeNode", "vtkMRMLSegmentationNode")}
+    node_names = ("vtkMRMLLabelMapVolumeNode", "vtkMRMLScalarVolumeNode", "vtkMRMLSegmentationNode")
+    node_classes = {n: (getattr(real, n) if real is not None else type(n, (), {})) for n in node_names}
     SCENE.clear()
     OBSERVERS.clear()
     util = _module("slicer.util", VTKObservationMixin=VTKObservationMixin, tryWithErrorDisplay=tryWithErrorDisplay,
                    errorDisplay=recorder.errorDisplay, warningDisplay=recorder.warningDisplay,
+                   setSliceViewerLayers=recorder.setSliceViewerLayers,
                    confirmOkCancelDisplay=recorder.confirmOkCancelDisplay,
                    pip_install=recorder.pip_install)
-    slicer = _module("slicer", util=util, app=types.SimpleNamespace(connect=lambda *a: None, temporaryPath="/tmp"),
-                     mrmlScene=types.SimpleNamespace(Clear=lambda *a: None, GetNodeByID=SCENE.get),
+    app = types.SimpleNamespace(connect=lambda *a: None, temporaryPath="/tmp", layoutManager=lambda: None)
+    scene = types.SimpleNamespace(Clear=lambda *a: None, GetNodeByID=SCENE.get)
+    layout_manager = None
+    if real is not None:
+        scene = mrml.new_scene()
+        layout_manager = LayoutManager(scene)
+        app.layoutManager = lambda: layout_manager
+    slicer = _module("slicer", util=util, app=app, mrmlScene=scene, modules=types.SimpleNamespace(),
                      qMRMLNodeComboBox=Widget, **node_classes)
+    if real is not None:
+        slicer.__class__ = _RealMRML
+        slicer._real = real
     slicer.__path__ = []  # a package, so "from slicer import packaging" looks for a submodule (absent before 5.12)
     slicer.parameterNodeWrapper = _module("slicer.parameterNodeWrapper", Choice=Choice, WithinRange=WithinRange,
                                           parameterNodeWrapper=parameterNodeWrapper)
@@ -491,6 +550,8 @@ def install(monkeypatch):
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     module.recorder = recorder
+    module.scene = scene
+    module.layoutManager = layout_manager
     return module
 
 
