@@ -155,10 +155,18 @@ def build_parser() -> argparse.ArgumentParser:
     _add_optimiser_options(p)
     p.set_defaults(func=cmd_demo)
 
-    p = commands.add_parser("geometry-template", parents=[common], help="write a GEOM.json for a standard view pair",
-                            description="Write a GEOM.json for a standard view pair as a starting point.")
-    p.add_argument("--view-pair", default="lao30-rao30", choices=sorted(VIEW_PAIRS),
-                   help="paper: the SDF-CAR/NeCA simulation views; the others are clinical pairs (default lao30-rao30)")
+    p = commands.add_parser("geometry-template", parents=[common],
+                            help="write a GEOM.json for a standard protocol or any list of view angles",
+                            description="Write a GEOM.json as a starting point: a standard protocol (--view-pair) or "
+                                        "any number of views given by their angles (--view, repeated).")
+    p.add_argument("--view-pair", default=None, choices=sorted(VIEW_PAIRS),
+                   help="paper: the SDF-CAR/NeCA simulation views; lao30-rao30-cra30: three views; the others are "
+                        "clinical pairs (default lao30-rao30 when no --view is given)")
+    p.add_argument("--view", dest="views", action="append", type=float, nargs=2, metavar=("PRIMARY", "SECONDARY"),
+                   help="one view by its angles in degrees (LAO +/RAO −, CRA +/CAU −); repeat for each view, e.g. "
+                        "--view 30 0 --view -30 0 --view 0 30 (instead of --view-pair)")
+    p.add_argument("--sid-mm", type=float, default=1000.0, help="source-to-detector distance of the --view views")
+    p.add_argument("--sod-mm", type=float, default=757.0, help="source-to-isocenter distance of the --view views")
     p.add_argument("--out", help="file to write (default: print to stdout)")
     p.add_argument("--shape", type=_positive_int, nargs=3, default=[128, 128, 128], metavar=("NI", "NJ", "NK"))
     p.add_argument("--spacing-mm", type=float, default=0.8)
