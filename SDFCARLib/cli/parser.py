@@ -79,13 +79,18 @@ def build_parser() -> argparse.ArgumentParser:
                             description="Centreline tree, diameter profiles (3D sections and, with the masks, two-view "
                                         "widths), lesions (MLD, %%DS, %%AS, length), bifurcation angles, foreshortening and "
                                         "the best-view map of a reconstruction: analysis.json, centrelines.vtk, "
-                                        "profile_branchNN.csv, diameter_profiles.png, view_map.png.")
+                                        "profile_branchNN.csv, diameter_profiles.png, view_map.png. Narrowings where the "
+                                        "reconstruction is broken (a piece cut off, a gap beside it, a bridged gap) are "
+                                        "flagged unreliable with the reason, apart from the lesions.")
     p.add_argument("result_dir", help="folder written by reconstruct (occupancy.nrrd or segmentation.seg.nrrd, report.json)")
     p.add_argument("--out", help="output folder (default RESULT_DIR/analysis)")
     p.add_argument("--masks", nargs="+", help="view masks for the 2D diameters (default: the masks report.json names)")
     p.add_argument("--ostium", type=float, nargs=3, metavar=("X", "Y", "Z"),
                    help="ostium in LPS mm (default: the thickest end of the tree)")
     p.add_argument("--view-step-deg", type=float, default=2.0, help="angle step of the best-view map (default 2)")
+    p.add_argument("--min-component-share", type=float, default=None, metavar="SHARE",
+                   help="analyse only the pieces of a fragmented reconstruction that hold at least this share of the "
+                        "main tree's voxels (default 0.1; 0 analyses every piece)")
     p.add_argument("--overwrite", action="store_true", help="replace analysis files the output folder already holds")
     p.set_defaults(func=cmd_analyse)
 

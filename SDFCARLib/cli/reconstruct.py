@@ -245,10 +245,24 @@ def _print_analysis(result_dir: str, out: Optional[str], overwrite: bool, **opti
 
     files = analyse_result_dir(result_dir, out, overwrite=overwrite, **options)
     data = json.loads(files["analysis.json"].read_text(encoding="utf-8"))
+    for warning in data.get("warnings", []):
+        print(f"warning: {warning}", file=sys.stderr)
+    for note in data.get("notes", []):
+        print(f"note: {note}", file=sys.stderr)
     print(f"3D-QCA: {data['tree']['branches']} branches, {data['tree']['total_length_mm']:.1f} mm of centreline")
+
+    def line(lesion: Dict[str, Any]) -> str:
+        return (f"  branch {lesion['branch_id']}: MLD {lesion['mld_mm']:.2f} mm, reference "
+                f"{lesion['reference_diameter_mm']:.2f} mm, DS {lesion['diameter_stenosis_pct']:.0f}%, "
+                f"AS {lesion['area_stenosis_pct']:.0f}%, length {lesion['length_mm']:.1f} mm")
+
     for lesion in data["lesions"]:
-        print(f"  branch {lesion['branch_id']}: MLD {lesion['mld_mm']:.2f} mm, reference {lesion['reference_diameter_mm']:.2f} mm, "
-              f"DS {lesion['diameter_stenosis_pct']:.0f}%, AS {lesion['area_stenosis_pct']:.0f}%, length {lesion['length_mm']:.1f} mm")
+        print(line(lesion))
+    unreliable = data.get("unreliable_lesions", [])
+    if unreliable:
+        print(f"  {len(unreliable)} more narrowing(s) flagged \"{unreliable[0]['flag']}\" (in analysis.json, not lesions):")
+        for lesion in unreliable:
+            print(line(lesion).replace("  branch", "    branch", 1) + f" — {'; '.join(lesion['reasons'])}")
     if data.get("best_view"):
         best = data["best_view"]
         print(f"  suggested view: {best['label']} (foreshortening {100 * best['foreshortening']:.1f}%, "
@@ -258,7 +272,7 @@ def _print_analysis(result_dir: str, out: Optional[str], overwrite: bool, **opti
 
 def cmd_analyse(args: argparse.Namespace) -> int:
     _print_analysis(args.result_dir, args.out, args.overwrite, masks=args.masks, ostium_mm=args.ostium,
-                    view_step_deg=args.view_step_deg)
+                    view_step_deg=args.view_step_deg, min_component_share=args.min_component_share)
     return EXIT_OK
 
 
