@@ -26,6 +26,10 @@ Method
        includes the bridge; the caller writes the matching field values (``field_values``).
     5. Joined components become part of the tree and the search repeats from the grown tree
        until a round joins nothing, so a chain of fragments can be joined link by link.
+
+Each bridge is reported (``bridges``: the gap's voxel indices, the tube's radius): the vessel was
+broken there and the bridge is thinner than the vessel by construction, so the 3D-QCA
+(``analysis/fragments.py``) does not report a narrowing on it as a reliable lesion.
 """
 
 from __future__ import annotations
@@ -72,7 +76,8 @@ def reconnect_fragments(
 
     Returns (segmentation, occupancy, changed, report): new arrays (the inputs are not modified),
     the voxels whose occupancy was raised, and what was joined (components before and after,
-    joined count, gap lengths in mm and mean occupancies of the accepted paths, components left apart).
+    joined count, gap lengths in mm and mean occupancies of the accepted paths, the bridges' gap
+    voxels and radii, components left apart).
     """
     t0 = time.perf_counter()
     settings = settings or ReconnectSettings()
@@ -85,7 +90,8 @@ def reconnect_fragments(
     changed = np.zeros(segmentation.shape, bool)
     labels, sizes = component_labels(segmentation)
     info: Dict[str, Any] = {"components_before": int(sizes.size), "joined": 0, "gap_mm": [], "gap_occupancy": [],
-                            "left_apart": 0, "max_gap_mm": settings.max_gap_mm, "min_occupancy": settings.min_occupancy}
+                            "bridges": [], "left_apart": 0, "max_gap_mm": settings.max_gap_mm,
+                            "min_occupancy": settings.min_occupancy}
     if sizes.size < 2:
         info.update(components_after=int(sizes.size), seconds=time.perf_counter() - t0)
         return segmentation, occupancy, changed, info
@@ -126,6 +132,8 @@ def reconnect_fragments(
             reached.update(int(n) for n in np.unique(labels[tuple(path.T)]) if n)  # components it crosses too
             info["gap_mm"].append(round(gap_mm, 3))
             info["gap_occupancy"].append(round(mean_occupancy, 4))
+            info["bridges"].append({"gap_mm": round(gap_mm, 3), "radius_mm": round(radius, 3),
+                                    "voxels_ijk": path[gap].astype(int).tolist()})
             joined_now += 1
         info["joined"] += joined_now
         labels, sizes = component_labels(segmentation)

@@ -302,6 +302,9 @@ def finish(problem: Problem, model: ImplicitField, history: List[Dict[str, float
             segmentation, occupancy_volume, geometry.volume.spacing_mm, problem.support,
             ReconnectSettings(settings.region.reconnect_max_gap_mm, settings.region.reconnect_min_occupancy, threshold))
         field_volume[changed] = field_values(occupancy_volume[changed], settings.mode.field_kind, settings.field.alpha)
+        for bridge in reconnection["bridges"]:  # where the vessel was broken, in LPS mm for the 3D-QCA
+            ijk = np.asarray(bridge.pop("voxels_ijk"), dtype=np.float64).reshape(-1, 3)
+            bridge["points_mm"] = np.round(geometry.volume.index_to_world(ijk), 3).tolist()
     projected = reprojected_masks(segmentation, geometry)
     references = vessel_pixels(problem.targets, problem.target_kind)
     qa = [reprojection_qa(p, m, v) for p, m, v in zip(projected, references, geometry.views)]

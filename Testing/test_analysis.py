@@ -254,3 +254,124 @@ def test_reconstruct_takes_the_analyse_flag():
                                       "--out", "r", "--analyse"])
     assert args.analyse is True
     assert build_parser().parse_args(["analyse", "r", "--ostium", "1", "2", "3"]).ostium == [1.0, 2.0, 3.0]
+
+
+# --- broken reconstructions (analysis/fragments.py) -----------------------------------------------
+def _tube_phantom(stenosis_pct):
+    """A 40 mm tube of 3 mm, oblique to the grid, with a 10 mm concentric stenosis in its middle (at the origin)."""
+    phantom = stenosed_tube(length_mm=40.0, diameter_mm=3.0, stenosis_pct=stenosis_pct, lesion_length_mm=10.0,
+                            direction=(1.0, 0.5, 0.25))
+    grid = grid_around(phantom.tree, 0.3, margin_mm=8.0)
+    axis = np.array([1.0, 0.5, 0.25]) / np.linalg.norm([1.0, 0.5, 0.25])
+    return phantom, grid, voxelize_exact(phantom.tree, grid), axis
+
+
+def _remove(label, grid, keep):
+    ijk = np.argwhere(label)
+    drop = ijk[~keep(grid.index_to_world(ijk))]
+    out = label.copy()
+    out[tuple(drop.T)] = False
+    return out
+
+
+def _ball(label, grid, centre_mm, radius_mm):
+    ijk = np.argwhere(np.ones(label.shape, bool))
+    inside = np.linalg.norm(grid.index_to_world(ijk) - centre_mm, axis=1) <= radius_mm
+    out = label.copy()
+    out[tuple(ijk[inside].T)] = True
+    return out
+
+
+@pytest.mark.parametrize("stenosis_pct", [0.0, 50.0])
+def test_a_tube_cut_by_a_two_voxel_gap_is_not_a_reliable_stenosis(stenosis_pct):
+    from SDFCARLib.analysis.pipeline import analyse_volume, summary
+
+    # 0 %: a clean cut; 50 %: the vessel thins into the break, as a reconstruction does before it breaks.
+    _, grid, label, axis = _tube_phantom(stenosis_pct)
+    cut = _remove(label, grid, lambda x: np.abs(x @ axis) >= 0.3)  # 0.6 mm = 2 voxels across the throat
+    data = summary(analyse_volume(cut, grid, best_view=False))
+    assert data["connectivity"]["components"] == 2 and data["connectivity"]["analysed_components"] == 2
+    assert data["lesions"] == []
+    if stenosis_pct:  # each half's taper into the gap: kept, flagged, with the reason
+        flagged = data["unreliable_lesions"]
+        assert len(flagged) == 2 and all(f["reliable"] is False for f in flagged)
+        assert all(f["flag"] == "unreliable: the reconstruction is broken here" for f in flagged)
+        assert all(any(r.startswith("gap: another piece") for r in f["reasons"]) for f in flagged)
+        assert all(f["diameter_stenosis_pct"] == pytest.approx(50.0, abs=8.0) for f in flagged)
+    assert "the reconstruction is in 2 pieces; the largest holds 50 %" in data["warnings"][0]
+
+
+def test_an_intact_stenosis_stays_reliable_and_debris_beside_it_flags_it():
+    from SDFCARLib.analysis.pipeline import analyse_volume, summary
+
+    _, grid, label, axis = _tube_phantom(50.0)
+    side = np.cross(axis, [0.0, 0.0, 1.0])
+    side /= np.linalg.norm(side)
+
+    def lesions(volume, **options):
+        return summary(analyse_volume(volume, grid, best_view=False, **options))
+
+    intact = lesions(label)
+    assert len(intact["lesions"]) == 1 and intact["unreliable_lesions"] == [] and intact["warnings"] == []
+    assert intact["lesions"][0]["diameter_stenosis_pct"] == pytest.approx(50.0, abs=8.0)
+    assert intact["lesions"][0]["reliable"] is True and intact["connectivity"]["components"] == 1
+    # A 1 mm ball of debris (under 10 % of the tube: not analysed), its surface 1 mm beside the healthy wall at the
+    # throat, flags the lesion; 6 mm away it does not.
+    near = lesions(_ball(label, grid, (1.5 + 1.0 + 1.0) * side, 1.0))
+    assert near["lesions"] == [] and len(near["unreliable_lesions"]) == 1
+    assert near["unreliable_lesions"][0]["reasons"][0].startswith("gap: another piece of the reconstruction")
+    assert near["connectivity"]["not_analysed"]["components"] == 1 and near["tree"]["branches"] == 1
+    far = lesions(_ball(label, grid, (1.5 + 6.0 + 1.0) * side, 1.0))
+    assert len(far["lesions"]) == 1 and far["unreliable_lesions"] == []
+    # A gap that reconnection bridged at the throat (report.json's bridges) flags it; one 15 mm away does not.
+    bridged = lesions(label, bridges=[{"gap_mm": 1.9, "radius_mm": 0.7, "points_mm": [[0.0, 0.0, 0.0]]}])
+    assert bridged["lesions"] == [] and bridged["unreliable_lesions"][0]["reasons"][0].startswith("bridge:")
+    elsewhere = lesions(label, bridges=[{"gap_mm": 1.9, "radius_mm": 0.7, "points_mm": [list(15.0 * axis)]}])
+    assert len(elsewhere["lesions"]) == 1
+
+
+def test_a_stenosis_on_a_piece_cut_off_from_the_main_tree_is_flagged():
+    from SDFCARLib.analysis.pipeline import analyse_volume, summary
+
+    phantom, grid, label, axis = _tube_phantom(50.0)
+    side = np.cross(axis, [0.0, 0.0, 1.0])
+    side /= np.linalg.norm(side)
+    # The main tree: a thicker healthy tube 12 mm to the side, longer than the stenosed piece.
+    main = straight_tube(44.0, 4.0, direction=axis, center_mm=12.0 * side)
+    both = CentrelineTree(list(phantom.tree.branches) + list(main.tree.branches))
+    grid = grid_around(both, 0.3)
+    volume = voxelize_exact(both, grid)
+    data = summary(analyse_volume(volume, grid, best_view=False))
+    assert data["lesions"] == [] and len(data["unreliable_lesions"]) == 1
+    reasons = data["unreliable_lesions"][0]["reasons"]  # the main tree is 8.5 mm from its wall: no gap
+    assert len(reasons) == 1 and reasons[0].startswith("fragment: the vessel lies on a piece of")
+    # With the ostium on the stenosed vessel, it is the tree analysed and its lesion is reliable.
+    data = summary(analyse_volume(volume, grid, best_view=False, ostium_mm=phantom.truth["ostium_mm"]))
+    assert len(data["lesions"]) == 1 and data["unreliable_lesions"] == []
+    assert [b["component"]["main"] for b in data["branches"] if b["lesions"]] == [True]
+    # Pieces under --min-component-share of the main tree are not analysed at all.
+    data = summary(analyse_volume(volume, grid, best_view=False, min_component_share=0.9))
+    assert data["tree"]["branches"] == 1 and data["lesions"] == [] and data["unreliable_lesions"] == []
+    assert data["connectivity"]["not_analysed"]["components"] == 1
+
+
+def test_analyse_warns_about_a_broken_reconstruction(tmp_path, capsys):
+    from SDFCARLib.cli import main
+    from SDFCARLib.io import write_json, write_volume_nrrd
+
+    _, grid, label, axis = _tube_phantom(50.0)
+    cut = _remove(label, grid, lambda x: np.abs(x @ axis) >= 0.3)
+    folder = tmp_path / "result"
+    folder.mkdir()
+    write_volume_nrrd(folder / "occupancy.nrrd", cut.astype(np.float32), grid)
+    write_json(folder / "report.json", {"settings": {"threshold": 0.5},
+                                        "reconnection": {"joined": 1, "gap_mm": [1.0]}})
+    assert main(["analyse", str(folder), "--view-step-deg", "10"]) == 0
+    captured = capsys.readouterr()
+    assert "warning: the reconstruction is in 2 pieces; the largest holds 50 % of the vessel voxels" in captured.err
+    assert "bridged 1 gap(s) but not where" in captured.err  # a result from before bridges were recorded
+    assert "2 more narrowing(s) flagged \"unreliable: the reconstruction is broken here\"" in captured.out
+    data = json.loads((folder / "analysis" / "analysis.json").read_text())
+    assert data["connectivity"]["components"] == 2 and len(data["unreliable_lesions"]) == 2
+    assert main(["analyse", str(folder), "--out", str(tmp_path / "a2"), "--min-component-share", "2"]) == 2
+    assert "between 0 and 1" in capsys.readouterr().err

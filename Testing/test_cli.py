@@ -382,6 +382,21 @@ def test_geometry_template_writes_a_valid_geometry(tmp_path, capsys):
     assert code == 0 and Geometry.from_dict(json.loads(stdout)).views[1].primary_deg == -30.0
 
 
+def test_geometry_template_takes_any_number_of_views(tmp_path, capsys):
+    code, stdout, err = run(capsys, "geometry-template", "--view", 30, 0, "--view", -30, 0, "--view", 0, 30,
+                            "--view", 45, -20, "--sod-mm", 780)
+    assert code == 0, err
+    views = Geometry.from_dict(json.loads(stdout)).views
+    assert [(v.primary_deg, v.secondary_deg, v.sod_mm, v.sid_mm) for v in views] == [
+        (30.0, 0.0, 780.0, 1000.0), (-30.0, 0.0, 780.0, 1000.0), (0.0, 30.0, 780.0, 1000.0), (45.0, -20.0, 780.0, 1000.0)]
+    code, stdout, _ = run(capsys, "geometry-template", "--view-pair", "lao30-rao30-cra30")
+    assert code == 0 and len(Geometry.from_dict(json.loads(stdout)).views) == 3
+    code, _, err = run(capsys, "geometry-template", "--view", 30, 0)
+    _assert_bad_input(code, err, "--view was given 1 time; a reconstruction needs at least two views")
+    code, _, err = run(capsys, "geometry-template", "--view", 30, 0, "--view", -30, 0, "--view-pair", "paper")
+    _assert_bad_input(code, err, "either --view-pair or the views' angles")
+
+
 # --- the grid placed on the masks (region.py) -------------------------------------------------------------
 def test_reconstruct_places_the_grid_on_the_masks(tmp_path, mask_files, capsys):
     data = tiny_geometry_dict()

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -89,6 +90,91 @@ def test_geometry_places_the_grid_on_the_masks_or_says_it_could_not(dicom_pair, 
     assert main(base + ["--out", str(out)]) == 0
     assert "could not be placed" in capsys.readouterr().err
     saved = json.loads(out.read_text())
-    assert "give --mask1/--mask2" in saved["provenance"]["volume"]["source"] and saved["volume"]["shape"] == [128] * 3
+    source = saved["provenance"]["volume"]["source"]
+    assert "--mask A B" in source and "--mask1/--mask2" in source and saved["volume"]["shape"] == [128] * 3
     assert main(base + ["--mask1", str(masks[0]), "--out", str(tmp_path / "x.json")]) == 2
     assert "both --mask1 and --mask2" in capsys.readouterr().err
+
+
+# --- any number of runs: --dicom A B C … ----------------------------------------------------------
+@pytest.fixture(scope="module")
+def dicom_three(tmp_path_factory):
+    """Three 3-frame XA runs (LAO 30, RAO 30 cranial 10, AP cranial 30) of a small tube, their masks; run 3
+    lacks ImagerPixelSpacing."""
+    folder = tmp_path_factory.mktemp("xa3")
+    views = (CArmView(30.0, 0.0, 1000.0, 757.0, (1.0, 1.0), (64, 64)),
+             CArmView(-30.0, 10.0, 1040.0, 760.0, (1.0, 1.0), (64, 64)),
+             CArmView(0.0, 30.0, 1000.0, 750.0, (1.0, 1.0), (64, 64)))
+    geometry = Geometry(VolumeGrid((24, 24, 24), (2.0, 2.0, 2.0)), views)
+    tube = CentrelineTree([Branch(np.array([[-12.0, 0, -10], [10.0, 4, 12]]), np.array([3.0, 2.5]))])
+    case = make_case(tube, geometry)
+    paths, masks = [], []
+    for n, (view, line_integral, mask) in enumerate(zip(views, case.line_integrals, case.masks), start=1):
+        frames = np.stack([beer_lambert_counts(c * line_integral, 0.25, 3000.0, 12) for c in (0.2, 1.0, 0.5)])
+        paths.append(str(write_xa(folder / f"run{n}.dcm", frames, view, bits_stored=12,
+                                  omit=("ImagerPixelSpacing",) if n == 3 else ())))
+        masks.append(str(write_mask_png(folder / f"mask{n}.png", mask)))
+    return geometry, paths, masks
+
+
+def test_reconstruct_from_three_dicom_runs(dicom_three, tmp_path, capsys):
+    geometry, paths, masks = dicom_three
+    out = tmp_path / "result"
+    args = ["reconstruct", "--dicom", *paths, "--frame", "auto", "2", "0", "--pixel-spacing", "auto", "auto", "1",
+            "--volume-shape", "24", "24", "24", "--volume-spacing", "2", "--mask", *masks, "--out", str(out),
+            "--steps", "3", "--no-progress"]
+    assert main(args) == 0, capsys.readouterr().err
+    report = json.loads((out / "report.json").read_text())
+    assert report["geometry_digest"] == geometry.digest() and len(report["geometry"]["views"]) == 3
+    assert [Path(p).name for p in report["inputs"]["dicom"]] == ["run1.dcm", "run2.dcm", "run3.dcm"]
+    views = report["inputs"]["geometry_provenance"]["views"]
+    # Frame choice per run: run 1 automatic (the frame with the most contrast), runs 2 and 3 as given.
+    assert [(v["frame"]["index"], v["frame"]["method"]) for v in views] == [(1, "contrast"), (2, "user"), (0, "user")]
+    assert views[2]["fields"]["pixel_spacing_mm"]["source"] == "user"
+    assert views[0]["fields"]["pixel_spacing_mm"]["source"].startswith("tag (0018,1164)")
+    # The epipolar check ran on the three views, each against both others: the tags' geometry agrees.
+    assert len(report["view_consistency"]) == 3 and min(report["view_consistency"]) > 0.9
+    assert all((out / f"qa_view{n}.png").is_file() for n in (1, 2, 3))
+
+
+def test_three_runs_refuse_mixed_forms_and_wrong_counts(dicom_three, tmp_path, capsys):
+    _, paths, masks = dicom_three
+    base = ["reconstruct", "--volume-shape", "24", "24", "24", "--volume-spacing", "2", "--pixel-spacing", "auto",
+            "auto", "1", "--steps", "1", "--no-progress", "--out", str(tmp_path / "r")]
+    cases = [
+        (["--dicom", *paths, "--mask", *masks[:2]], "--dicom names 3 XA runs (one per view) but 2 image(s)"),
+        (["--dicom", *paths, "--dicom1", paths[0], "--mask", *masks], "either as --dicom A B C"),
+        (["--dicom", *paths, "--frame2", "1", "--mask", *masks],
+         "--frame2 is for --dicom1/--dicom2; with --dicom A B … give one value per run instead, e.g. --frame auto 1 auto"),
+        (["--dicom1", paths[0], "--dicom2", paths[1], "--frame", "1", "2", "--mask", *masks[:2]],
+         "--frame, --pixel-spacing are for --dicom A B …; with --dicom1/--dicom2 use the numbered options "
+         "(--frame1/--frame2, --pixel-spacing1/--pixel-spacing2)"),
+        (["--dicom", *paths, "--frame", "1", "2", "--mask", *masks], "--frame has 2 value(s) but --dicom names 3 runs"),
+        (["--dicom", *paths, "--sod", "750", "x", "auto", "--mask", *masks], "--sod value 2 of 3 ('x') is not a number"),
+        (["--dicom", *paths, "--frame", "auto", "auto", "7", "--mask", *masks], "frame 7 is out of range"),
+        (["--dicom", paths[0], "--mask", masks[0]], "at least two XA runs"),
+        (["--dicom", *paths], "no view images: give one mask per view with --mask V1 V2 V3 (3 views), or --auto-masks"),
+    ]
+    for extra, message in cases:
+        assert main(base + extra) == 2, extra
+        err = capsys.readouterr().err
+        assert message in err, (extra, err)
+        assert not (tmp_path / "r").exists()
+    # Run 3 has no pixel spacing tag: the error names the list form, and that it is run 3's value.
+    assert main(["geometry", "--dicom", *paths, "--out", str(tmp_path / "g.json")]) == 2
+    err = capsys.readouterr().err
+    assert "view 3" in err and "value 3 of --pixel-spacing with one value per --dicom run" in err
+
+
+def test_geometry_command_writes_three_views_and_places_the_grid(dicom_three, tmp_path, capsys):
+    geometry, paths, masks = dicom_three
+    out = tmp_path / "GEOM.json"
+    assert main(["geometry", "--dicom", *paths, "--pixel-spacing", "auto", "auto", "1", "--volume-spacing", "2",
+                 "--mask", *masks, "--out", str(out)]) == 0, capsys.readouterr().err
+    saved = json.loads(out.read_text())
+    assert Geometry.from_dict(saved).views == geometry.views
+    assert len(saved["provenance"]["views"]) == 3 and len(saved["provenance"]["volume"]["mask_coverage"]) == 3
+    assert saved["provenance"]["volume"]["source"].startswith("placed on the masks' region")
+    assert main(["geometry", "--dicom", *paths, "--pixel-spacing", "auto", "auto", "1", "--mask", *masks[:2],
+                 "--out", str(tmp_path / "g2.json")]) == 2
+    assert "--dicom names 3 XA runs (one per view) but 2 mask(s)" in capsys.readouterr().err

@@ -37,6 +37,7 @@ def run(tmp_path_factory):
     path = write_xa(folder / "run.dcm", frames, view, bits_stored=12)
     other = CArmView(-30.0, 20.0, 975.0, 750.0, (0.39, 0.39), (128, 128))  # same frames: plumbing only
     write_xa(folder / "run2.dcm", frames, other, bits_stored=12)
+    write_xa(folder / "run3.dcm", frames, CArmView(0.0, 30.0, 975.0, 750.0, (0.39, 0.39), (128, 128)), bits_stored=12)
     return path, line_integral > 0
 
 
@@ -109,4 +110,23 @@ def test_reconstruct_with_auto_masks(run, tmp_path, capsys):
     assert np.array_equal(read_image(out / "auto_mask1.png"), read_image(tmp_path / "seg.png"))
     assert (out / "auto_mask2_overlay.png").exists()
     assert main(args[:-1] + [str(tmp_path / "r2"), "--mask1", "m.png"]) == 2
-    assert "remove --mask1/--mask2" in capsys.readouterr().err
+    assert "makes the masks itself; remove --mask1" in capsys.readouterr().err
+
+
+def test_reconstruct_with_auto_masks_of_three_runs_and_a_frame_per_run(run, tmp_path, capsys):
+    path, _ = run
+    out = tmp_path / "result"
+    runs = [str(path), str(path.parent / "run2.dcm"), str(path.parent / "run3.dcm")]
+    args = ["reconstruct", "--dicom", *runs, "--frame", "auto", "2", "auto", "--auto-masks", "--volume-shape", "8", "8",
+            "8", "--volume-spacing", "8", "--steps", "1", "--no-progress", "--out", str(out)]
+    assert main(args) == 0, capsys.readouterr().err
+    captured = capsys.readouterr()
+    assert "view 2: auto mask of frame 2" in captured.err and "auto_mask3.png" in captured.out
+    report = json.loads((out / "report.json").read_text())
+    assert [a["frame"]["index"] for a in report["inputs"]["auto_masks"]] == [1, 2, 1]
+    assert report["inputs"]["targets"] == ["auto_mask1.png", "auto_mask2.png", "auto_mask3.png"]
+    assert json.loads((out / "auto_mask2.json").read_text())["source"]["frame"]["index"] == 2
+    # The frame each mask was made from is the frame the geometry was read from.
+    views = report["inputs"]["geometry_provenance"]["views"]
+    assert [v["frame"]["index"] for v in views] == [1, 2, 1]
+    assert all((out / f"qa_view{n}.png").is_file() for n in (1, 2, 3))

@@ -55,6 +55,9 @@ def test_a_gap_with_a_ridge_of_occupancy_is_bridged():
     assert component_counts(new_occupancy >= 0.5)["components"] == 1  # the surface at 0.5 includes the bridge
     assert info["components_before"] == 2 and info["components_after"] == 1 and info["joined"] == 1
     assert info["gap_mm"][0] == pytest.approx(2.5)  # between the two segmented voxels it joins
+    bridge = info["bridges"][0]  # where the vessel was broken, for the 3D-QCA
+    assert bridge["gap_mm"] == info["gap_mm"][0] and 0.5 * H <= bridge["radius_mm"] < 1.5
+    assert sorted({ijk[0] for ijk in bridge["voxels_ijk"]}) == [22, 23, 24, 25]
     assert 0.2 < info["gap_occupancy"][0] < 0.35
     # The bridge has about the tube's cross-section, not a one-voxel thread and not a blob.
     assert 0.5 * before[10].sum() <= joined[24].sum() <= before[10].sum()
@@ -149,6 +152,10 @@ def test_reconstruct_reports_components():
         reconnection = result.report["reconnection"]
         if reconnect:
             assert reconnection["components_after"] == counts["components"]
+            assert len(reconnection["bridges"]) == reconnection["joined"]
+            for bridge in reconnection["bridges"]:  # in LPS mm inside the grid
+                lo, hi = grid.bounds()
+                assert np.all((np.asarray(bridge["points_mm"]) >= lo) & (np.asarray(bridge["points_mm"]) <= hi))
             assert reconnection["components_before"] - reconnection["joined"] <= reconnection["components_after"]
         else:
             assert reconnection is None

@@ -78,3 +78,17 @@ def test_reconstruct_reports_consistency_and_warns_before_the_loop(case):
         assert any("angle signs" in w for w in report["warnings"])
     warned = [e for e in events if e.get("phase") == "warning" and "partner" in e["message"]]
     assert warned and all(e["step"] == 0 for e in warned)  # before the optimisation
+
+
+def test_three_views_a_wrong_third_view_is_flagged(case):
+    geometry, _ = case
+    views = geometry.views + (CArmView(0.0, 30.0, 1000.0, 757.0, (0.6, 0.6), (256, 256)),)
+    _, masks = simulate_views(voxelize(lad_tree(1), geometry.volume), geometry.volume, views)
+    consistency = view_consistency(Geometry(geometry.volume, views), masks)
+    assert len(consistency) == 3 and min(consistency) > 0.95 and consistency_warnings(consistency) == []
+    # View 3 recorded as LAO 40 instead of AP: each view's rays must meet both others' vessels, so the
+    # check drops for every view (a pair alone is lenient: views 2 and 3 still agree at 0.98).
+    wrong = Geometry(geometry.volume, views[:2] + (CArmView(40.0, 30.0, 1000.0, 757.0, (0.6, 0.6), (256, 256)),))
+    consistency = view_consistency(wrong, masks)
+    assert max(consistency) < 0.6
+    assert [w.split(":")[0] for w in consistency_warnings(consistency)] == ["view 1", "view 2", "view 3"]

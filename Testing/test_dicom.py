@@ -426,8 +426,8 @@ def test_cli_wiring(tmp_path):
     assert geometry.views[1].pixel_spacing_mm == (0.25, 0.3) and geometry.views[1].sod_mm == 750.0
     assert geometry.volume == VolumeGrid((64, 64, 32), (1.0, 1.0, 1.0))
     assert prov["views"][0]["frame"]["index"] == 2 and prov["views"][1]["fields"]["sod_mm"]["source"] == "user"
-    with pytest.raises(SystemExit):
-        parser.parse_args(["--dicom1", str(p1)])  # --dicom2 is required
+    with pytest.raises(DicomInputError, match="--dicom1 and --dicom2 are both needed"):
+        dicom.cli_geometry_from_args(parser.parse_args(["--dicom1", str(p1)]))
 
 
 # --- the tests' XA writer (xa_writer.py) ----------------------------------------------------------

@@ -137,6 +137,22 @@ def test_two_jobs_in_sequence_and_in_process_run(tiny_case, tmp_path):
     assert Path(paths["segmentation"]).is_file() and events[-1]["phase"] == "done"
 
 
+def test_a_job_with_three_views(tiny_case, tmp_path):
+    views = tiny_case.geometry.views + (CArmView(0.0, 30.0, 1000.0, 750.0, (1.0, 1.0), (64, 64)),)
+    tube = CentrelineTree([Branch(np.array([[-12.0, 0, -10], [10.0, 4, 12]]), np.array([3.0, 2.5]))])
+    case = make_case(tube, Geometry(tiny_case.geometry.volume, views))
+    job = ReconstructionJob.start(tmp_path / "job", case.geometry, case.masks, dict(SMALL, steps=3))
+    assert job.wait(timeout=120) == "finished", (tmp_path / "job" / "worker.log").read_text()
+    assert sorted(p.name for p in (tmp_path / "job").glob("view*.npy")) == ["view1.npy", "view2.npy", "view3.npy"]
+    report = json.loads(Path(job.result()["report"]).read_text())
+    assert len(report["geometry"]["views"]) == 3 and len(report["view_consistency"]) == 3
+    assert (tmp_path / "job" / "output" / "qa_view3.png").is_file()
+    # A mask short is refused before anything runs, naming both numbers.
+    with pytest.raises(JobFolderError, match="2 .*3 view"):
+        prepare_job(tmp_path / "short", case.geometry, case.masks[:2], SMALL)
+    assert not (tmp_path / "short").exists()
+
+
 def test_bad_job_folders_are_rejected_before_start(tiny_case, tmp_path):
     with pytest.raises(JobFolderError, match="job.json"):
         ReconstructionJob.launch(tmp_path / "empty")

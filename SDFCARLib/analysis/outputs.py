@@ -13,7 +13,8 @@ runs ``pipeline.analyse_volume`` and writes, all at once or not at all (``staged
                             so the file is the same everywhere; vtk and Slicer read it.
     profile_branchNN.csv    arc length, 3D diameter, area, min/max diameter, mask diameter and
                             per-view widths, reference, excluded flag, centreline point
-    diameter_profiles.png   diameter against arc length per branch, lesions shaded (matplotlib)
+    diameter_profiles.png   diameter against arc length per branch, lesions shaded (matplotlib);
+                            lesions where the reconstruction is broken hatched grey
     view_map.png            foreshortening + overlap over the C-arm angles, best view marked
 """
 
@@ -108,7 +109,8 @@ def plot_profiles(path: PathLike, result: QCAResult, max_branches: int = 6) -> b
     plt = _pyplot()
     if plt is None:
         return False
-    ranked = sorted(result.profiles, key=lambda p: (-len(p.lesions), -p.branch.length_mm))[:max_branches]
+    ranked = sorted(result.profiles, key=lambda p: (-len(p.lesions), -len(p.unreliable),
+                                                    -p.branch.length_mm))[:max_branches]
     fig, axes = plt.subplots(len(ranked), 1, figsize=(8, 2.3 * len(ranked)), squeeze=False)
     for ax, p in zip(axes[:, 0], ranked):
         s = p.branch.arc_length_mm
@@ -125,6 +127,12 @@ def plot_profiles(path: PathLike, result: QCAResult, max_branches: int = 6) -> b
             ax.annotate(f"MLD {lesion.mld_mm:.2f} mm, DS {lesion.diameter_stenosis_pct:.0f}%, "
                         f"L {lesion.length_mm:.1f} mm", (lesion.mld_position_mm, lesion.mld_mm),
                         textcoords="offset points", xytext=(6, -12), fontsize=8, color="C3")
+        for flagged in p.unreliable:
+            lesion = flagged.lesion
+            ax.axvspan(lesion.start_mm, lesion.end_mm, facecolor="none", edgecolor="0.5", hatch="//", lw=0)
+            ax.annotate(f"unreliable (broken reconstruction): DS {lesion.diameter_stenosis_pct:.0f}%",
+                        (lesion.mld_position_mm, lesion.mld_mm), textcoords="offset points", xytext=(6, -12),
+                        fontsize=8, color="0.4")
         parent = "" if p.branch.parent_id is None else f" (from branch {p.branch.parent_id})"
         ax.set_title(f"branch {p.branch.branch_id}{parent}: {p.branch.length_mm:.1f} mm", fontsize=9)
         ax.set_ylabel("diameter (mm)")
@@ -205,10 +213,17 @@ def analysis_summary_lines(data: Dict[str, Any]) -> List[str]:
     prints these lines; the Slicer module shows them)."""
     tree = data.get("tree") or {}
     lines = [f"3D-QCA: {tree.get('branches', 0)} branches, {float(tree.get('total_length_mm', 0.0)):.1f} mm of centreline"]
-    for lesion in data.get("lesions") or []:
-        lines.append(f"  branch {lesion['branch_id']}: MLD {lesion['mld_mm']:.2f} mm, reference {lesion['reference_diameter_mm']:.2f} mm, "
-                     f"DS {lesion['diameter_stenosis_pct']:.0f}%, AS {lesion['area_stenosis_pct']:.0f}%, "
-                     f"length {lesion['length_mm']:.1f} mm")
+
+    def lesion_line(lesion: Dict[str, Any]) -> str:
+        return (f"  branch {lesion['branch_id']}: MLD {lesion['mld_mm']:.2f} mm, reference "
+                f"{lesion['reference_diameter_mm']:.2f} mm, DS {lesion['diameter_stenosis_pct']:.0f}%, "
+                f"AS {lesion['area_stenosis_pct']:.0f}%, length {lesion['length_mm']:.1f} mm")
+
+    lines += [lesion_line(lesion) for lesion in data.get("lesions") or []]
+    unreliable = data.get("unreliable_lesions") or []
+    if unreliable:
+        lines.append(f"  {len(unreliable)} more narrowing(s) flagged \"{unreliable[0]['flag']}\" (in analysis.json, not lesions):")
+        lines += ["  " + lesion_line(lesion) + f" — {'; '.join(lesion['reasons'])}" for lesion in unreliable]
     best = data.get("best_view")
     if best:
         lines.append(f"  suggested view: {best['label']} (foreshortening {100 * best['foreshortening']:.1f}%, "
@@ -218,7 +233,8 @@ def analysis_summary_lines(data: Dict[str, Any]) -> List[str]:
 
 def analyse_result_dir(result_dir: PathLike, out_dir: Optional[PathLike] = None, overwrite: bool = False,
                        masks: Optional[Sequence[PathLike]] = None, ostium_mm: Optional[Sequence[float]] = None,
-                       view_step_deg: float = 2.0, min_stenosis_pct: float = 20.0) -> Dict[str, Path]:
+                       view_step_deg: float = 2.0, min_stenosis_pct: float = 20.0,
+                       min_component_share: Optional[float] = None) -> Dict[str, Path]:
     """Analyse a reconstruction's result folder and write the QCA files (module docstring); return their paths."""
     result_dir = Path(result_dir)
     if not result_dir.is_dir():
@@ -234,12 +250,19 @@ def analyse_result_dir(result_dir: PathLike, out_dir: Optional[PathLike] = None,
     volume, grid, level, source = _read_result_volume(result_dir, report)
     geometry = Geometry.from_dict(report["geometry"]) if isinstance(report.get("geometry"), dict) else None
     view_masks, mask_note = _masks_for(report, geometry, masks)
+    reconnection = report.get("reconnection") or {}
+    bridges = reconnection.get("bridges") or []
     result = analyse_volume(volume, grid, level=level, views=geometry.views if geometry else (), masks=view_masks,
-                            ostium_mm=ostium_mm, view_step_deg=view_step_deg, min_stenosis_pct=min_stenosis_pct)
+                            ostium_mm=ostium_mm, view_step_deg=view_step_deg, min_stenosis_pct=min_stenosis_pct,
+                            bridges=bridges, **({} if min_component_share is None
+                                                else {"min_component_share": min_component_share}))
     data = summary(result)
     data["source"] = {"result_dir": str(result_dir.absolute()), "volume": source, "level": level,
                       "report": report_path.name if report else None}
     notes = [mask_note] if mask_note else []
+    if reconnection.get("joined") and not bridges:
+        notes.append(f"report.json says reconnection bridged {reconnection['joined']} gap(s) but not where (a result "
+                     "from before bridges were recorded): lesions on them cannot be flagged; reconstruct again to check")
     csv_names = [f"profile_branch{p.branch.branch_id:02d}.csv" for p in result.profiles]
     stale = [p.name for p in out.glob("profile_branch*.csv")] if out.is_dir() and overwrite else []
     names = list(ANALYSIS_FILES) + sorted(set(csv_names) | set(stale))

@@ -9,6 +9,13 @@ Resolution
     ``RESOLVABLE_VOXELS`` voxels of the grid; the others are counted per branch
     (``narrowings_below_resolution``).
 
+Broken reconstructions (``fragments``)
+    Only the pieces of the lumen above ``fragments.MIN_COMPONENT_SHARE`` of the main tree are
+    analysed. A lesion on a piece cut off from the main tree, beside another piece, or on a gap
+    that reconnection bridged is flagged "unreliable: the reconstruction is broken here" and kept
+    apart (``BranchProfile.unreliable``, analysis.json ``unreliable_lesions``) with its reasons; it
+    is not the target of the best-view map.
+
 Target segment of the best-view map
     The worst lesion (highest %DS over all branches) padded by ``TARGET_PAD_MM`` of reference
     vessel on each side, as a clinician frames a lesion; without a lesion, the first
@@ -25,13 +32,22 @@ import numpy as np
 from ..geometry import CArmView, VolumeGrid
 from .centreline import CentrelineBranch, CentrelineTree, bifurcation_angles, extract_centrelines
 from .diameter import CrossSections, branch_cross_sections, junction_zones, mask_diameters
+from .fragments import MIN_COMPONENT_SHARE, UNRELIABLE, Fragments, find_fragments, lesion_reasons
 from .lesion import Lesion, ReferenceFit, find_lesions, minimal_lumen, reference_fit
 from .views import ViewMap, foreshortening, overlap_fraction, view_label, view_map
 
 TARGET_PAD_MM = 2.5
 TARGET_DEFAULT_MM = 20.0
-OTHERS_STEP_MM = 1.0
-RESOLVABLE_VOXELS = 2.5  # a lesion's reference diameter and length must span this many voxels  # tree samples kept for the overlap test: finer adds time, not accuracy
+OTHERS_STEP_MM = 1.0  # tree samples kept for the overlap test: finer adds time, not accuracy
+RESOLVABLE_VOXELS = 2.5  # a lesion's reference diameter and length must span this many voxels
+
+
+@dataclass
+class UnreliableLesion:
+    """A lesion measured where the reconstruction is broken, and why (``fragments.lesion_reasons``)."""
+
+    lesion: Lesion
+    reasons: List[str]
 
 
 @dataclass
@@ -42,7 +58,8 @@ class BranchProfile:
     mask_diameter_mm: Optional[np.ndarray] = None
     view_widths_mm: Optional[np.ndarray] = None  # (views, N)
     reference: Optional[ReferenceFit] = None
-    lesions: List[Lesion] = field(default_factory=list)
+    lesions: List[Lesion] = field(default_factory=list)  # reliable: measured on an intact vessel
+    unreliable: List[UnreliableLesion] = field(default_factory=list)
     unresolved: int = 0  # narrowings found but below the grid's resolution (not reported as lesions)
     warning: str = ""
 
@@ -61,6 +78,7 @@ class QCAResult:
     target: Dict[str, Any]
     view_map: Optional[ViewMap]
     settings: Dict[str, Any]
+    fragments: Optional[Fragments] = None
 
     def profile(self, branch_id: int) -> BranchProfile:
         for p in self.profiles:
@@ -96,9 +114,23 @@ def _choose_target(profiles: List[BranchProfile]) -> Dict[str, Any]:
 def analyse_volume(volume: np.ndarray, grid: VolumeGrid, level: float = 0.5, views: Sequence[CArmView] = (),
                    masks: Optional[Sequence[np.ndarray]] = None, ostium_mm: Optional[Sequence[float]] = None,
                    min_branch_mm: float = 3.0, min_stenosis_pct: float = 20.0, view_step_deg: float = 2.0,
-                   target: Optional[Dict[str, Any]] = None, best_view: bool = True) -> QCAResult:
-    """Every QCA measure of a vessel volume (module docstring); ``target`` overrides the chosen segment."""
-    tree = extract_centrelines(volume, grid, level=level, ostium_mm=ostium_mm, min_branch_mm=min_branch_mm)
+                   target: Optional[Dict[str, Any]] = None, best_view: bool = True,
+                   min_component_share: float = MIN_COMPONENT_SHARE,
+                   bridges: Sequence[Dict[str, Any]] = ()) -> QCAResult:
+    """Every QCA measure of a vessel volume (module docstring); ``target`` overrides the chosen segment.
+
+    ``bridges``: the gaps reconnection filled (report.json ``reconnection.bridges``), LPS mm.
+    """
+    volume = np.asarray(volume)
+    lumen = volume if volume.dtype == bool else volume >= level
+    fragments = find_fragments(lumen, grid, min_component_share, ostium_mm)
+    pieces = volume
+    if not fragments.analysed.all():
+        # Pieces too small to analyse give no centrelines; the sections still read the whole volume,
+        # whose values near a wall the trilinear interpolation needs.
+        pieces = volume.copy()
+        pieces[~fragments.analysed_mask()] = 0
+    tree = extract_centrelines(pieces, grid, level=level, ostium_mm=ostium_mm, min_branch_mm=min_branch_mm)
     fvol = np.asarray(volume, np.float32)
     profiles: List[BranchProfile] = []
     for branch in tree.branches:
@@ -117,9 +149,15 @@ def analyse_volume(volume: np.ndarray, grid: VolumeGrid, level: float = 0.5, vie
             # Below RESOLVABLE_VOXELS voxels across (or along) a narrowing is voxel noise, not a lesion:
             # on the 0.8 mm sample grid, 1 mm branches showed 30–40 % "lesions" 1 mm long.
             voxel = float(max(grid.spacing_mm))
-            prof.lesions = [x for x in found if x.reference_diameter_mm >= RESOLVABLE_VOXELS * voxel
-                            and x.length_mm >= RESOLVABLE_VOXELS * voxel]
-            prof.unresolved = len(found) - len(prof.lesions)
+            resolved = [x for x in found if x.reference_diameter_mm >= RESOLVABLE_VOXELS * voxel
+                        and x.length_mm >= RESOLVABLE_VOXELS * voxel]
+            prof.unresolved = len(found) - len(resolved)
+            for lesion in resolved:
+                reasons = lesion_reasons(branch, lesion.start_mm, lesion.end_mm, prof.reference(s) / 2, fragments, bridges)
+                if reasons:
+                    prof.unreliable.append(UnreliableLesion(lesion, reasons))
+                else:
+                    prof.lesions.append(lesion)
         except ValueError as exc:
             prof.warning = str(exc)
         profiles.append(prof)
@@ -140,8 +178,9 @@ def analyse_volume(volume: np.ndarray, grid: VolumeGrid, level: float = 0.5, vie
         if best_view:
             vm = view_map(seg, seg_r, others, others_r, step_deg=view_step_deg)
     settings = {"level": level, "min_branch_mm": min_branch_mm, "min_stenosis_pct": min_stenosis_pct,
-                "view_step_deg": view_step_deg, "ostium_mm": None if ostium_mm is None else list(map(float, ostium_mm))}
-    return QCAResult(tree, profiles, bifurcation_angles(tree), list(views), fore, target, vm, settings)
+                "view_step_deg": view_step_deg, "ostium_mm": None if ostium_mm is None else list(map(float, ostium_mm)),
+                "min_component_share": min_component_share, "bridges_checked": len(bridges)}
+    return QCAResult(tree, profiles, bifurcation_angles(tree), list(views), fore, target, vm, settings, fragments)
 
 
 def _end_caps(branch: CentrelineBranch) -> np.ndarray:
@@ -189,7 +228,8 @@ def _stats(values: Optional[np.ndarray], use: np.ndarray) -> Optional[Dict[str, 
 def summary(result: QCAResult) -> Dict[str, Any]:
     """JSON-ready description of a QCA result (lengths mm, angles degrees, stenoses %)."""
     branches = []
-    all_lesions = []
+    all_lesions: List[Dict[str, Any]] = []
+    unreliable: List[Dict[str, Any]] = []
     for p in result.profiles:
         b = p.branch
         healthy = ~p.excluded
@@ -204,22 +244,29 @@ def summary(result: QCAResult) -> Dict[str, Any]:
             "reference": None if p.reference is None else {"intercept_mm": p.reference.intercept_mm,
                                                            "slope_mm_per_mm": p.reference.slope_mm_per_mm},
             "minimal_lumen": mld,
-            "lesions": [dict(lesion.to_dict(), branch_id=b.branch_id) for lesion in p.lesions],
+            "component": None if result.fragments is None else result.fragments.branch_record(b),
+            "lesions": [dict(lesion.to_dict(), branch_id=b.branch_id, reliable=True) for lesion in p.lesions],
+            "unreliable_lesions": [dict(u.lesion.to_dict(), branch_id=b.branch_id, reliable=False, flag=UNRELIABLE,
+                                        reasons=list(u.reasons)) for u in p.unreliable],
             "narrowings_below_resolution": p.unresolved,
             "foreshortening_per_view": result.view_foreshortening.get(b.branch_id, []),
             "warning": p.warning or None,
         }
         branches.append(entry)
         all_lesions.extend(entry["lesions"])
+        unreliable.extend(entry["unreliable_lesions"])
     all_lesions.sort(key=lambda d: -d["diameter_stenosis_pct"])
+    unreliable.sort(key=lambda d: -d["diameter_stenosis_pct"])
     out: Dict[str, Any] = {
         "coordinate_system": "LPS", "units": {"length": "mm", "angle": "degrees", "stenosis": "percent"},
         "settings": result.settings,
         "views": [{"label": view_label(v.primary_deg, v.secondary_deg), "primary_deg": v.primary_deg,
                    "secondary_deg": v.secondary_deg} for v in result.views],
         "tree": {"branches": len(result.tree.branches), "total_length_mm": result.tree.total_length_mm()},
-        "branches": branches, "lesions": all_lesions, "bifurcations": result.bifurcations,
-        "target_segment": result.target,
+        "branches": branches, "lesions": all_lesions, "unreliable_lesions": unreliable,
+        "bifurcations": result.bifurcations, "target_segment": result.target,
+        "connectivity": result.fragments.summary() if result.fragments is not None else None,
+        "warnings": [w for w in [result.fragments.warning() if result.fragments is not None else None] if w],
     }
     if result.view_map is not None:
         best = result.view_map.best()

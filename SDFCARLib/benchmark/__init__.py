@@ -2,8 +2,9 @@
 
 ``python -m SDFCARLib benchmark --suite rca --modes sdfcar,neca --preset fast --cases 10 --out DIR``
 
-For every case of a suite the harness simulates the protocol's two views of the ground-truth
-label, computes the visual hull of the two masks (the baseline row ``hull``), reconstructs with
+For every case of a suite the harness simulates the protocol's views (two, or three for the
+three-view protocol) of the ground-truth label, computes the visual hull of their masks (the
+baseline row ``hull``), reconstructs with
 every requested mode and scores each result with ``metrics.evaluate`` against the label and the
 masks. Cases run as Dask tasks (one task prepares a case, one task per mode reconstructs it) on a
 ``LocalCluster`` or on an existing cluster given by ``--scheduler``.

@@ -211,7 +211,7 @@ class PreparedCase:
 
 
 def prepare_case(spec: CaseSpec, protocol: str, grid: Optional[GridOptions] = None) -> PreparedCase:
-    """Build the case's label on its geometry and simulate the two views."""
+    """Build the case's label on its geometry and simulate its views."""
     from ..phantoms import lad_tree, load_centreline_vtk, rca_tree, simulate_views, voxelize
 
     t0 = time.perf_counter()

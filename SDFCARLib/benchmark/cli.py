@@ -19,7 +19,7 @@ def add_benchmark_command(commands, common: argparse.ArgumentParser) -> argparse
     """Add ``benchmark`` to the CLI's sub-parsers (``commands``), with ``common``'s --verbose."""
     p = commands.add_parser(
         "benchmark", parents=[common], help="measure the modes on many simulated cases (the paper's tables)",
-        description="For every case of a suite: simulate the protocol's two views, compute the visual-hull "
+        description="For every case of a suite: simulate the protocol's views (two or more), compute the visual-hull "
                     "baseline, reconstruct with each mode and score every metric. Writes results.csv (appended, "
                     "resumable), summary.md (tables like the paper's), run.json and figures/ in --out. Cases run in "
                     "parallel on a local Dask cluster or on --scheduler.")
@@ -28,7 +28,8 @@ def add_benchmark_command(commands, common: argparse.ArgumentParser) -> argparse
                    help=f"comma-separated modes (default {','.join(DEFAULT_MODES)}); the visual hull is always added")
     p.add_argument("--preset", default="fast", help="optimiser preset (fast, paper, …)")
     p.add_argument("--protocol", default="paper", choices=sorted(PROTOCOLS),
-                   help="paper: line integrals, the NeCA views; clinical-…: binary masks of a clinical pair (default paper)")
+                   help="paper: line integrals, the NeCA views; clinical-…: binary masks of the clinical views the name lists "
+                        "(two or three); realistic-…: masks segmented from simulated angiograms (default paper)")
     p.add_argument("--cases", type=positive_int, default=None,
                    help="number of cases (default: 10 procedural, 1 for 721a, every file of a folder ×2 trees)")
     p.add_argument("--out", required=True, help="results folder (created; rows already there are kept and skipped)")

@@ -1,12 +1,12 @@
 """Command line: ``python -m SDFCARLib <command>`` (also installed as ``sdfcar``).
 
 Commands
-    reconstruct        two views' masks (or line integrals) + GEOM.json → result folder
+    reconstruct        the views' masks (or line integrals, two or more views) + GEOM.json or XA runs → result folder
     simulate           a label volume or centreline + GEOM.json → masks and line integrals
     evaluate           a prediction against a label: every metric, and the visual-hull baseline
     demo               reconstruct the bundled sample case and compare with its ground truth
-    geometry-template  write a GEOM.json for a standard view pair, as a starting point
-    geometry           two XA DICOM runs → GEOM.json, every value with its source tag
+    geometry-template  write a GEOM.json for a standard protocol or any view angles, as a starting point
+    geometry           XA DICOM runs (one per view, any number) → GEOM.json, every value with its source tag
     segment            one XA DICOM frame (or a plain image) → vessel mask, frame and overlay PNGs
     analyse            a result folder → 3D-QCA: centrelines, diameters, lesions, best view
     benchmark          many simulated cases × modes → results.csv, summary.md (the paper's tables)

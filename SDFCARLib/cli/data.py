@@ -119,12 +119,24 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
 
 
 def cmd_geometry_template(args: argparse.Namespace) -> int:
-    from ..geometry import standard_geometry
+    from ..geometry import CArmView, Geometry, standard_geometry
 
-    geometry = standard_geometry(args.view_pair, volume_shape=args.shape, spacing_mm=args.spacing_mm,
+    if args.views and args.view_pair:
+        raise ValueError("give either --view-pair or the views' angles with --view PRIMARY SECONDARY (repeated), not both")
+    if args.views is not None and len(args.views) < 2:
+        raise ValueError(f"--view was given {len(args.views)} time; a reconstruction needs at least two views: repeat "
+                         "--view PRIMARY SECONDARY once per view")
+    protocol = args.view_pair or "lao30-rao30"
+    geometry = standard_geometry(protocol, volume_shape=args.shape, spacing_mm=args.spacing_mm,
                                  center_mm=args.center_mm, detector_shape=args.detector_shape,
                                  detector_spacing_mm=args.detector_spacing_mm)
-    data = {"description": f"SDFCAR geometry template for the view pair {args.view_pair}; replace the angles, "
+    if args.views:
+        spacing = (args.detector_spacing_mm, args.detector_spacing_mm)
+        geometry = Geometry(geometry.volume, tuple(
+            CArmView(primary, secondary, args.sid_mm, args.sod_mm, spacing, tuple(args.detector_shape))
+            for primary, secondary in args.views))
+        protocol = f"{len(args.views)} views given with --view"
+    data = {"description": f"SDFCAR geometry template ({protocol}); replace the angles, "
                            "distances and detector with those of your acquisition (DICOM tags PositionerPrimaryAngle, "
                            "PositionerSecondaryAngle, DistanceSourceToDetector, DistanceSourceToPatient, ImagerPixelSpacing)",
             **geometry.to_dict()}

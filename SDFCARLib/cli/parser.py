@@ -37,7 +37,7 @@ def _add_optimiser_options(p: argparse.ArgumentParser, preset_default: str = "fa
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="python -m SDFCARLib",
-        description="SDF-CAR: 3D coronary artery reconstruction from two X-ray angiography views.",
+        description="SDF-CAR: 3D coronary artery reconstruction from two or more X-ray angiography views.",
         epilog="Exit status: 0 success, 2 bad input, 130 cancelled, 1 unexpected failure.")
     parser.add_argument("--version", action="version", version=f"SDFCARLib {__version__}")
     parser.add_argument("--verbose", action="store_true", help="show tracebacks of errors")
@@ -50,8 +50,8 @@ def build_parser() -> argparse.ArgumentParser:
     p = commands.add_parser("reconstruct", parents=[common], help="reconstruct the vessel tree from two or more views",
                             description="Reconstruct the 3D vessel tree seen in two or more views and write occupancy.nrrd, "
                                         "field.nrrd, segmentation.seg.nrrd, surface.vtk, report.json and scene.mrml.")
-    p.add_argument("--geometry", help="GEOM.json with the volume grid and the views (or give --dicom1/--dicom2)")
-    add_dicom_arguments(p, required=False)
+    p.add_argument("--geometry", help="GEOM.json with the volume grid and the views (or give the XA runs with --dicom A B …)")
+    add_dicom_arguments(p)
     p.add_argument("--mask1", help="vessel mask of view 1 (PNG/TIFF/NRRD, non-zero = vessel)")
     p.add_argument("--mask2", help="vessel mask of view 2")
     p.add_argument("--lineint1", help="line-integral image of view 1 (mm; NRRD/TIFF), instead of --mask1")
@@ -61,15 +61,15 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--lineint", dest="lineints", nargs="+", metavar="IMAGE",
                    help="the line-integral images of all views, in the order of GEOM.json's views")
     p.add_argument("--auto-masks", action="store_true",
-                   help="with --dicom1/--dicom2: make the masks with the segment pipeline (written as auto_maskN*.png "
-                        "in --out, their parameters in report.json) instead of --mask1/--mask2")
+                   help="with --dicom A B …: make each run's mask with the segment pipeline (written as auto_maskN*.png "
+                        "in --out, their parameters in report.json) instead of --mask")
     p.add_argument("--target-kind", choices=("mask", "line_integral"), default=None,
                    help="what the view images are (default: from which options are given)")
     p.add_argument("--label", help="optional ground truth (volume, .seg.nrrd or centreline) for metrics in report.json")
     p.add_argument("--auto-volume", action="store_true",
                    help="place the grid on the region where the masks' back-projections meet (plus a margin), keeping "
                         "the geometry's voxel size; the default when GEOM.json's volume is \"auto\" or absent, or "
-                        "when --dicom1/--dicom2 come without --volume-shape/--volume-center")
+                        "when --dicom runs come without --volume-shape/--volume-center")
     p.add_argument("--out", required=True, help="output folder (created; existing results are kept unless --overwrite)")
     p.add_argument("--analyse", action="store_true", help="also run the 3D-QCA (`analyse`) into OUT/analysis")
     _add_optimiser_options(p)
@@ -79,23 +79,31 @@ def build_parser() -> argparse.ArgumentParser:
                             description="Centreline tree, diameter profiles (3D sections and, with the masks, two-view "
                                         "widths), lesions (MLD, %%DS, %%AS, length), bifurcation angles, foreshortening and "
                                         "the best-view map of a reconstruction: analysis.json, centrelines.vtk, "
-                                        "profile_branchNN.csv, diameter_profiles.png, view_map.png.")
+                                        "profile_branchNN.csv, diameter_profiles.png, view_map.png. Narrowings where the "
+                                        "reconstruction is broken (a piece cut off, a gap beside it, a bridged gap) are "
+                                        "flagged unreliable with the reason, apart from the lesions.")
     p.add_argument("result_dir", help="folder written by reconstruct (occupancy.nrrd or segmentation.seg.nrrd, report.json)")
     p.add_argument("--out", help="output folder (default RESULT_DIR/analysis)")
     p.add_argument("--masks", nargs="+", help="view masks for the 2D diameters (default: the masks report.json names)")
     p.add_argument("--ostium", type=float, nargs=3, metavar=("X", "Y", "Z"),
                    help="ostium in LPS mm (default: the thickest end of the tree)")
     p.add_argument("--view-step-deg", type=float, default=2.0, help="angle step of the best-view map (default 2)")
+    p.add_argument("--min-component-share", type=float, default=None, metavar="SHARE",
+                   help="analyse only the pieces of a fragmented reconstruction that hold at least this share of the "
+                        "main tree's voxels (default 0.1; 0 analyses every piece)")
     p.add_argument("--overwrite", action="store_true", help="replace analysis files the output folder already holds")
     p.set_defaults(func=cmd_analyse)
 
-    p = commands.add_parser("geometry", parents=[common], help="write GEOM.json from two XA DICOM files",
-                            description="Read the C-arm geometry of two X-ray angiography DICOM runs from their tags and "
-                                        "write GEOM.json, listing every value used and where it came from. Missing tags "
-                                        "are errors that say which option supplies the value (e.g. --sod1).")
+    p = commands.add_parser("geometry", parents=[common], help="write GEOM.json from two or more XA DICOM runs",
+                            description="Read the C-arm geometry of X-ray angiography DICOM runs (one per view, any "
+                                        "number) from their tags and write GEOM.json, listing every value used and where "
+                                        "it came from. Missing tags are errors that say which option supplies the value "
+                                        "(e.g. --sod 765 auto auto, or --sod1).")
     add_dicom_arguments(p)
-    p.add_argument("--mask1", help="vessel mask of view 1: with --mask2 and no --volume-shape/--volume-center, the grid "
-                                   "is placed on where the masks' back-projections meet")
+    p.add_argument("--mask", dest="masks", nargs="+", metavar="MASK",
+                   help="vessel masks, one per run in the same order: without --volume-shape/--volume-center the grid "
+                        "is placed on where the masks' back-projections meet")
+    p.add_argument("--mask1", help="vessel mask of view 1 (with --dicom1/--dicom2; or use --mask)")
     p.add_argument("--mask2", help="vessel mask of view 2")
     p.add_argument("--out", required=True, help="GEOM.json to write")
     p.add_argument("--overwrite", action="store_true", help="replace an existing file")
@@ -152,10 +160,18 @@ def build_parser() -> argparse.ArgumentParser:
     _add_optimiser_options(p)
     p.set_defaults(func=cmd_demo)
 
-    p = commands.add_parser("geometry-template", parents=[common], help="write a GEOM.json for a standard view pair",
-                            description="Write a GEOM.json for a standard view pair as a starting point.")
-    p.add_argument("--view-pair", default="lao30-rao30", choices=sorted(VIEW_PAIRS),
-                   help="paper: the SDF-CAR/NeCA simulation views; the others are clinical pairs (default lao30-rao30)")
+    p = commands.add_parser("geometry-template", parents=[common],
+                            help="write a GEOM.json for a standard protocol or any list of view angles",
+                            description="Write a GEOM.json as a starting point: a standard protocol (--view-pair) or "
+                                        "any number of views given by their angles (--view, repeated).")
+    p.add_argument("--view-pair", default=None, choices=sorted(VIEW_PAIRS),
+                   help="paper: the SDF-CAR/NeCA simulation views; lao30-rao30-cra30: three views; the others are "
+                        "clinical pairs (default lao30-rao30 when no --view is given)")
+    p.add_argument("--view", dest="views", action="append", type=float, nargs=2, metavar=("PRIMARY", "SECONDARY"),
+                   help="one view by its angles in degrees (LAO +/RAO −, CRA +/CAU −); repeat for each view, e.g. "
+                        "--view 30 0 --view -30 0 --view 0 30 (instead of --view-pair)")
+    p.add_argument("--sid-mm", type=float, default=1000.0, help="source-to-detector distance of the --view views")
+    p.add_argument("--sod-mm", type=float, default=757.0, help="source-to-isocenter distance of the --view views")
     p.add_argument("--out", help="file to write (default: print to stdout)")
     p.add_argument("--shape", type=_positive_int, nargs=3, default=[128, 128, 128], metavar=("NI", "NJ", "NK"))
     p.add_argument("--spacing-mm", type=float, default=0.8)

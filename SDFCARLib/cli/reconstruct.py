@@ -11,16 +11,29 @@ from typing import Any, Dict, List, Optional, Tuple
 
 import numpy as np
 
-from ..dicom import cli_geometry_from_args, write_geometry_json
+from ..dicom import cli_geometry_from_args, dicom_runs_from_args, write_geometry_json
 from ..settings import MASK_THRESHOLD_MM
 from .common import EXIT_OK, absolute_path, print_provenance, print_summary, run_reconstruction, settings_from_args
 
 def _given(args: argparse.Namespace, flag: str) -> List[Optional[str]]:
-    """The paths of ``--mask M1 M2 …`` (any number of views), or of ``--mask1/--mask2`` (two)."""
-    listed, first, second = getattr(args, f"{flag}s", None), getattr(args, f"{flag}1"), getattr(args, f"{flag}2")
+    """The paths of ``--mask M1 M2 …`` (any number of views), or of ``--mask1/--mask2`` (two); [] if none."""
+    listed, first, second = (getattr(args, f"{flag}s", None), getattr(args, f"{flag}1", None),
+                             getattr(args, f"{flag}2", None))
     if listed and (first or second):
         raise ValueError(f"give the images either as --{flag} A B … or as --{flag}1/--{flag}2, not both")
-    return list(listed) if listed else [first, second]
+    if listed:
+        return list(listed)
+    return [first, second] if (first or second) else []
+
+
+def _views_named(args: argparse.Namespace, geometry) -> str:
+    """What set the number of views, for the messages about a count of images that does not match it."""
+    runs = getattr(args, "dicoms", None)
+    if runs:
+        return f"--dicom names {len(runs)} XA runs (one per view)"
+    if getattr(args, "dicom1", None):
+        return "--dicom1/--dicom2 name 2 XA runs (one per view)"
+    return f"{getattr(args, 'geometry', None) or 'the geometry'} describes {len(geometry.views)} view(s)"
 
 
 def _read_targets(args: argparse.Namespace, geometry) -> Tuple[List[np.ndarray], str, List[np.ndarray]]:
@@ -34,16 +47,21 @@ def _read_targets(args: argparse.Namespace, geometry) -> Tuple[List[np.ndarray],
         kind = "line_integral" if any(lineints_given) and not any(masks_given) else "mask"
     chosen, flag = (masks_given, "--mask") if kind == "mask" else (lineints_given, "--lineint")
     other, other_flag = (lineints_given, "--lineint") if kind == "mask" else (masks_given, "--mask")
+    what = "mask" if kind == "mask" else "line-integral image"
     if any(other):
-        raise ValueError(f"--target-kind {kind} uses {flag}1/{flag}2; remove {other_flag}1/{other_flag}2 "
-                         "(give either masks or line integrals)")
+        raise ValueError(f"--target-kind {kind} uses {flag}; remove {other_flag} (give either masks or line integrals)")
+    n_views = len(geometry.views)
+    if not chosen:
+        dicom = bool(getattr(args, "dicoms", None) or getattr(args, "dicom1", None))
+        raise ValueError(f"no view images: give one {what} per view with {flag} "
+                         f"{' '.join(f'V{n}' for n in range(1, n_views + 1))} ({n_views} views)"
+                         + (", or --auto-masks to segment the DICOM frames" if dicom else ""))
     missing = [f"{flag}{n}" for n, path in enumerate(chosen, start=1) if not path]
     if missing:
-        raise ValueError(f"missing {' and '.join(missing)}: give one {'mask' if kind == 'mask' else 'line-integral image'} per view")
-    if len(chosen) != len(geometry.views):
-        raise ValueError(f"{args.geometry or 'the geometry'} describes {len(geometry.views)} view(s) but {len(chosen)} "
-                         f"image(s) were given; give one per view, in the order of GEOM.json's views "
-                         f"({flag} A B C … for any number of views)")
+        raise ValueError(f"missing {' and '.join(missing)}: give one {what} per view")
+    if len(chosen) != n_views:
+        raise ValueError(f"{_views_named(args, geometry)} but {len(chosen)} image(s) were given ({flag}); give one per "
+                         f"view, in the same order ({flag} A B C … for any number of views)")
     if kind == "mask":
         targets = [read_mask(path, view.detector_shape, what=f"view {n} mask")
                    for n, (path, view) in enumerate(zip(chosen, geometry.views), start=1)]
@@ -53,18 +71,19 @@ def _read_targets(args: argparse.Namespace, geometry) -> Tuple[List[np.ndarray],
 
 
 def _geometry_for_reconstruct(args: argparse.Namespace):
-    """GEOM.json, or the geometry read from the two DICOM files' tags (with its provenance), and
+    """GEOM.json, or the geometry read from the XA runs' tags (with its provenance), and
     the request to place the grid on the masks (``region.AutoVolume``) or None."""
     from ..region import AutoVolume, read_geometry
 
-    if args.dicom1 or args.dicom2:
+    if dicom_runs_from_args(args):
         if args.geometry:
-            raise ValueError("give either --geometry or --dicom1/--dicom2, not both")
+            raise ValueError("give either --geometry or the XA runs (--dicom A B …, or --dicom1/--dicom2), not both")
         geometry, provenance = cli_geometry_from_args(args)
         print_provenance(provenance)
         return geometry, provenance, _dicom_volume_request(args)
     if not args.geometry:
-        raise ValueError("missing --geometry: give a GEOM.json, or the two XA DICOM files with --dicom1 and --dicom2")
+        raise ValueError("missing --geometry: give a GEOM.json, or the XA DICOM runs, one per view, with --dicom A B … "
+                         "(or --dicom1 and --dicom2)")
     geometry, request = read_geometry(args.geometry)
     if request is None and args.auto_volume:
         request = AutoVolume(tuple(geometry.volume.spacing_mm))  # keep the user's voxel size
@@ -121,14 +140,18 @@ def cmd_geometry(args: argparse.Namespace) -> int:
     out = Path(args.out)
     if out.exists() and not args.overwrite:
         raise ValueError(f"{out} exists; choose another --out or add --overwrite")
-    if bool(args.mask1) != bool(args.mask2):
+    given = _given(args, "mask")
+    if given and not all(given):
         raise ValueError("give both --mask1 and --mask2 (one vessel mask per view) to place the grid, or neither")
     geometry, provenance = cli_geometry_from_args(args)
+    if given and len(given) != len(geometry.views):
+        raise ValueError(f"{_views_named(args, geometry)} but {len(given)} mask(s) were given (--mask); give one per "
+                         "run, in the same order, to place the grid, or none")
     print_provenance(provenance)
     request = _dicom_volume_request(args)
-    if args.mask1:
+    if given:
         masks = [read_mask(path, view.detector_shape, what=f"view {n} mask")
-                 for n, (path, view) in enumerate(zip([args.mask1, args.mask2], geometry.views), start=1)]
+                 for n, (path, view) in enumerate(zip(given, geometry.views), start=1)]
         source = provenance["volume"]["source"]
         if request is not None:
             geometry, _, source = _place_grid(geometry, masks, request, provenance)
@@ -136,7 +159,8 @@ def cmd_geometry(args: argparse.Namespace) -> int:
         provenance["volume"]["mask_coverage"] = record["mask_coverage"]
     elif request is not None:
         provenance["volume"]["source"] += ("; no masks were given, so the grid could not be placed on the vessels: "
-                                           "give --mask1/--mask2 here, or run reconstruct --auto-volume")
+                                           "give the masks here (--mask A B …, one per run, or --mask1/--mask2), or run "
+                                           "reconstruct --auto-volume")
         print(f"note: {provenance['volume']['source']}", file=sys.stderr)
     write_geometry_json(out, geometry, provenance)
     print(f"wrote {out}")
@@ -144,18 +168,22 @@ def cmd_geometry(args: argparse.Namespace) -> int:
 
 
 def _auto_masks(args: argparse.Namespace, geometry, provenance) -> List[Tuple[Dict[str, Any], np.ndarray, Any]]:
-    """--auto-masks: the segment pipeline on the frame of each DICOM view the geometry was read from."""
+    """--auto-masks: the segment pipeline on the chosen frame of each XA run the geometry was read from."""
     from ..dicom import load_xa
     from ..masks import segment_angiogram
 
-    if not (args.dicom1 and args.dicom2):
-        raise ValueError("--auto-masks segments the frames of --dicom1 and --dicom2; give both (or give --mask1/--mask2)")
-    if any(_given(args, "mask") + _given(args, "lineint")):
-        raise ValueError("--auto-masks makes the masks itself; remove --mask1/--mask2 (or --lineint1/--lineint2)")
+    runs = dicom_runs_from_args(args)
+    if not runs:
+        raise ValueError("--auto-masks segments the frames of the XA runs; give them with --dicom A B … (or "
+                         "--dicom1/--dicom2), or give the masks with --mask")
+    given = [f"--{flag}{suffix}" for flag in ("mask", "lineint") for suffix in ("", "1", "2")
+             if getattr(args, f"{flag}{suffix or 's'}", None)]
+    if given:
+        raise ValueError(f"--auto-masks makes the masks itself; remove {', '.join(given)}")
     auto = []
-    for n, (view, info) in enumerate(zip(geometry.views, provenance["views"]), start=1):
+    for n, (run, view, info) in enumerate(zip(runs, geometry.views, provenance["views"]), start=1):
         frame_info = info["frame"]
-        frame = load_xa(getattr(args, f"dicom{n}")).frames[int(frame_info["index"])]
+        frame = load_xa(run.path).frames[int(frame_info["index"])]
         auto.append((frame_info, frame, segment_angiogram(frame, view.pixel_spacing_mm, view.sid_mm / view.sod_mm)))
         p = auto[-1][2].parameters
         print(f"view {n}: auto mask of frame {frame_info['index']}: {p['components']} component(s), "
@@ -188,21 +216,23 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
     result = run_reconstruction(geometry, targets, settings, kind, not args.no_progress)
     result.report["warnings"] = grid_warnings + list(result.report.get("warnings", []))
     inputs = {"geometry": absolute_path(args.geometry), "label": absolute_path(args.label),
-              "dicom": [absolute_path(args.dicom1), absolute_path(args.dicom2)] if args.dicom1 else None,
+              "dicom": [absolute_path(run.path) for run in dicom_runs_from_args(args)] or None,
               "geometry_provenance": provenance,
               "targets": [absolute_path(p) for p in _given(args, "mask" if kind == "mask" else "lineint")]}
     if auto:
-        inputs["targets"] = [f"auto_mask{n}.png" for n in (1, 2)]
+        inputs["targets"] = [f"auto_mask{n}.png" for n in range(1, len(auto) + 1)]
         inputs["auto_masks"] = [dict(a.parameters, frame=f) for f, _, a in auto]
     files = write_reconstruction(result, args.out, name=args.name, label=label, masks=masks, overwrite=args.overwrite,
                                  extra={"inputs": inputs, "grid": grid_record})
     if auto:
         from ..masks import write_segmentation
 
-        for n, (f, frame, a) in enumerate(auto, start=1):
+        names = []
+        for n, (run, (f, frame, a)) in enumerate(zip(dicom_runs_from_args(args), auto), start=1):
             write_segmentation(Path(args.out) / f"auto_mask{n}.png", frame, a,
-                               {"dicom": absolute_path(getattr(args, f"dicom{n}")), "frame": f}, overwrite=True)
-        print(f"masks made by the segment pipeline (--auto-masks): {args.out}/auto_mask1.png, auto_mask2.png "
+                               {"dicom": absolute_path(run.path), "frame": f}, overwrite=True)
+            names.append(f"auto_mask{n}.png")
+        print(f"masks made by the segment pipeline (--auto-masks): {args.out}/{', '.join(names)} "
               "(overlays beside them; check them by eye)")
     print_summary(files)
     if args.analyse:
@@ -215,6 +245,10 @@ def _print_analysis(result_dir: str, out: Optional[str], overwrite: bool, **opti
 
     files = analyse_result_dir(result_dir, out, overwrite=overwrite, **options)
     data = json.loads(files["analysis.json"].read_text(encoding="utf-8"))
+    for warning in data.get("warnings", []):
+        print(f"warning: {warning}", file=sys.stderr)
+    for note in data.get("notes", []):
+        print(f"note: {note}", file=sys.stderr)
     for line in analysis_summary_lines(data):
         print(line)
     print(f"wrote {len(files)} files to {files['analysis.json'].parent}")
@@ -222,7 +256,7 @@ def _print_analysis(result_dir: str, out: Optional[str], overwrite: bool, **opti
 
 def cmd_analyse(args: argparse.Namespace) -> int:
     _print_analysis(args.result_dir, args.out, args.overwrite, masks=args.masks, ostium_mm=args.ostium,
-                    view_step_deg=args.view_step_deg)
+                    view_step_deg=args.view_step_deg, min_component_share=args.min_component_share)
     return EXIT_OK
 
 

@@ -9,25 +9,30 @@ works for all of them.
 ``frames``
     Frame times, end diastole (ECG tags and waveforms), ``contrast_scores`` and ``choose_frame``.
 ``geometry``
-    ``view_from_dicom`` / ``geometry_from_dicom`` (the C-arm views from the positioner tags, with
-    user overrides and the provenance of every value) and ``write_geometry_json``.
+    ``view_from_dicom`` / ``geometry_from_dicom_runs`` (the C-arm views of any number of runs from
+    the positioner tags, with user overrides and the provenance of every value; ``geometry_from_dicom``
+    for two) and ``write_geometry_json``.
 ``cli``
-    ``add_dicom_arguments`` and ``cli_geometry_from_args`` for the command line.
+    ``add_dicom_arguments``, ``dicom_runs_from_args`` and ``cli_geometry_from_args`` for the command
+    line (``--dicom A B C …`` or ``--dicom1/--dicom2``).
 
 SDFCARLib reads DICOM only; the tests build their XA objects with ``Testing/xa_writer.py``.
 """
 
-from .cli import add_dicom_arguments, cli_geometry_from_args
+from .cli import DicomRun, add_dicom_arguments, cli_geometry_from_args, dicom_runs_from_args
 from .frames import (CONTRAST_MAX_SIDE_PX, CONTRAST_NOISE_K, CONTRAST_TOPHAT_PX, FrameChoice, check_frame_index,
                      choose_frame, contrast_scores, end_diastolic_frames, frame_times_ms)
-from .geometry import DEFAULT_VOLUME, OVERRIDE_KEYS, geometry_from_dicom, view_from_dicom, write_geometry_json
+from .geometry import (DEFAULT_VOLUME, OVERRIDE_KEYS, geometry_from_dicom, geometry_from_dicom_runs, view_from_dicom,
+                       write_geometry_json)
 from .read import (ENHANCED_SOP_CLASSES, XA_SOP_CLASS, XA_SOP_CLASSES, XRF_SOP_CLASS, DicomInputError, PathLike,
                    XARun, check_decodable, load_xa, tag_label)
 
 __all__ = [
     "CONTRAST_MAX_SIDE_PX", "CONTRAST_NOISE_K", "CONTRAST_TOPHAT_PX", "DEFAULT_VOLUME", "ENHANCED_SOP_CLASSES",
-    "OVERRIDE_KEYS", "XA_SOP_CLASS", "XA_SOP_CLASSES", "XRF_SOP_CLASS", "DicomInputError", "FrameChoice", "PathLike",
+    "OVERRIDE_KEYS", "XA_SOP_CLASS", "XA_SOP_CLASSES", "XRF_SOP_CLASS", "DicomInputError", "DicomRun", "FrameChoice",
+    "PathLike",
     "XARun", "add_dicom_arguments", "check_decodable", "check_frame_index", "choose_frame", "cli_geometry_from_args",
-    "contrast_scores", "end_diastolic_frames", "frame_times_ms", "geometry_from_dicom", "load_xa",
+    "contrast_scores", "dicom_runs_from_args", "end_diastolic_frames", "frame_times_ms", "geometry_from_dicom",
+    "geometry_from_dicom_runs", "load_xa",
     "tag_label", "view_from_dicom", "write_geometry_json",
 ]

@@ -1,4 +1,4 @@
-"""The C-arm geometry of a view from the DICOM tags (``view_from_dicom``, ``geometry_from_dicom``).
+"""The C-arm geometry of a view from the DICOM tags (``view_from_dicom``, ``geometry_from_dicom_runs``).
 
 The XA Positioner Module (DICOM PS3.3 C.8.7.5) defines the angles with the patient supine:
 Positioner Primary Angle (0018,1510) in the transaxial plane, 0° perpendicular to the chest,
@@ -32,8 +32,8 @@ Orientation (0020,0020), Field of View Horizontal Flip (0018,7034), Field of Vie
 detector tilt (0018,1530/1531) that says otherwise is reported in the provenance's ``notes``.
 
 Anything missing is an error naming the tag and how to supply the value — an ``overrides``
-dict (``{"sod_mm": 765, "pixel_spacing_mm": [0.3, 0.3]}``) or ``--sod1`` … on the command
-line — never a silent default. A user value replaces the tag's. Every value used is reported
+dict (``{"sod_mm": 765, "pixel_spacing_mm": [0.3, 0.3]}``) or ``--sod1`` / ``--sod`` … on the
+command line — never a silent default. A user value replaces the tag's. Every value used is reported
 with its source in the provenance, which ``write_geometry_json`` stores in GEOM.json.
 """
 
@@ -42,7 +42,7 @@ from __future__ import annotations
 import json
 import math
 from pathlib import Path
-from typing import Any, Dict, List, Optional, Tuple, Union
+from typing import Any, Dict, List, Optional, Sequence, Tuple, Union
 
 from .. import __version__
 from ..geometry import CArmView, Geometry, GeometryError, VolumeGrid
@@ -98,14 +98,23 @@ def _check_overrides(overrides: Optional[Dict[str, Any]], path: Path) -> Dict[st
 def _how_to_supply(key: str, view_number: Optional[int]) -> str:
     example = {"sod_mm": "765", "sid_mm": "1000", "pixel_spacing_mm": "[0.3, 0.3]", "primary_deg": "30",
                "secondary_deg": "-20"}.get(key, "…")
-    text = f"Supply it as overrides{'' if view_number is None else view_number} = {{'{key}': {example}}}"
+    numbered = view_number is not None and view_number <= 2  # --sod1/--sod2 exist for two runs only
+    if view_number is None or numbered:
+        text = f"Supply it as overrides{'' if view_number is None else view_number} = {{'{key}': {example}}}"
+    else:
+        text = f"Supply it as {{'{key}': {example}}} in the overrides of view {view_number}"
     option = _CLI_OPTION.get(key)
     if option:
-        n = "N" if view_number is None else str(view_number)
         arg = "ROW COL" if key == "pixel_spacing_mm" else ("MM" if key.endswith("_mm") else "DEG")
-        text += f" in Python or {option}{n} {arg} on the command line"
+        spacing = "; ROW,COL for unequal spacings" if key == "pixel_spacing_mm" else ""
+        listed = f"{option} with one value per --dicom run ('auto' keeps a run's tags{spacing})"
+        if view_number is None:
+            text += f" in Python, or on the command line as {option}N {arg} (--dicom1/--dicom2) or {listed}"
+        elif numbered:
+            text += f" in Python or {option}{view_number} {arg} on the command line (with --dicom A B …: {listed})"
+        else:
+            text += f" in Python, or on the command line as value {view_number} of {listed}"
     return text
-
 
 
 # --- angles, pixel spacing and what is not modelled --------------------------------------------------
@@ -351,6 +360,43 @@ def view_from_dicom(
     return view, provenance
 
 
+def geometry_from_dicom_runs(
+    runs: Sequence[Union[XARun, PathLike]],
+    frames: Optional[Sequence[Optional[int]]] = None,
+    volume: Optional[Union[VolumeGrid, Dict[str, Any]]] = None,
+    overrides: Optional[Sequence[Optional[Dict[str, Any]]]] = None,
+) -> Tuple[Geometry, Dict[str, Any]]:
+    """``Geometry`` of any number (at least two) of XA runs, view n from run n, and its provenance.
+
+    ``frames`` and ``overrides`` hold one entry per run (0-based frame or None = automatic; an
+    overrides dict or None). The default volume is 128³ voxels of 0.8 mm centred at the isocenter.
+    """
+    runs = list(runs)
+    if len(runs) < 2:
+        raise DicomInputError(f"a reconstruction needs at least two XA runs (one per view), got {len(runs)}")
+    frames = [None] * len(runs) if frames is None else list(frames)
+    overrides = [None] * len(runs) if overrides is None else list(overrides)
+    for what, values in (("frames", frames), ("overrides", overrides)):
+        if len(values) != len(runs):
+            raise DicomInputError(f"{len(values)} {what} for {len(runs)} runs: give one per run, in the runs' order "
+                                  "(None for the automatic choice)")
+    if volume is None:
+        grid, volume_source = DEFAULT_VOLUME, "default: 128³ voxels of 0.8 mm centred at the isocenter"
+    elif isinstance(volume, VolumeGrid):
+        grid, volume_source = volume, "user"
+    else:
+        grid, volume_source = VolumeGrid.from_dict(volume), "user"
+    read = [view_from_dicom(run, frame, extra, view_number=n)
+            for n, (run, frame, extra) in enumerate(zip(runs, frames, overrides), start=1)]
+    geometry = Geometry(volume=grid, views=tuple(view for view, _ in read))
+    provenance = {
+        "generator": f"SDFCARLib {__version__} dicom.geometry_from_dicom_runs",
+        "volume": {"value": grid.to_dict(), "source": volume_source},
+        "views": [prov for _, prov in read],
+    }
+    return geometry, provenance
+
+
 def geometry_from_dicom(
     path1: Union[XARun, PathLike],
     path2: Union[XARun, PathLike],
@@ -360,25 +406,8 @@ def geometry_from_dicom(
     overrides1: Optional[Dict[str, Any]] = None,
     overrides2: Optional[Dict[str, Any]] = None,
 ) -> Tuple[Geometry, Dict[str, Any]]:
-    """Two-view ``Geometry`` from two XA files (frames 0-based, None = automatic) and its provenance.
-
-    The default volume is 128³ voxels of 0.8 mm centred at the isocenter.
-    """
-    if volume is None:
-        grid, volume_source = DEFAULT_VOLUME, "default: 128³ voxels of 0.8 mm centred at the isocenter"
-    elif isinstance(volume, VolumeGrid):
-        grid, volume_source = volume, "user"
-    else:
-        grid, volume_source = VolumeGrid.from_dict(volume), "user"
-    view1, prov1 = view_from_dicom(path1, frame1, overrides1, view_number=1)
-    view2, prov2 = view_from_dicom(path2, frame2, overrides2, view_number=2)
-    geometry = Geometry(volume=grid, views=(view1, view2))
-    provenance = {
-        "generator": f"SDFCARLib {__version__} dicom.geometry_from_dicom",
-        "volume": {"value": grid.to_dict(), "source": volume_source},
-        "views": [prov1, prov2],
-    }
-    return geometry, provenance
+    """Two-view ``Geometry`` from two XA files (``geometry_from_dicom_runs`` for any number)."""
+    return geometry_from_dicom_runs([path1, path2], [frame1, frame2], volume, [overrides1, overrides2])
 
 
 def write_geometry_json(path: PathLike, geometry: Geometry, provenance: Optional[Dict[str, Any]] = None) -> Path:
