@@ -343,6 +343,8 @@ PROTOCOLS: Dict[str, Tuple[str, str]] = {
     "realistic-lao50cra25-rao50cra25": ("lao50cra25-rao50cra25", "mask"),
     "realistic-static-lao30-rao30": ("lao30-rao30", "mask"),
     "realistic-static-lao50cra25-rao50cra25": ("lao50cra25-rao50cra25", "mask"),
+    "realistic-lao30-rao30-cra30": ("lao30-rao30-cra30", "mask"),
+    "realistic-static-lao30-rao30-cra30": ("lao30-rao30-cra30", "mask"),
 }
 #: the protocols whose masks are segmented from simulated angiograms (``realistic.py``), with the
 #: object motion between the acquisitions; "static" ones have the same images without motion
@@ -351,6 +353,8 @@ REALISTIC_PROTOCOLS: Dict[str, Dict[str, float]] = {
     "realistic-lao50cra25-rao50cra25": {"max_shift_mm": 3.0, "max_rotation_deg": 2.0},
     "realistic-static-lao30-rao30": {"max_shift_mm": 0.0, "max_rotation_deg": 0.0},
     "realistic-static-lao50cra25-rao50cra25": {"max_shift_mm": 0.0, "max_rotation_deg": 0.0},
+    "realistic-lao30-rao30-cra30": {"max_shift_mm": 3.0, "max_rotation_deg": 2.0},
+    "realistic-static-lao30-rao30-cra30": {"max_shift_mm": 0.0, "max_rotation_deg": 0.0},
 }
 
 
