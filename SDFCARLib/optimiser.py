@@ -342,6 +342,17 @@ def finish(problem: Problem, model: ImplicitField, history: List[Dict[str, float
                           list(zip(projected, references)))
 
 
+def fitted_loss(geometry: Geometry, targets: Sequence[np.ndarray], settings: Settings, target_kind: str,
+                last_steps: int, cancel: Cancel = None) -> float:
+    """The mean loss of the last ``last_steps`` steps of a field fitted from scratch (the run's seed):
+    how well ``geometry`` lets one field explain every view (``calibration.py``)."""
+    torch.manual_seed(settings.run.seed)
+    problem = build_problem(geometry, targets, settings, target_kind)
+    model = ImplicitField(field_config(settings)).to(problem.device)
+    history, _ = optimise(problem, model, cancel=cancel)
+    return float(np.mean([h["loss"] for h in history[-last_steps:]]))
+
+
 def reconstruct(
     geometry: Geometry,
     targets: Sequence[np.ndarray],
@@ -365,12 +376,22 @@ def reconstruct(
         torch.set_num_threads(int(settings.run.threads))
     torch.manual_seed(settings.run.seed)
     np.random.seed(settings.run.seed % (2**32))
+    calibration = None
+    if settings.calibration.calibrate and len(geometry.views) > 1:
+        from .calibration import calibrate
+
+        calibration = calibrate(geometry, targets, settings, target_kind, progress=progress, cancel=cancel)
+        geometry = calibration.geometry
+        torch.manual_seed(settings.run.seed)
     problem = build_problem(geometry, targets, settings, target_kind, progress)
     if _is_cancelled(cancel):
         raise ReconstructionCancelled("cancelled before the optimisation started")
     model = ImplicitField(field_config(settings)).to(problem.device)
     history, optimise_s = optimise(problem, model, progress, cancel, progress_interval_s, snapshot, snapshot_every)
-    return finish(problem, model, history, optimise_s, t_start, progress, cancel)
+    result = finish(problem, model, history, optimise_s, t_start, progress, cancel)
+    if calibration is not None:
+        result.report["calibration"] = calibration.report()
+    return result
 
 
 @torch.no_grad()

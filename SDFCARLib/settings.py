@@ -122,6 +122,20 @@ class RegionSettings:
     reconnect_min_occupancy: float = 0.1  # lowest geometric-mean occupancy along the gap
 
 
+#: a calibration candidate's score averages the last 20 steps (calibration.SCORE_STEPS)
+SCORE_STEPS_MIN = 20
+
+
+@dataclass
+class CalibrationSettings:
+    """Search of each view's shift across its epipolar lines before the reconstruction (``calibration.py``)."""
+
+    calibrate: bool = False
+    calibration_range_mm: float = 4.0  # candidates within ± this shift
+    calibration_candidates: int = 5  # evenly over the range, then two between the best and its neighbours
+    calibration_steps: int = 150  # the re-fit per candidate
+
+
 @dataclass
 class RunSettings:
     """What to run and where."""
@@ -136,7 +150,7 @@ class RunSettings:
 
 GROUPS: Dict[str, type] = {
     "field": FieldSettings, "optimisation": OptimisationSettings, "loss": LossSettings,
-    "region": RegionSettings, "run": RunSettings,
+    "region": RegionSettings, "calibration": CalibrationSettings, "run": RunSettings,
 }
 
 
@@ -157,6 +171,7 @@ class Settings:
     optimisation: OptimisationSettings = dataclasses.field(default_factory=OptimisationSettings)
     loss: LossSettings = dataclasses.field(default_factory=LossSettings)
     region: RegionSettings = dataclasses.field(default_factory=RegionSettings)
+    calibration: CalibrationSettings = dataclasses.field(default_factory=CalibrationSettings)
     run: RunSettings = dataclasses.field(default_factory=RunSettings)
 
     @classmethod
@@ -218,6 +233,11 @@ class Settings:
             raise ReconstructionError(f"threshold must be between 0 and 1, got {r.threshold}")
         if run.device not in DEVICES and not str(run.device).startswith("cuda:"):
             raise ReconstructionError(f"device must be auto, cpu or cuda, got {run.device!r}")
+        cal = self.calibration
+        if not cal.calibration_range_mm > 0 or cal.calibration_candidates < 3 or cal.calibration_steps < SCORE_STEPS_MIN:
+            raise ReconstructionError(
+                f"calibration needs calibration_range_mm > 0, calibration_candidates ≥ 3 and calibration_steps ≥ "
+                f"{SCORE_STEPS_MIN}; got {cal.calibration_range_mm}, {cal.calibration_candidates}, {cal.calibration_steps}")
         if run.threads is not None and run.threads < 1:
             raise ReconstructionError(f"threads must be at least 1, got {run.threads}")
 
@@ -343,6 +363,8 @@ PROTOCOLS: Dict[str, Tuple[str, str]] = {
     "realistic-lao50cra25-rao50cra25": ("lao50cra25-rao50cra25", "mask"),
     "realistic-static-lao30-rao30": ("lao30-rao30", "mask"),
     "realistic-static-lao50cra25-rao50cra25": ("lao50cra25-rao50cra25", "mask"),
+    "realistic-lao30-rao30-cra30": ("lao30-rao30-cra30", "mask"),
+    "realistic-static-lao30-rao30-cra30": ("lao30-rao30-cra30", "mask"),
 }
 #: the protocols whose masks are segmented from simulated angiograms (``realistic.py``), with the
 #: object motion between the acquisitions; "static" ones have the same images without motion
@@ -351,6 +373,8 @@ REALISTIC_PROTOCOLS: Dict[str, Dict[str, float]] = {
     "realistic-lao50cra25-rao50cra25": {"max_shift_mm": 3.0, "max_rotation_deg": 2.0},
     "realistic-static-lao30-rao30": {"max_shift_mm": 0.0, "max_rotation_deg": 0.0},
     "realistic-static-lao50cra25-rao50cra25": {"max_shift_mm": 0.0, "max_rotation_deg": 0.0},
+    "realistic-lao30-rao30-cra30": {"max_shift_mm": 3.0, "max_rotation_deg": 2.0},
+    "realistic-static-lao30-rao30-cra30": {"max_shift_mm": 0.0, "max_rotation_deg": 0.0},
 }
 
 

@@ -1,6 +1,6 @@
-"""Settings variants side by side on one benchmark case: the same prepared input, the default first.
+"""Settings variants side by side on benchmark cases: the same prepared input, the default first.
 
-    .venv/bin/python bench/variants.py --suite rca --case 0 --protocol realistic-static-lao30-rao30 \
+    .venv/bin/python bench/variants.py --suite rca --case 0 1 2 3 --protocol realistic-static-lao30-rao30 \
         --grid80 '{"prune": false}' '{"dt_downsample": 4}'
 
 Each variant is a JSON object of setting overrides (``settings.py`` keys) on the ``fast`` preset;
@@ -21,6 +21,7 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
+import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
 from SDFCARLib.benchmark import BenchmarkConfig, GridOptions, build_cases, prepare_case  # noqa: E402
@@ -32,7 +33,7 @@ from SDFCARLib.settings import PROTOCOLS, make_settings  # noqa: E402
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--suite", default="rca")
-    parser.add_argument("--case", type=int, default=0, help="case index of the suite (its seed)")
+    parser.add_argument("--case", type=int, nargs="+", default=[0], help="case indices of the suite (their seeds)")
     parser.add_argument("--protocol", default="realistic-static-lao30-rao30", choices=sorted(PROTOCOLS))
     parser.add_argument("--grid80", action="store_true", help="80³ at 1.3 mm, 192² at 0.8 mm (section 1's coarse grid)")
     parser.add_argument("--threads", type=int, default=1)
@@ -40,18 +41,31 @@ def main() -> int:
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     grid = GridOptions((80, 80, 80), 1.3, (192, 192), 0.8) if args.grid80 else GridOptions()
-    config = BenchmarkConfig(args.suite, Path("unused"), cases=args.case + 1, grid=grid, protocol=args.protocol)
-    spec = build_cases(config)[args.case]
-    case = prepare_case(spec, args.protocol, grid)
+    config = BenchmarkConfig(args.suite, Path("unused"), cases=max(args.case) + 1, grid=grid, protocol=args.protocol)
+    variants = [{}] + [json.loads(text) for text in args.variants]
     print(f"# {platform.processor() or platform.machine()}, {os.cpu_count()} cores, torch {torch.__version__}, "
-          f"{args.threads} thread(s); {spec.name}, {args.protocol}, {'grid80' if args.grid80 else 'paper grid'}")
-    for variant in [{}] + [json.loads(text) for text in args.variants]:
-        t0 = time.perf_counter()
-        result = reconstruct(case.geometry, case.targets, make_settings("fast", seed=spec.seed, **variant), case.target_kind)
-        m = evaluate(result.segmentation, case.label, case.geometry.volume, case.geometry.views, case.masks)
-        print(f"{json.dumps(variant):40s} clDice {m['cldice']:.3f}  Dice {m['dice']:.3f}  components "
-              f"{m.get('components')}/{m.get('components_label')}  support {result.report['support_voxels']}  "
-              f"{time.perf_counter() - t0:.0f} s", flush=True)
+          f"{args.threads} thread(s); {args.suite} cases {args.case}, {args.protocol}, "
+          f"{'grid80' if args.grid80 else 'paper grid'}", flush=True)
+    scores: dict = {json.dumps(v): [] for v in variants}
+    for index in args.case:
+        spec = build_cases(config)[index]
+        case = prepare_case(spec, args.protocol, grid)
+        for variant in variants:
+            t0 = time.perf_counter()
+            result = reconstruct(case.geometry, case.targets, make_settings("fast", seed=spec.seed, **variant),
+                                 case.target_kind)
+            m = evaluate(result.segmentation, case.label, case.geometry.volume, case.geometry.views, case.masks)
+            scores[json.dumps(variant)].append((m["cldice"], m["dice"], m.get("components")))
+            print(f"{spec.name:7s} {json.dumps(variant):40s} clDice {m['cldice']:.3f}  Dice {m['dice']:.3f}  components "
+                  f"{m.get('components')}/{m.get('components_label')}  support {result.report['support_voxels']}  "
+                  f"{time.perf_counter() - t0:.0f} s", flush=True)
+    if len(args.case) > 1:
+        default = np.array(scores[json.dumps({})])
+        for key, rows in scores.items():
+            rows = np.array(rows)
+            wins = int(np.sum(rows[:, 0] > default[:, 0]))
+            print(f"mean    {key:40s} clDice {rows[:, 0].mean():.3f}  Dice {rows[:, 1].mean():.3f}  components "
+                  f"{rows[:, 2].mean():.1f}  better clDice than default on {wins}/{len(rows)}")
     return 0
 
 

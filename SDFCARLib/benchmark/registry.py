@@ -29,4 +29,5 @@ TABLE_METRICS: List[Tuple[str, str, float, int, bool]] = [
 METRIC_COLUMNS = ["cldice", "tprec", "tsens", "skeleton_dice", "dice", "iou", "chamfer_l2_mm", "re_error", "re_mse",
                   "reprojection_dice_view1", "reprojection_dice_view2", "voxels_predicted", "voxels_label",
                   "input_mask_cldice_view1", "input_mask_cldice_view2", "motion_mm", "motion_deg",
+                  "calibration_shift_mm_view2", "true_shift_mm_view2",
                   "components", "largest_component_fraction", "components_label"]

@@ -103,6 +103,7 @@ def run_task(prepared: Dict[str, Any], spec: CaseSpec, mode: str, task: Dict[str
             prediction = result.segmentation
             row["device"] = result.report.get("device", "")
             row["wall_s"] = float(result.report.get("timings_s", {}).get("total", time.perf_counter() - t0))
+            row.update(_calibration_columns(result.report.get("calibration"), case.info.get("realistic")))
         t1 = time.perf_counter()
         from ..metrics import evaluate
 
@@ -129,6 +130,18 @@ def run_task(prepared: Dict[str, Any], spec: CaseSpec, mode: str, task: Dict[str
         return {"row": row, "traceback": traceback.format_exc()}
     finally:
         torch.set_num_threads(previous_threads)
+
+
+def _calibration_columns(calibration: Optional[Dict[str, Any]], realistic: Optional[Dict[str, Any]]) -> Dict[str, float]:
+    """View 2's shift found by the calibration and, for realistic cases, the simulated motion's
+    translation along the same direction (what the search can recover)."""
+    found = next((v for v in (calibration or {}).get("views", []) if v.get("view") == 2 and "shift_mm" in v), None)
+    if found is None:
+        return {}
+    out = {"calibration_shift_mm_view2": float(found["shift_mm"])}
+    if realistic and len(realistic.get("motion", [])) > 1:
+        out["true_shift_mm_view2"] = float(np.dot(realistic["motion"][1]["translation_mm"], found["direction_lps"]))
+    return out
 
 
 def task_options(config: BenchmarkConfig) -> Dict[str, Any]:

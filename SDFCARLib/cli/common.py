@@ -50,6 +50,8 @@ class ProgressBar:
             print("pruning the branches that no mask pixel needs…", file=self.stream)
         elif phase == "warning":
             print(f"warning: {info.get('message', '')}", file=self.stream)
+        elif phase == "calibrate":
+            print(f"calibrating the views' poses: {info.get('message', '')}", file=self.stream)
 
     def close(self) -> None:
         if self.bar is not None:
