@@ -210,6 +210,7 @@ class SDFCARParameterNode:
     outputName: str = "Coronary tree"
     outputDirectory: Path
     includeOccupancy: bool = False
+    correctMotion: bool = False
     showCArm: bool = True
     # Views 3, 4, … are stored beside these fields with the node's own API (SDFCARLib.mrml.parameter_views).
     result: Optional[vtkMRMLSegmentationNode]  # the result the Results section shows and analyses
@@ -659,6 +660,8 @@ def describeProgress(info):
         return "Writing the results…"
     if phase == "prune":
         return "Pruning the branches that no mask pixel needs…"
+    if phase == "calibrate":
+        return f"Correcting the shift between views: {info.get('message', '')}"
     text = f"Step {info.get('step', 0)} / {info.get('total', '?')}"
     if info.get("loss") is not None:
         text += f" · loss {info['loss']:.4g} (occ {info.get('l_occ', 0):.3g}, geo {info.get('l_geo', 0):.3g})"
@@ -958,6 +961,8 @@ class SDFCARLogic(ScriptedLoadableModuleLogic):
     @staticmethod
     def settings(p):
         values = {"preset": p.preset, "mode": p.mode, "device": p.device, "seed": int(p.seed)}
+        if p.correctMotion:
+            values["calibrate"] = True
         if p.steps > 0:
             values["steps"] = int(p.steps)
         return values

@@ -163,6 +163,23 @@ def test_report_warnings_and_warning_progress_are_shown(sdfcar, tmp_path):
     assert line.startswith("Warning: view 2")
 
 
+
+def test_motion_correction_checkbox_asks_for_the_calibration(sdfcar):
+    node = sdfcar.SDFCARLogic().getParameterNode()
+    widget = _widget(sdfcar)
+    widget.initializeParameterNode()
+    assert "calibrate" not in sdfcar.SDFCARLogic.settings(node)  # off by default: it costs several fits
+    assert widget.ui.correctMotionCheckBox.property("SlicerParameterName") == "correctMotion"
+    node.correctMotion = True  # what the check box writes (the fake connects only combo boxes)
+    settings = sdfcar.SDFCARLogic.settings(node)
+    assert settings["calibrate"] is True
+    from SDFCARLib.settings import make_settings
+
+    assert make_settings(**settings).calibration.calibrate  # a key the engine knows
+    line = sdfcar.describeProgress({"phase": "calibrate", "message": "view 2: +2.00 mm → loss 0.00051"})
+    assert "view 2: +2.00 mm" in line
+
+
 # --- views 3, 4, … ------------------------------------------------------------------------------------------
 def _node(class_name, name):
     return slicer_fakes.FakeNode(class_name, name)
