@@ -215,6 +215,28 @@ def test_simulate_refuses_a_label_outside_the_views(tmp_path, capsys, geometry_f
     assert code == 2 and "leaves no shadow" in err and not (tmp_path / "out").exists()
 
 
+def test_reconstruct_correct_motion_reports_the_shift_found(simulated, tmp_path, capsys):
+    out = tmp_path / "result"
+    code, _, err = run(capsys, "reconstruct", "--geometry", simulated / "geometry.json",
+                       "--mask1", simulated / "views" / "view1_mask.png", "--mask2", simulated / "views" / "view2_mask.png",
+                       "--out", out, "--steps", 3, "--no-progress", "--correct-motion",
+                       "--set", "calibration_steps=20", "--set", "calibration_candidates=3", "--set", "calibration_range_mm=2")
+    assert code == 0, err
+    report = json.loads((out / "report.json").read_text())
+    assert report["settings"]["calibrate"] is True
+    (view2,) = report["calibration"]["views"]
+    assert view2["view"] == 2 and abs(view2["shift_mm"]) <= 2.0
+    assert len(view2["candidates_mm"]) == len(view2["losses"]) >= 3
+    # the result's geometry carries the shift found as view 2's object motion; view 1 is untouched
+    geometry = Geometry.from_dict(report["geometry"])
+    np.testing.assert_allclose(geometry.views[1].object_translation_mm, view2["translation_mm"], atol=1e-3)
+    assert not geometry.views[0].has_object_motion
+    code, _, err = run(capsys, "reconstruct", "--geometry", simulated / "geometry.json",
+                       "--mask1", simulated / "views" / "view1_mask.png", "--mask2", simulated / "views" / "view2_mask.png",
+                       "--out", tmp_path / "again", "--set", "calibrate=true")
+    assert code == 2 and "--correct-motion" in err
+
+
 def test_reconstruct_end_to_end_writes_every_output(simulated, tmp_path, capsys, tiny_geometry):
     import nrrd
 

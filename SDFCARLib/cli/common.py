@@ -130,6 +130,9 @@ def settings_from_args(args: argparse.Namespace):
     named = {"mode": args.mode, "device": args.device, "seed": args.seed, "steps": args.steps, "threads": args.threads}
     reserved = {key: f"use --{key}" for key in named}
     reserved["preset"] = "use --preset"
+    reserved["calibrate"] = "use --correct-motion"
+    if getattr(args, "correct_motion", False):
+        named["calibrate"] = True
     return make_settings(args.preset, **{**parse_setting_overrides(args.overrides, reserved), **named})
 
 
