@@ -143,6 +143,28 @@ def run_job(job_dir: PathLike, progress: Optional[Callable[[Dict[str, Any]], Non
     job_dir = Path(job_dir)
     (job_dir / "INCOMPLETE").touch()
     cancel_flag = job_dir / "cancel"
+    progress_file, on_progress = _progress_writer(job_dir, progress)
+    try:
+        manifest, geometry, targets, settings, kind = _load_job(job_dir)
+        result = reconstruct(geometry, targets, settings, target_kind=kind, progress=on_progress,
+                             cancel=cancel_flag.exists)
+        on_progress({"phase": "writing", "step": settings.optimisation.steps, "total": settings.optimisation.steps})
+        paths = write_reconstruction(result, job_dir / "output", name=manifest.get("name"))
+        paths = {k: str(v) for k, v in paths.items()}
+        _finished(job_dir, paths, on_progress, settings.optimisation.steps)
+        return paths
+    except ReconstructionCancelled as exc:
+        write_json(job_dir / "status.json", {"state": "cancelled", "message": str(exc)})
+        raise
+    except BaseException as exc:  # noqa: BLE001 - the status file must say why, whatever it was
+        _failed(job_dir, exc)
+        raise
+    finally:
+        progress_file.close()
+
+
+def _progress_writer(job_dir: Path, progress: Optional[Callable[[Dict[str, Any]], None]]):
+    """(open progress.jsonl, a callback appending one JSON line per progress dict and passing it on)."""
     # Binary: text mode on Windows would write "\r\n", and the reader counts bytes.
     progress_file = open(job_dir / "progress.jsonl", "ab")
 
@@ -152,26 +174,18 @@ def run_job(job_dir: PathLike, progress: Optional[Callable[[Dict[str, Any]], Non
         if progress is not None:
             progress(info)
 
-    try:
-        manifest, geometry, targets, settings, kind = _load_job(job_dir)
-        result = reconstruct(geometry, targets, settings, target_kind=kind, progress=on_progress,
-                             cancel=cancel_flag.exists)
-        on_progress({"phase": "writing", "step": settings.optimisation.steps, "total": settings.optimisation.steps})
-        paths = write_reconstruction(result, job_dir / "output", name=manifest.get("name"))
-        paths = {k: str(v) for k, v in paths.items()}
-        write_json(job_dir / "status.json", {"state": "finished", "message": "", "outputs": paths})
-        (job_dir / "INCOMPLETE").unlink()
-        on_progress({"phase": "done", "step": settings.optimisation.steps, "total": settings.optimisation.steps})
-        return paths
-    except ReconstructionCancelled as exc:
-        write_json(job_dir / "status.json", {"state": "cancelled", "message": str(exc)})
-        raise
-    except BaseException as exc:  # noqa: BLE001 - the status file must say why, whatever it was
-        write_json(job_dir / "status.json", {"state": "failed", "message": f"{type(exc).__name__}: {exc}",
-                                              "traceback": traceback.format_exc()})
-        raise
-    finally:
-        progress_file.close()
+    return progress_file, on_progress
+
+
+def _finished(job_dir: Path, paths: Dict[str, str], on_progress: Callable[[Dict[str, Any]], None], total: int) -> None:
+    write_json(job_dir / "status.json", {"state": "finished", "message": "", "outputs": paths})
+    (job_dir / "INCOMPLETE").unlink()
+    on_progress({"phase": "done", "step": total, "total": total})
+
+
+def _failed(job_dir: Path, exc: BaseException) -> None:
+    write_json(job_dir / "status.json", {"state": "failed", "message": f"{type(exc).__name__}: {exc}",
+                                         "traceback": traceback.format_exc()})
 
 
 def _worker_main(job_dir: str) -> int:
@@ -460,14 +474,7 @@ def run_analysis_job(job_dir: PathLike, progress: Optional[Callable[[Dict[str, A
 
     job_dir = Path(job_dir)
     (job_dir / "INCOMPLETE").touch()
-    progress_file = open(job_dir / "progress.jsonl", "ab")
-
-    def on_progress(info: Dict[str, Any]) -> None:
-        progress_file.write((json.dumps(info) + "\n").encode("utf-8"))
-        progress_file.flush()
-        if progress is not None:
-            progress(info)
-
+    progress_file, on_progress = _progress_writer(job_dir, progress)
     try:
         manifest = _load_analysis_job(job_dir)
         on_progress({"phase": "analyse", "step": 0, "total": 1})
@@ -475,13 +482,10 @@ def run_analysis_job(job_dir: PathLike, progress: Optional[Callable[[Dict[str, A
                                    masks=manifest.get("masks") or None, **dict(manifest.get("options") or {}))
         paths = {name: str(path) for name, path in files.items()}
         paths["folder"] = str(Path(manifest["out_dir"]))
-        write_json(job_dir / "status.json", {"state": "finished", "message": "", "outputs": paths})
-        (job_dir / "INCOMPLETE").unlink()
-        on_progress({"phase": "done", "step": 1, "total": 1})
+        _finished(job_dir, paths, on_progress, 1)
         return paths
     except BaseException as exc:  # noqa: BLE001 - the status file must say why, whatever it was
-        write_json(job_dir / "status.json", {"state": "failed", "message": f"{type(exc).__name__}: {exc}",
-                                              "traceback": traceback.format_exc()})
+        _failed(job_dir, exc)
         raise
     finally:
         progress_file.close()
