@@ -78,6 +78,7 @@ class Calibration:
     geometry: Geometry
     views: List[Dict[str, Any]] = field(default_factory=list)
     seconds: float = 0.0
+    warnings: List[str] = field(default_factory=list)
 
     def report(self) -> Dict[str, Any]:
         return {"method": "shift across the epipolar lines, re-fitted field per candidate",
@@ -102,6 +103,7 @@ def calibrate(geometry: Geometry, targets: Sequence[np.ndarray], settings, targe
 
     views = list(geometry.views)
     found: List[Dict[str, Any]] = []
+    warnings: List[str] = []
     grid_mm = np.linspace(-c.calibration_range_mm, c.calibration_range_mm, c.calibration_candidates)
     step_mm = float(grid_mm[1] - grid_mm[0]) if grid_mm.size > 1 else c.calibration_range_mm
     for k in range(1, len(views)):
@@ -133,11 +135,16 @@ def calibrate(geometry: Geometry, targets: Sequence[np.ndarray], settings, targe
             xs = ordered[i - 1:i + 2]
             refined = parabola_minimum(xs, [scores[x] for x in xs])
         else:
-            refined = best
+            # the loss still falls at the end of the range: no minimum was found, and a shift at the
+            # edge is more likely a wrong pose fitted to other errors (measured) than a real one
+            refined = 0.0
+            warnings.append(f"view {k + 1}: the pose correction found no minimum within ±{c.calibration_range_mm:g} mm "
+                            f"(lowest loss at {best:+.1f} mm); the view was left as given. Check its angles and "
+                            "distances, or widen calibration_range_mm")
         views[k] = shifted(views[k], refined * normal)
         found.append({"view": k + 1, "direction_lps": [round(float(v), 4) for v in normal],
                       "shift_mm": round(refined, 3), "translation_mm": [round(float(v), 3) for v in refined * normal],
                       "candidates_mm": [round(x, 3) for x in ordered],
                       "losses": [round(scores[x], 6) for x in ordered],
                       "loss_nominal": round(scores.get(0.0, float("nan")), 6)})
-    return Calibration(Geometry(geometry.volume, views), found, time.perf_counter() - t0)
+    return Calibration(Geometry(geometry.volume, views), found, time.perf_counter() - t0, warnings)

@@ -391,6 +391,10 @@ def reconstruct(
     result = finish(problem, model, history, optimise_s, t_start, progress, cancel)
     if calibration is not None:
         result.report["calibration"] = calibration.report()
+        result.report["warnings"] = calibration.warnings + result.report["warnings"]
+        for message in calibration.warnings:
+            _report(progress, phase="warning", message=message, step=settings.optimisation.steps,
+                    total=settings.optimisation.steps, elapsed_s=0.0, eta_s=None, device=str(settings.run.device))
     return result
 
 

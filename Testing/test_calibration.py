@@ -77,3 +77,17 @@ def test_calibrate_finds_the_shift_of_a_known_minimum_and_keeps_view_one():
 def test_calibration_settings_are_checked():
     with pytest.raises(ReconstructionError, match="calibration_candidates"):
         make_settings("fast", calibrate=True, calibration_candidates=2).validate()
+
+
+def test_a_minimum_at_the_end_of_the_range_leaves_the_view_as_given_and_warns():
+    geometry = Geometry(VolumeGrid((16, 16, 16), (1.0, 1.0, 1.0)), (_view(30.0), _view(-30.0)))
+    normal = epipolar_normal(geometry.views[0], geometry.views[1])
+
+    def score(candidate: Geometry) -> float:  # keeps falling beyond the range's end
+        return -float(np.dot(candidate.views[1].object_translation_mm, normal))
+
+    result = calibrate(geometry, [np.zeros((64, 64))] * 2, make_settings("fast", calibrate=True), "mask", score=score)
+    assert result.geometry.views[1].object_translation_mm == (0.0, 0.0, 0.0)
+    assert result.views[0]["shift_mm"] == 0.0
+    (warning,) = result.warnings
+    assert "view 2" in warning and "no minimum within ±4 mm" in warning and "left as given" in warning
