@@ -180,7 +180,7 @@ def run_recon(n_cases, view_step_deg, steps=None, save_dir=None, first=0):
 
             Path(save_dir).mkdir(parents=True, exist_ok=True)
             write_volume_nrrd(Path(save_dir) / f"recon{n}_occupancy.nrrd", rec.occupancy, geometry.volume)
-        row = score(ph, rec.occupancy, geometry.volume, float(settings.threshold), masks, ph.truth["ostium_mm"], view_step_deg)
+        row = score(ph, rec.occupancy, geometry.volume, float(settings.region.threshold), masks, ph.truth["ostium_mm"], view_step_deg)
         rows.append(dict(case=name, reconstruct_s=t_rec, **row))
         print(f"{name}: " + ", ".join(f"{k}={v:.3g}" if isinstance(v, float) else f"{k}={v}" for k, v in rows[-1].items()),
               flush=True)
