@@ -38,7 +38,7 @@ class ConsistencyOptions:
     sigma_mm: float = 0.5  # how far (at the isocenter) a ray may pass beside a vessel and still meet it
     max_rays_per_view: int = 600  # centreline pixels per view (a fixed random subset beyond it)
     ray_step_mm: float = 0.4  # sampling along the rays, below the thinnest vessel's width
-    warn_below: float = 0.75  # consistency below this gets a warning
+    warn_below: float = 0.97  # below this: a warning (correct pairs measure 1.000, faults ≤ 0.94; RESULTS §8)
     seed: int = 0
 
 
