@@ -179,15 +179,17 @@ def build_problem(geometry: Geometry, targets: Sequence[np.ndarray], settings: S
     pixels = vessel_pixels(arrays, target_kind)
     warnings: List[str] = []
     consistency: List[float] = []
+    # Hundreds of specks would each add a cone to the support (and time to every step), and, having
+    # no partner in the other views, would read as a wrong geometry in the consistency check.
+    despeckled, left_out = support_masks(pixels, geometry.views, grid)
     if target_kind == "mask":
         for n, (mask, view) in enumerate(zip(pixels, geometry.views), start=1):
             warnings += mask_warnings(mask, view.pixel_spacing_mm, source=f"view {n}")
         # Seconds to catch a wrong angle sign or a mask of the wrong view before minutes of work.
-        consistency = view_consistency(geometry, pixels)
+        consistency = view_consistency(geometry, despeckled)
         warnings += consistency_warnings(consistency)
     if settings.region.support == "hull":
-        # Hundreds of specks would each add a cone to the support (and time to every step).
-        pixels, left_out = support_masks(pixels, geometry.views, grid)
+        pixels = despeckled
         warnings += left_out
     for message in warnings:
         _report(progress, phase="warning", message=message, step=0, total=settings.optimisation.steps,
