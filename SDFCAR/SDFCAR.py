@@ -521,16 +521,8 @@ class SDFCARWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
         self.ui.applyButton.text = "Apply"
         self.ui.progressBar.setVisible(False)
         self._checkCanApply()
-        if state == "cancelled":
-            self.ui.statusLabel.text = "Cancelled: the scene is unchanged."
-            return
-        import SDFCARLib.jobs
-
-        try:
-            files = job.result()
-        except SDFCARLib.jobs.JobFailed as exc:
-            self.ui.statusLabel.text = "Failed: the scene is unchanged."
-            slicer.util.errorDisplay(f"The reconstruction failed: {exc.message}", detailedText=exc.traceback_text)
+        files = finishedJobFiles(job, state, self.ui.statusLabel, "The reconstruction")
+        if files is None:
             return
         nodes = None
         with slicer.util.tryWithErrorDisplay("The reconstruction finished but its results could not be loaded.", waitCursor=True):
@@ -598,16 +590,8 @@ class SDFCARWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
         self._analysisJob, context = None, self._analysisContext
         self._resultPanelKey = None
         self._checkCanApply()
-        if state == "cancelled":
-            self.ui.statusLabel.text = "Analysis cancelled."
-            return
-        import SDFCARLib.jobs
-
-        try:
-            files = job.result()
-        except SDFCARLib.jobs.JobFailed as exc:
-            self.ui.statusLabel.text = "The analysis failed: the scene is unchanged."
-            slicer.util.errorDisplay(f"The 3D-QCA failed: {exc.message}", detailedText=exc.traceback_text)
+        files = finishedJobFiles(job, state, self.ui.statusLabel, "The 3D-QCA")
+        if files is None:
             return
         with slicer.util.tryWithErrorDisplay("The analysis finished but its results could not be loaded.", waitCursor=True):
             self.logic.addAnalysis(files, context)
@@ -638,6 +622,22 @@ def parameterWidgets(ui):
         if name:
             mapping[str(name)] = widget
     return mapping
+
+
+def finishedJobFiles(job, state, statusLabel, what):
+    """A finished job's files; None after saying in the status line (and, on failure, in a dialog with
+    the worker's traceback) why there are none. The scene is not touched either way."""
+    if state == "cancelled":
+        statusLabel.text = f"{what} was cancelled: the scene is unchanged."
+        return None
+    import SDFCARLib.jobs
+
+    try:
+        return job.result()
+    except SDFCARLib.jobs.JobFailed as exc:
+        statusLabel.text = f"{what} failed: the scene is unchanged."
+        slicer.util.errorDisplay(f"{what} failed: {exc.message}", detailedText=exc.traceback_text)
+        return None
 
 
 def reportWarnings(files):

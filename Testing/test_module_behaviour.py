@@ -180,6 +180,28 @@ def test_motion_correction_checkbox_asks_for_the_calibration(sdfcar):
     assert "view 2: +2.00 mm" in line
 
 
+
+def test_a_cancelled_or_failed_job_says_so_and_gives_no_files(sdfcar):
+    from SDFCARLib.jobs import JobFailed
+
+    class Job:
+        def __init__(self, error=None):
+            self.error = error
+
+        def result(self):
+            if self.error:
+                raise self.error
+            return {"report": "report.json"}
+
+    label = types.SimpleNamespace(text="")
+    assert sdfcar.finishedJobFiles(Job(), "cancelled", label, "The 3D-QCA") is None
+    assert label.text == "The 3D-QCA was cancelled: the scene is unchanged."
+    failed = JobFailed("ValueError: no vessel", "Traceback …")
+    assert sdfcar.finishedJobFiles(Job(failed), "failed", label, "The reconstruction") is None
+    assert label.text == "The reconstruction failed: the scene is unchanged."
+    assert sdfcar.recorder.errors[-1] == "The reconstruction failed: ValueError: no vessel"
+    assert sdfcar.finishedJobFiles(Job(), "finished", label, "The reconstruction") == {"report": "report.json"}
+
 # --- views 3, 4, … ------------------------------------------------------------------------------------------
 def _node(class_name, name):
     return slicer_fakes.FakeNode(class_name, name)
