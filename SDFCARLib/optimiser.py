@@ -200,7 +200,7 @@ def build_problem(geometry: Geometry, targets: Sequence[np.ndarray], settings: S
         if voxels.size == 0:
             raise ReconstructionError(
                 "the masks' back-projections do not intersect inside the volume: check the view angles, "
-                "that mask 1 and mask 2 belong to views 1 and 2, and the volume centre")
+                "that each mask belongs to its view (in the geometry's order), and the volume centre")
     else:
         support, voxels = None, np.arange(grid.num_voxels)
     needed_bytes = estimate_memory_bytes(settings, geometry, int(voxels.size))

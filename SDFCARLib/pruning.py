@@ -37,6 +37,7 @@ from scipy.sparse.csgraph import connected_components, dijkstra
 from skimage.morphology import skeletonize
 
 from .geometry import Geometry
+from .metrics import component_labels
 from .projector import ConeBeamProjector
 
 
@@ -63,8 +64,8 @@ def skeleton_pieces(segmentation: np.ndarray, spacing_mm: Sequence[float], max_p
 
     # skimage's thinning deletes objects two voxels thick entirely (a 2 × 2 bar has no skeleton),
     # so a thin component can come back without one: cut it along its principal axis instead.
-    components, n_components = ndimage.label(segmentation, structure=np.ones((3, 3, 3)))
-    has_piece = np.zeros(n_components + 1, bool)
+    components, sizes = component_labels(segmentation)
+    has_piece = np.zeros(sizes.size + 1, bool)
     has_piece[components[labelled > 0]] = True
     for component in np.flatnonzero(~has_piece[1:]) + 1:
         members = np.argwhere(components == component)

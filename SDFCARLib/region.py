@@ -46,6 +46,7 @@ from scipy import ndimage
 
 from .geometry import CArmView, Geometry, GeometryError, VolumeGrid
 from .hull import visual_hull
+from .metrics import component_labels
 from .projector import footprint_radius_px
 from .settings import PAPER_SPACING_MM, PAPER_VOLUME_SHAPE, ReconstructionError
 
@@ -129,11 +130,10 @@ def locate_region(
     if not hull.any():
         raise RegionError(
             "the masks' back-projections do not meet anywhere within "
-            f"{search_mm:g} mm of the isocenter: the views are inconsistent with the masks; check that mask 1 and "
-            "mask 2 belong to views 1 and 2, the views' angles (LAO/RAO, CRA/CAU signs) and that the images are not "
+            f"{search_mm:g} mm of the isocenter: the views are inconsistent with the masks; check that each mask "
+            "belongs to its view (in the geometry's order), the views' angles (LAO/RAO, CRA/CAU signs) and that the images are not "
             "mirrored, or give the volume explicitly")
-    labels, count = ndimage.label(hull, structure=np.ones((3, 3, 3), dtype=bool))
-    sizes = np.bincount(labels.reshape(-1), minlength=count + 1)[1:]
+    labels, sizes = component_labels(hull)
     keep = sizes >= max(1.0, min_piece_fraction * sizes.sum())
     kept = np.concatenate([[False], keep])[labels]
     ijk = np.argwhere(kept)

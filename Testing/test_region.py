@@ -74,7 +74,7 @@ def test_masks_that_never_meet_give_a_clear_error():
     top, bottom = np.zeros((128, 128), bool), np.zeros((128, 128), bool)
     top[5:15, 60:70] = True  # rows are z: view 1 sees the vessel high up, view 2 low down
     bottom[110:120, 60:70] = True
-    with pytest.raises(RegionError, match="do not meet.*mask 1 and mask 2 belong to views 1 and 2"):
+    with pytest.raises(RegionError, match="do not meet.*each mask belongs to its view"):
         place_volume(views, [top, bottom], spacing_mm=1.0)
 
 
