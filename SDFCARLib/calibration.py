@@ -30,12 +30,8 @@ from typing import Any, Callable, Dict, List, Optional, Sequence
 
 import numpy as np
 
-from .geometry import CArmView, Geometry
-
-from .settings import SCORE_STEPS_MIN
-
-#: the loss of a candidate is the mean over this many last steps (Adam's steps are noisy)
-SCORE_STEPS = SCORE_STEPS_MIN
+from .geometry import CArmView, Geometry, rotation_matrix
+from .settings import CALIBRATION_SCORE_STEPS
 
 
 def epipolar_normal(reference: CArmView, view: CArmView) -> Optional[np.ndarray]:
@@ -50,8 +46,6 @@ def epipolar_normal(reference: CArmView, view: CArmView) -> Optional[np.ndarray]
 
 def shifted(view: CArmView, translation_mm: np.ndarray) -> CArmView:
     """``view`` with its object moved further by ``translation_mm`` (reference frame, LPS)."""
-    from .geometry import rotation_matrix
-
     r0 = rotation_matrix(view.object_rotation_deg)
     # the new motion acts first: x → R0 (x + t) + t0
     total = r0 @ np.asarray(translation_mm, float) + np.asarray(view.object_translation_mm, float)
@@ -99,13 +93,13 @@ def calibrate(geometry: Geometry, targets: Sequence[np.ndarray], settings, targe
         short = settings.replace(steps=c.calibration_steps, prune=False, reconnect=False)
 
         def score(candidate: Geometry) -> float:
-            return fitted_loss(candidate, targets, short, target_kind, SCORE_STEPS, cancel)
+            return fitted_loss(candidate, targets, short, target_kind, CALIBRATION_SCORE_STEPS, cancel)
 
     views = list(geometry.views)
     found: List[Dict[str, Any]] = []
     warnings: List[str] = []
     grid_mm = np.linspace(-c.calibration_range_mm, c.calibration_range_mm, c.calibration_candidates)
-    step_mm = float(grid_mm[1] - grid_mm[0]) if grid_mm.size > 1 else c.calibration_range_mm
+    step_mm = float(grid_mm[1] - grid_mm[0])  # calibration_candidates ≥ 3 (Settings.validate)
     for k in range(1, len(views)):
         normal = epipolar_normal(views[0], views[k])
         if normal is None:

@@ -169,8 +169,11 @@ def versions() -> Dict[str, str]:
 
 
 def build_problem(geometry: Geometry, targets: Sequence[np.ndarray], settings: Settings, target_kind: str,
-                  progress: Progress = None) -> Problem:
-    """Step 1: check the inputs, choose support and device, build projectors and losses."""
+                  progress: Progress = None, check_masks: bool = True) -> Problem:
+    """Step 1: check the inputs, choose support and device, build projectors and losses.
+
+    ``check_masks=False`` skips the mask and consistency checks (for the calibration's repeated
+    short fits of the same masks, which the run itself checks once)."""
     t_start = time.perf_counter()
     arrays = validate_targets(targets, geometry, target_kind)
     _report(progress, phase="setup", step=0, total=settings.optimisation.steps, elapsed_s=0.0, eta_s=None,
@@ -182,7 +185,7 @@ def build_problem(geometry: Geometry, targets: Sequence[np.ndarray], settings: S
     # Hundreds of specks would each add a cone to the support (and time to every step), and, having
     # no partner in the other views, would read as a wrong geometry in the consistency check.
     despeckled, left_out = support_masks(pixels, geometry.views, grid)
-    if target_kind == "mask":
+    if target_kind == "mask" and check_masks:
         for n, (mask, view) in enumerate(zip(pixels, geometry.views), start=1):
             warnings += mask_warnings(mask, view.pixel_spacing_mm, source=f"view {n}")
         # Seconds to catch a wrong angle sign or a mask of the wrong view before minutes of work.
@@ -349,7 +352,7 @@ def fitted_loss(geometry: Geometry, targets: Sequence[np.ndarray], settings: Set
     """The mean loss of the last ``last_steps`` steps of a field fitted from scratch (the run's seed):
     how well ``geometry`` lets one field explain every view (``calibration.py``)."""
     torch.manual_seed(settings.run.seed)
-    problem = build_problem(geometry, targets, settings, target_kind)
+    problem = build_problem(geometry, targets, settings, target_kind, check_masks=False)
     model = ImplicitField(field_config(settings)).to(problem.device)
     history, _ = optimise(problem, model, cancel=cancel)
     return float(np.mean([h["loss"] for h in history[-last_steps:]]))

@@ -122,8 +122,8 @@ class RegionSettings:
     reconnect_min_occupancy: float = 0.1  # lowest geometric-mean occupancy along the gap
 
 
-#: a calibration candidate's score averages the last 20 steps (calibration.SCORE_STEPS)
-SCORE_STEPS_MIN = 20
+#: a calibration candidate's score is its mean loss over this many last steps (Adam's steps are noisy)
+CALIBRATION_SCORE_STEPS = 20
 
 
 @dataclass
@@ -234,10 +234,10 @@ class Settings:
         if run.device not in DEVICES and not str(run.device).startswith("cuda:"):
             raise ReconstructionError(f"device must be auto, cpu or cuda, got {run.device!r}")
         cal = self.calibration
-        if not cal.calibration_range_mm > 0 or cal.calibration_candidates < 3 or cal.calibration_steps < SCORE_STEPS_MIN:
+        if not cal.calibration_range_mm > 0 or cal.calibration_candidates < 3 or cal.calibration_steps < CALIBRATION_SCORE_STEPS:
             raise ReconstructionError(
                 f"calibration needs calibration_range_mm > 0, calibration_candidates ≥ 3 and calibration_steps ≥ "
-                f"{SCORE_STEPS_MIN}; got {cal.calibration_range_mm}, {cal.calibration_candidates}, {cal.calibration_steps}")
+                f"{CALIBRATION_SCORE_STEPS}; got {cal.calibration_range_mm}, {cal.calibration_candidates}, {cal.calibration_steps}")
         if run.threads is not None and run.threads < 1:
             raise ReconstructionError(f"threads must be at least 1, got {run.threads}")
 
