@@ -1,22 +1,24 @@
-"""Rigid self-calibration: the shift of each view's object across its epipolar lines, by search.
+"""Rigid self-calibration: the observable part of each view's object motion, by search.
 
 Why
     Views are acquired seconds apart; table, patient and heart move in between, and the nominal
-    C-arm poses then disagree with the images by millimetres. The component of such a motion that
-    moves view k's image *across* its epipolar lines with view 1 breaks the tree apart in 3D: the
+    C-arm poses then disagree with the images by millimetres. The part of such a motion that moves
+    view k's image *across* its epipolar lines with view 1 breaks the tree apart in 3D: the
     branches cannot meet on the visual hull, and a field fitted on the hull explains the masks
     measurably worse (bench/RESULTS.md, section 8: L_occ 2.4× higher at the nominal pose of a 3 mm
-    motion, minimal at the true one). Shifts *along* the epipolar lines move the tree in depth
-    and leave the masks explained: two views cannot tell them, and they are left alone.
+    motion, minimal at the true one). Motions that move the image *along* the epipolar lines move
+    the tree in depth and leave the masks explained: two views cannot tell them, and they are left alone.
 
 Method
-    View 1 is the reference (the result stays in its frame). For view k the searched direction is
-    n_k = d_1 × d_k / |d_1 × d_k| (d the views' detector directions): a translation of the object
-    along n_k moves view k's image perpendicular to its epipolar lines with view 1. Each candidate
-    shift t·n_k becomes view k's object motion (composed with any the view already carries), the
-    field is re-fitted from scratch on that pose's hull for ``calibration_steps`` steps, and the
-    candidate's score is the mean loss of the last steps. A coarse grid of candidates over
-    ±``calibration_range_mm`` is refined by one parabola through the best and its neighbours.
+    View 1 is the reference (the result stays in its frame). For view k, with d its viewing
+    direction and n_k = d_1 × d_k / |d_1 × d_k|, three motions of its object are searched one after
+    the other (``search_axes``): the shift along n_k (the image moves across its epipolar lines), the
+    rotation about d_k (the image turns in plane: across the lines by an amount that grows along
+    them) and the rotation about m_k = d_k × n_k (the image tilts across the lines by depth).
+    Rotations turn about the reconstruction region's centre. Each candidate becomes view k's object
+    motion (composed with any the view already carries), the field is re-fitted from scratch on that
+    pose's hull for ``calibration_steps`` steps, and the candidate's score is the mean loss of the
+    last steps. An even grid of candidates is refined by one parabola (``search_1d``).
     Re-fitting is what makes the motion visible: optimised jointly by gradient with the field, the
     pose does not move (the field re-fits to any pose first; measured, section 8).
 """
@@ -29,6 +31,7 @@ from dataclasses import dataclass, field
 from typing import Any, Callable, Dict, List, Optional, Sequence
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from .geometry import CArmView, Geometry, rotation_matrix
 from .settings import CALIBRATION_SCORE_STEPS
@@ -46,10 +49,32 @@ def epipolar_normal(reference: CArmView, view: CArmView) -> Optional[np.ndarray]
 
 def shifted(view: CArmView, translation_mm: np.ndarray) -> CArmView:
     """``view`` with its object moved further by ``translation_mm`` (reference frame, LPS)."""
+    return moved(view, np.zeros(3), translation_mm, np.zeros(3))
+
+
+def moved(view: CArmView, rotation_deg: np.ndarray, translation_mm: np.ndarray, centre_mm: np.ndarray) -> CArmView:
+    """``view`` with its object moved further: rotated by the vector ``rotation_deg`` about ``centre_mm``,
+    then translated by ``translation_mm`` (reference frame, LPS), before the motion the view carries."""
     r0 = rotation_matrix(view.object_rotation_deg)
-    # the new motion acts first: x → R0 (x + t) + t0
-    total = r0 @ np.asarray(translation_mm, float) + np.asarray(view.object_translation_mm, float)
-    return view.with_object_motion(view.object_rotation_deg, total)
+    r_new = rotation_matrix(rotation_deg)
+    centre = np.asarray(centre_mm, float)
+    # the new motion acts first: x → R0 (Rn (x − c) + c + tn) + t0
+    total_translation = r0 @ (centre - r_new @ centre + np.asarray(translation_mm, float)) + np.asarray(view.object_translation_mm, float)
+    total_rotation = np.degrees(Rotation.from_matrix(r0 @ r_new).as_rotvec())
+    return view.with_object_motion(total_rotation, total_translation)
+
+
+def search_axes(reference: CArmView, view: CArmView) -> Optional[Dict[str, np.ndarray]]:
+    """The three motions of ``view``'s object the calibration searches, as unit vectors (LPS):
+    the shift across the epipolar lines with ``reference`` (n), the rotation about ``view``'s viewing
+    direction (its image turns in plane) and the rotation about its in-plane axis along the epipolar
+    lines (m = d × n: the image tilts across them by depth). None without epipolar geometry."""
+    normal = epipolar_normal(reference, view)
+    if normal is None:
+        return None
+    direction = view.detector_direction / np.linalg.norm(view.detector_direction)
+    along = np.cross(direction, normal)
+    return {"shift": normal, "rotation_in_plane": direction, "rotation_tilt": along / np.linalg.norm(along)}
 
 
 def parabola_minimum(xs: Sequence[float], ys: Sequence[float]) -> float:
@@ -75,13 +100,37 @@ class Calibration:
     warnings: List[str] = field(default_factory=list)
 
     def report(self) -> Dict[str, Any]:
-        return {"method": "shift across the epipolar lines, re-fitted field per candidate",
+        return {"method": "search of the observable rigid motion, re-fitted field per candidate",
                 "views": self.views, "seconds": round(self.seconds, 1)}
+
+
+#: what each searched parameter is called in the report and its unit
+_PARAMETERS = (("shift", "mm"), ("rotation_in_plane", "deg"), ("rotation_tilt", "deg"))
+
+
+def search_1d(loss_at: Callable[[float], float], half_range: float, candidates: int):
+    """Minimise ``loss_at`` over [−half_range, half_range]: an even grid of ``candidates`` values, two
+    more halfway to the best one's neighbours, one parabola through the best three.
+    Returns (value, {candidate: loss}, whether the best lay at the range's end)."""
+    grid = np.linspace(-half_range, half_range, candidates)
+    step = float(grid[1] - grid[0])  # candidates ≥ 3 (Settings.validate)
+    scores = {float(x): loss_at(float(x)) for x in grid}
+    best = min(scores, key=scores.get)
+    for x in (best - step / 2, best + step / 2):
+        if abs(x) <= half_range + 1e-9:
+            scores[float(x)] = loss_at(float(x))
+    ordered = sorted(scores)
+    best = min(scores, key=scores.get)
+    i = ordered.index(best)
+    if 0 < i < len(ordered) - 1:
+        xs = ordered[i - 1:i + 2]
+        return parabola_minimum(xs, [scores[x] for x in xs]), scores, False
+    return best, scores, True
 
 
 def calibrate(geometry: Geometry, targets: Sequence[np.ndarray], settings, target_kind: str,
               score: Optional[Callable[[Geometry], float]] = None, progress=None, cancel=None) -> Calibration:
-    """Search each view's shift across its epipolar lines with view 1 (module docstring).
+    """Search each view's observable rigid motion against view 1 (module docstring).
 
     ``score(geometry)`` — lower is better — defaults to the loss of a short re-fit; tests pass their own.
     """
@@ -96,49 +145,52 @@ def calibrate(geometry: Geometry, targets: Sequence[np.ndarray], settings, targe
             return fitted_loss(candidate, targets, short, target_kind, CALIBRATION_SCORE_STEPS, cancel)
 
     views = list(geometry.views)
+    centre = np.asarray(geometry.volume.center_mm, float)  # rotations turn the object about the region's centre
     found: List[Dict[str, Any]] = []
     warnings: List[str] = []
-    grid_mm = np.linspace(-c.calibration_range_mm, c.calibration_range_mm, c.calibration_candidates)
-    step_mm = float(grid_mm[1] - grid_mm[0])  # calibration_candidates ≥ 3 (Settings.validate)
+    half_ranges = {"mm": c.calibration_range_mm, "deg": c.calibration_rotation_range_deg}
     for k in range(1, len(views)):
-        normal = epipolar_normal(views[0], views[k])
-        if normal is None:
+        axes = search_axes(views[0], views[k])
+        if axes is None:
             found.append({"view": k + 1, "skipped": "looks along the same line as view 1"})
             continue
+        entry: Dict[str, Any] = {"view": k + 1, "rotation_centre_mm": [round(float(v), 3) for v in centre]}
+        for name, unit in _PARAMETERS:
+            if half_ranges[unit] <= 0:
+                continue
+            axis = axes[name]
 
-        def loss_at(t_mm: float) -> float:
-            if _is_cancelled(cancel):
-                raise ReconstructionCancelled("cancelled during the calibration")
-            trial = list(views)
-            trial[k] = shifted(views[k], t_mm * normal)
-            value = float(score(Geometry(geometry.volume, trial)))
-            _report(progress, phase="calibrate", step=k, total=len(views) - 1, elapsed_s=time.perf_counter() - t0,
-                    eta_s=None, device=str(settings.run.device), message=f"view {k + 1}: {t_mm:+.2f} mm → loss {value:.5f}")
-            return value
+            def candidate(value: float, axis=axis, unit=unit) -> CArmView:
+                zero = np.zeros(3)
+                return moved(views[k], value * axis if unit == "deg" else zero, value * axis if unit == "mm" else zero, centre)
 
-        scores = {float(t): loss_at(float(t)) for t in grid_mm}
-        best = min(scores, key=scores.get)
-        # refine between the best candidate's neighbours (half the grid step on each side)
-        for t in (best - step_mm / 2, best + step_mm / 2):
-            if abs(t) <= c.calibration_range_mm + 1e-9:
-                scores[float(t)] = loss_at(float(t))
-        ordered = sorted(scores)
-        best = min(scores, key=scores.get)
-        i = ordered.index(best)
-        if 0 < i < len(ordered) - 1:
-            xs = ordered[i - 1:i + 2]
-            refined = parabola_minimum(xs, [scores[x] for x in xs])
-        else:
-            # the loss still falls at the end of the range: no minimum was found, and a shift at the
-            # edge is more likely a wrong pose fitted to other errors (measured) than a real one
-            refined = 0.0
-            warnings.append(f"view {k + 1}: the pose correction found no minimum within ±{c.calibration_range_mm:g} mm "
-                            f"(lowest loss at {best:+.1f} mm); the view was left as given. Check its angles and "
-                            "distances, or widen calibration_range_mm")
-        views[k] = shifted(views[k], refined * normal)
-        found.append({"view": k + 1, "direction_lps": [round(float(v), 4) for v in normal],
-                      "shift_mm": round(refined, 3), "translation_mm": [round(float(v), 3) for v in refined * normal],
-                      "candidates_mm": [round(x, 3) for x in ordered],
-                      "losses": [round(scores[x], 6) for x in ordered],
-                      "loss_nominal": round(scores.get(0.0, float("nan")), 6)})
+            def loss_at(value: float, candidate=candidate, name=name, unit=unit) -> float:
+                if _is_cancelled(cancel):
+                    raise ReconstructionCancelled("cancelled during the calibration")
+                trial = list(views)
+                trial[k] = candidate(value)
+                loss = float(score(Geometry(geometry.volume, trial)))
+                _report(progress, phase="calibrate", step=k, total=len(views) - 1, elapsed_s=time.perf_counter() - t0,
+                        eta_s=None, device=str(settings.run.device),
+                        message=f"view {k + 1}, {name.replace('_', ' ')} {value:+.2f} {unit} → loss {loss:.5f}")
+                return loss
+
+            value, scores, at_edge = search_1d(loss_at, half_ranges[unit], c.calibration_candidates)
+            if at_edge:
+                # the loss still falls at the end of the range: no minimum was found, and a motion at
+                # the edge is more likely a wrong pose fitted to other errors (measured) than a real one
+                warnings.append(f"view {k + 1}: the pose correction ({name.replace('_', ' ')}) found no minimum within "
+                                f"±{half_ranges[unit]:g} {unit} (lowest loss at {value:+.2f} {unit}); that part was left "
+                                "as given. Check the view's angles and distances, or widen the calibration range")
+                value = 0.0
+            views[k] = candidate(value)
+            ordered = sorted(scores)
+            entry[name] = {"value": round(value, 3), "unit": unit, "axis_lps": [round(float(v), 4) for v in axis],
+                           "candidates": [round(x, 3) for x in ordered], "losses": [round(scores[x], 6) for x in ordered]}
+        # what the view's object motion is now, and (for the shift) the keys reports had before rotations
+        entry["object_rotation_deg"] = [round(float(v), 4) for v in views[k].object_rotation_deg]
+        entry["object_translation_mm"] = [round(float(v), 4) for v in views[k].object_translation_mm]
+        if "shift" in entry:
+            entry.update(shift_mm=entry["shift"]["value"], direction_lps=entry["shift"]["axis_lps"])
+        found.append(entry)
     return Calibration(Geometry(geometry.volume, views), found, time.perf_counter() - t0, warnings)

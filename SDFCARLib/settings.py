@@ -128,10 +128,11 @@ CALIBRATION_SCORE_STEPS = 20
 
 @dataclass
 class CalibrationSettings:
-    """Search of each view's shift across its epipolar lines before the reconstruction (``calibration.py``)."""
+    """Search of each view's observable rigid motion before the reconstruction (``calibration.py``)."""
 
     calibrate: bool = False
-    calibration_range_mm: float = 4.0  # candidates within ± this shift
+    calibration_range_mm: float = 4.0  # shift candidates within ± this
+    calibration_rotation_range_deg: float = 3.0  # rotation candidates within ± this; 0 searches the shift only
     calibration_candidates: int = 5  # evenly over the range, then two between the best and its neighbours
     calibration_steps: int = 150  # the re-fit per candidate
 
@@ -234,10 +235,12 @@ class Settings:
         if run.device not in DEVICES and not str(run.device).startswith("cuda:"):
             raise ReconstructionError(f"device must be auto, cpu or cuda, got {run.device!r}")
         cal = self.calibration
-        if not cal.calibration_range_mm > 0 or cal.calibration_candidates < 3 or cal.calibration_steps < CALIBRATION_SCORE_STEPS:
+        if (not cal.calibration_range_mm > 0 or not cal.calibration_rotation_range_deg >= 0
+                or cal.calibration_candidates < 3 or cal.calibration_steps < CALIBRATION_SCORE_STEPS):
             raise ReconstructionError(
-                f"calibration needs calibration_range_mm > 0, calibration_candidates ≥ 3 and calibration_steps ≥ "
-                f"{CALIBRATION_SCORE_STEPS}; got {cal.calibration_range_mm}, {cal.calibration_candidates}, {cal.calibration_steps}")
+                f"calibration needs calibration_range_mm > 0, calibration_rotation_range_deg ≥ 0, calibration_candidates ≥ 3 "
+                f"and calibration_steps ≥ {CALIBRATION_SCORE_STEPS}; got {cal.calibration_range_mm}, "
+                f"{cal.calibration_rotation_range_deg}, {cal.calibration_candidates}, {cal.calibration_steps}")
         if run.threads is not None and run.threads < 1:
             raise ReconstructionError(f"threads must be at least 1, got {run.threads}")
 

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from SDFCARLib.calibration import calibrate, epipolar_normal, parabola_minimum, shifted
+from SDFCARLib.calibration import calibrate, epipolar_normal, moved, parabola_minimum, search_1d, search_axes, shifted
 from SDFCARLib.geometry import CArmView, Geometry, VolumeGrid, rotation_matrix
 from SDFCARLib.settings import ReconstructionError, make_settings
 
@@ -39,6 +39,40 @@ def test_shifted_moves_the_object_before_the_motion_the_view_already_carries():
     np.testing.assert_allclose(shifted(_view(), np.array([0, 0, 2.5])).object_translation_mm, [0, 0, 2.5])
 
 
+def test_moved_turns_about_the_centre_before_the_motion_the_view_already_carries():
+    view = _view().with_object_motion((0.0, 5.0, 0.0), (1.0, 2.0, 3.0))
+    centre, rotation, translation = np.array([10.0, -5.0, 20.0]), np.array([1.0, -2.0, 0.5]), np.array([0.3, 0.0, -0.7])
+    result = moved(view, rotation, translation, centre)
+    for x in (np.zeros(3), centre, np.array([40.0, 30.0, -25.0])):
+        expected = rotation_matrix((0, 5, 0)) @ (rotation_matrix(rotation) @ (x - centre) + centre + translation) + [1, 2, 3]
+        got = rotation_matrix(result.object_rotation_deg) @ x + np.asarray(result.object_translation_mm)
+        np.testing.assert_allclose(got, expected, atol=1e-9)
+
+
+def test_search_axes_are_orthonormal_and_tied_to_the_views():
+    reference, view = _view(30.0, 20.0), _view(-40.0, -10.0)
+    axes = search_axes(reference, view)
+    np.testing.assert_allclose(axes["shift"], epipolar_normal(reference, view))
+    np.testing.assert_allclose(axes["rotation_in_plane"], view.detector_direction, atol=1e-12)
+    matrix = np.stack([axes["shift"], axes["rotation_in_plane"], axes["rotation_tilt"]])
+    np.testing.assert_allclose(matrix @ matrix.T, np.eye(3), atol=1e-12)
+    # the tilt axis lies in the view's image plane, along its epipolar lines with the reference
+    assert abs(np.dot(axes["rotation_tilt"], view.detector_direction)) < 1e-12
+    assert search_axes(reference, _view(30.0, 20.0)) is None
+
+
+def test_search_1d_finds_a_parabola_vertex_and_flags_the_range_end():
+    calls = []
+
+    def loss(x):
+        calls.append(x)
+        return (x - 1.1) ** 2
+    value, scores, at_edge = search_1d(loss, 3.0, 5)
+    assert value == pytest.approx(1.1) and not at_edge and len(calls) == len(scores) == 7
+    value, _, at_edge = search_1d(lambda x: -x, 3.0, 5)
+    assert value == 3.0 and at_edge
+
+
 def test_parabola_minimum():
     xs = [0.0, 1.0, 2.0]
     assert parabola_minimum(xs, [(x - 1.3) ** 2 + 5 for x in xs]) == pytest.approx(1.3)
@@ -61,7 +95,7 @@ def test_calibrate_finds_the_shift_of_a_known_minimum_and_keeps_view_one():
             total += (float(np.dot(candidate.views[k].object_translation_mm, normal)) - want) ** 2
         return total
 
-    settings = make_settings("fast", calibrate=True)
+    settings = make_settings("fast", calibrate=True, calibration_rotation_range_deg=0.0)  # the shift alone
     result = calibrate(geometry, [np.zeros((64, 64))] * 3, settings, "mask", score=score)
     assert result.geometry.views[0] == geometry.views[0]
     for k, want in true_mm.items():
@@ -86,8 +120,64 @@ def test_a_minimum_at_the_end_of_the_range_leaves_the_view_as_given_and_warns():
     def score(candidate: Geometry) -> float:  # keeps falling beyond the range's end
         return -float(np.dot(candidate.views[1].object_translation_mm, normal))
 
-    result = calibrate(geometry, [np.zeros((64, 64))] * 2, make_settings("fast", calibrate=True), "mask", score=score)
+    settings = make_settings("fast", calibrate=True, calibration_rotation_range_deg=0.0)
+    result = calibrate(geometry, [np.zeros((64, 64))] * 2, settings, "mask", score=score)
     assert result.geometry.views[1].object_translation_mm == (0.0, 0.0, 0.0)
     assert result.views[0]["shift_mm"] == 0.0
     (warning,) = result.warnings
     assert "view 2" in warning and "no minimum within ±4 mm" in warning and "left as given" in warning
+
+
+def test_calibrate_finds_a_known_shift_and_rotations_of_each_view():
+    grid = VolumeGrid((16, 16, 16), (1.0, 1.0, 1.0), (5.0, -3.0, 8.0))
+    geometry = Geometry(grid, (_view(30.0), _view(-30.0), _view(0.0, 30.0)))
+    centre = np.asarray(grid.center_mm)
+    # per view: shift (mm), in-plane and tilt rotation (degrees), all within the default ranges
+    truth = {1: (1.7, -1.2, 0.8), 2: (-2.6, 2.1, -0.4)}
+    axes = {k: search_axes(geometry.views[0], geometry.views[k]) for k in truth}
+
+    def motion_parameters(view, k):
+        # the view's motion written as a turn about the centre then a shift: x → R (x − c) + c + s
+        r = rotation_matrix(view.object_rotation_deg)
+        shift = r @ centre + np.asarray(view.object_translation_mm) - centre
+        vector = np.asarray(view.object_rotation_deg)
+        return (float(shift @ axes[k]["shift"]), float(vector @ axes[k]["rotation_in_plane"]),
+                float(vector @ axes[k]["rotation_tilt"]))
+
+    def score(candidate: Geometry) -> float:  # a stand-in for the re-fitted loss, minimal at the truth
+        return sum(float(np.sum((np.subtract(motion_parameters(candidate.views[k], k), want)) ** 2))
+                   for k, want in truth.items())
+
+    settings = make_settings("fast", calibrate=True)
+    result = calibrate(geometry, [np.zeros((64, 64))] * 3, settings, "mask", score=score)
+    assert result.geometry.views[0] == geometry.views[0] and not result.warnings
+    for k, want in truth.items():
+        np.testing.assert_allclose(motion_parameters(result.geometry.views[k], k), want, atol=0.02)
+        entry = result.views[k - 1]
+        assert entry["shift"]["value"] == pytest.approx(want[0], abs=0.02)
+        assert entry["rotation_in_plane"]["value"] == pytest.approx(want[1], abs=0.02)
+        assert entry["rotation_tilt"]["value"] == pytest.approx(want[2], abs=0.02)
+        np.testing.assert_allclose(entry["object_rotation_deg"], result.geometry.views[k].object_rotation_deg, atol=1e-3)
+        # nothing along the axes two views cannot tell: the shift along the epipolar lines
+        np.testing.assert_allclose(motion_parameters(result.geometry.views[k], k)[0] * axes[k]["shift"],
+                                   rotation_matrix(entry["object_rotation_deg"]) @ centre
+                                   + np.asarray(entry["object_translation_mm"]) - centre, atol=1e-3)
+
+
+def test_benchmark_columns_compare_the_motion_found_with_the_simulated_one_about_the_same_centre():
+    from SDFCARLib.benchmark.run import _calibration_columns
+
+    reference, view = _view(30.0), _view(-30.0)
+    axes = search_axes(reference, view)
+    found = {"view": 2, "shift_mm": 1.1, "direction_lps": list(axes["shift"]), "rotation_centre_mm": [0.0, 10.0, 0.0],
+             "rotation_in_plane": {"value": 0.4, "axis_lps": list(axes["rotation_in_plane"])},
+             "rotation_tilt": {"value": -0.2, "axis_lps": list(axes["rotation_tilt"])}}
+    # simulated: 2° about x (about the isocenter) and 1 mm along z; about the centre (0, 10, 0) the same
+    # motion is that turn plus a shift of 1 + 10·sin 2° along z (n = ±z for LAO 30 / RAO 30)
+    realistic = {"motion": [{}, {"rotation_deg": [2.0, 0.0, 0.0], "translation_mm": [0.0, 0.0, 1.0]}]}
+    columns = _calibration_columns({"views": [found]}, realistic)
+    assert columns["calibration_shift_mm_view2"] == 1.1 and columns["calibration_rotation_tilt_deg_view2"] == -0.2
+    assert columns["true_shift_mm_view2"] == pytest.approx((1.0 + 10.0 * np.sin(np.radians(2.0))) * axes["shift"][2])
+    assert columns["true_rotation_in_plane_deg_view2"] == pytest.approx(2.0 * axes["rotation_in_plane"][0])
+    assert columns["true_rotation_tilt_deg_view2"] == pytest.approx(2.0 * axes["rotation_tilt"][0])
+    assert _calibration_columns(None, realistic) == {}

@@ -226,10 +226,12 @@ def test_reconstruct_correct_motion_reports_the_shift_found(simulated, tmp_path,
     assert report["settings"]["calibrate"] is True
     (view2,) = report["calibration"]["views"]
     assert view2["view"] == 2 and abs(view2["shift_mm"]) <= 2.0
-    assert len(view2["candidates_mm"]) == len(view2["losses"]) >= 3
-    # the result's geometry carries the shift found as view 2's object motion; view 1 is untouched
+    assert len(view2["shift"]["candidates"]) == len(view2["shift"]["losses"]) >= 3
+    assert abs(view2["rotation_in_plane"]["value"]) <= 3.0 and abs(view2["rotation_tilt"]["value"]) <= 3.0
+    # the result's geometry carries the motion found as view 2's object motion; view 1 is untouched
     geometry = Geometry.from_dict(report["geometry"])
-    np.testing.assert_allclose(geometry.views[1].object_translation_mm, view2["translation_mm"], atol=1e-3)
+    np.testing.assert_allclose(geometry.views[1].object_translation_mm, view2["object_translation_mm"], atol=1e-3)
+    np.testing.assert_allclose(geometry.views[1].object_rotation_deg, view2["object_rotation_deg"], atol=1e-3)
     assert not geometry.views[0].has_object_motion
     code, _, err = run(capsys, "reconstruct", "--geometry", simulated / "geometry.json",
                        "--mask1", simulated / "views" / "view1_mask.png", "--mask2", simulated / "views" / "view2_mask.png",

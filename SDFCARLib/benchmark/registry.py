@@ -30,4 +30,6 @@ METRIC_COLUMNS = ["cldice", "tprec", "tsens", "skeleton_dice", "dice", "iou", "c
                   "reprojection_dice_view1", "reprojection_dice_view2", "voxels_predicted", "voxels_label",
                   "input_mask_cldice_view1", "input_mask_cldice_view2", "motion_mm", "motion_deg",
                   "calibration_shift_mm_view2", "true_shift_mm_view2",
+                  "calibration_rotation_in_plane_deg_view2", "true_rotation_in_plane_deg_view2",
+                  "calibration_rotation_tilt_deg_view2", "true_rotation_tilt_deg_view2",
                   "components", "largest_component_fraction", "components_label"]

@@ -20,6 +20,7 @@ from tqdm import tqdm
 
 from ..cli_types import one_line
 from ..figures import save_overlay_figure
+from ..geometry import rotation_matrix
 from ..io import write_text_atomically
 from .cases import CaseSpec, GridOptions, PreparedCase, prepare_case
 from .config import BenchmarkConfig, check_config
@@ -133,14 +134,26 @@ def run_task(prepared: Dict[str, Any], spec: CaseSpec, mode: str, task: Dict[str
 
 
 def _calibration_columns(calibration: Optional[Dict[str, Any]], realistic: Optional[Dict[str, Any]]) -> Dict[str, float]:
-    """View 2's shift found by the calibration and, for realistic cases, the simulated motion's
-    translation along the same direction (what the search can recover)."""
+    """View 2's motion found by the calibration (shift, in-plane and tilt rotation) and, for realistic
+    cases, the simulated motion's same components (what the search can recover)."""
     found = next((v for v in (calibration or {}).get("views", []) if v.get("view") == 2 and "shift_mm" in v), None)
     if found is None:
         return {}
     out = {"calibration_shift_mm_view2": float(found["shift_mm"])}
+    for name in ("rotation_in_plane", "rotation_tilt"):
+        if name in found:
+            out[f"calibration_{name}_deg_view2"] = float(found[name]["value"])
     if realistic and len(realistic.get("motion", [])) > 1:
-        out["true_shift_mm_view2"] = float(np.dot(realistic["motion"][1]["translation_mm"], found["direction_lps"]))
+        motion = realistic["motion"][1]
+        rotation = np.asarray(motion["rotation_deg"], float)
+        # the simulated motion turns about the isocenter; the search about the region's centre c:
+        # x → R x + t = R (x − c) + c + (t + R c − c)
+        centre = np.asarray(found.get("rotation_centre_mm", (0.0, 0.0, 0.0)), float)
+        shift = np.asarray(motion["translation_mm"], float) + rotation_matrix(rotation) @ centre - centre
+        out["true_shift_mm_view2"] = float(np.dot(shift, found["direction_lps"]))
+        for name in ("rotation_in_plane", "rotation_tilt"):
+            if name in found:
+                out[f"true_{name}_deg_view2"] = float(np.dot(rotation, found[name]["axis_lps"]))
     return out
 
 
