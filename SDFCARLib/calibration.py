@@ -11,11 +11,13 @@ Why
 
 Method
     View 1 is the reference (the result stays in its frame). For view k, with d its viewing
-    direction and n_k = d_1 × d_k / |d_1 × d_k|, three motions of its object are searched one after
-    the other (``search_axes``): the shift along n_k (the image moves across its epipolar lines), the
+    direction and n_k = d_1 × d_k / |d_1 × d_k|, the shift of its object along n_k is searched (the
+    image moves across its epipolar lines) and, when ``calibration_rotation_range_deg`` > 0, then the
     rotation about d_k (the image turns in plane: across the lines by an amount that grows along
-    them) and the rotation about m_k = d_k × n_k (the image tilts across the lines by depth).
-    Rotations turn about the reconstruction region's centre. Each candidate becomes view k's object
+    them) and the rotation about m_k = d_k × n_k (the image tilts across the lines by depth); see
+    ``search_axes``. Rotations turn about the reconstruction region's centre; they are searched on
+    request only, because on masks segmented from images the re-fitted loss does not locate them
+    (bench/RESULTS.md, section 12c). Each candidate becomes view k's object
     motion (composed with any the view already carries), the field is re-fitted from scratch on that
     pose's hull for ``calibration_steps`` steps, and the candidate's score is the mean loss of the
     last steps. An even grid of candidates is refined by one parabola (``search_1d``).

@@ -132,7 +132,9 @@ class CalibrationSettings:
 
     calibrate: bool = False
     calibration_range_mm: float = 4.0  # shift candidates within ± this
-    calibration_rotation_range_deg: float = 3.0  # rotation candidates within ± this; 0 searches the shift only
+    # rotation candidates within ± this; 0 (the default) searches the shift only: on masks segmented from
+    # images the re-fitted loss does not locate rotations (bench/RESULTS.md, section 12c)
+    calibration_rotation_range_deg: float = 0.0
     calibration_candidates: int = 5  # evenly over the range, then two between the best and its neighbours
     calibration_steps: int = 150  # the re-fit per candidate
 

@@ -148,7 +148,7 @@ def test_calibrate_finds_a_known_shift_and_rotations_of_each_view():
         return sum(float(np.sum((np.subtract(motion_parameters(candidate.views[k], k), want)) ** 2))
                    for k, want in truth.items())
 
-    settings = make_settings("fast", calibrate=True)
+    settings = make_settings("fast", calibrate=True, calibration_rotation_range_deg=3.0)
     result = calibrate(geometry, [np.zeros((64, 64))] * 3, settings, "mask", score=score)
     assert result.geometry.views[0] == geometry.views[0] and not result.warnings
     for k, want in truth.items():

@@ -227,7 +227,7 @@ def test_reconstruct_correct_motion_reports_the_shift_found(simulated, tmp_path,
     (view2,) = report["calibration"]["views"]
     assert view2["view"] == 2 and abs(view2["shift_mm"]) <= 2.0
     assert len(view2["shift"]["candidates"]) == len(view2["shift"]["losses"]) >= 3
-    assert abs(view2["rotation_in_plane"]["value"]) <= 3.0 and abs(view2["rotation_tilt"]["value"]) <= 3.0
+    assert "rotation_in_plane" not in view2 and "rotation_tilt" not in view2  # rotations are searched on request only
     # the result's geometry carries the motion found as view 2's object motion; view 1 is untouched
     geometry = Geometry.from_dict(report["geometry"])
     np.testing.assert_allclose(geometry.views[1].object_translation_mm, view2["object_translation_mm"], atol=1e-3)

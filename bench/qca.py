@@ -6,7 +6,9 @@ Suites
             clean masks rendered analytically in LAO 30 / RAO 30 (512² at 0.278 mm, 60° apart)
     trees   procedural LAD/RCA trees with a 50 or 70 % lesion on the main branch (--spacing)
     recon   stenosed tubes reconstructed by SDF-CAR (``fast`` preset, clinical LAO 30 / RAO 30 binary
-            masks, 128³ at 0.4 mm), then analysed like the others
+            masks, 128³ at 0.4 mm), then analysed like the others; ``--masks segmented`` takes the
+            masks a user would have instead: segmented by SDFCAR's own pipeline from simulated
+            angiograms of the tube (the realistic protocol without motion, ``realistic.py``)
 
 For every case: healthy-diameter error (3D sections and two-view masks), %DS, MLD and lesion
 length errors (lesion nearest the true one), 3D length error, foreshortening of the lesion segment
@@ -15,6 +17,7 @@ suggested view. Prints a Markdown table of case rows and a summary; ``--csv`` ke
 
     python bench/qca.py --suite tubes --csv bench/qca_tubes.csv
     python bench/qca.py --suite recon --cases 4
+    python bench/qca.py --suite recon --cases 5 --masks segmented
 """
 
 from __future__ import annotations
@@ -158,7 +161,17 @@ def run_truth(cases, spacing, view_step_deg):
     return rows
 
 
-def run_recon(n_cases, view_step_deg, steps=None, save_dir=None, first=0):
+def segmented_masks(tree, seed):
+    """The views' masks segmented from simulated angiograms of ``tree`` (no motion between the views)."""
+    from SDFCARLib.realistic import RealisticOptions, realistic_input
+
+    label_grid = grid_around(tree, 0.2)
+    realistic = realistic_input(voxelize_exact(tree, label_grid), Geometry(label_grid, VIEWS), seed,
+                                RealisticOptions(max_shift_mm=0.0, max_rotation_deg=0.0))
+    return realistic.masks, [round(v["mask_dice"], 4) for v in realistic.info["views"]]
+
+
+def run_recon(n_cases, view_step_deg, steps=None, save_dir=None, first=0, mask_source="clean"):
     from SDFCARLib.optimiser import make_settings, reconstruct
 
     rows = []
@@ -170,7 +183,11 @@ def run_recon(n_cases, view_step_deg, steps=None, save_dir=None, first=0):
     for n, (name, kw) in list(enumerate(picks))[first:first + n_cases]:
         ph = stenosed_tube(length_mm=40.0, direction=np.random.default_rng(n).normal(size=3), **kw)
         geometry = Geometry(VolumeGrid((128, 128, 128), (0.4, 0.4, 0.4)), VIEWS)
-        masks = [render_mask(ph.tree, v) for v in VIEWS]
+        extra = {}
+        if mask_source == "segmented":
+            masks, extra["input_mask_dice"] = segmented_masks(ph.tree, n)
+        else:
+            masks = [render_mask(ph.tree, v) for v in VIEWS]
         settings = make_settings("fast", **({"steps": steps} if steps else {}))
         t0 = time.perf_counter()
         rec = reconstruct(geometry, masks, settings, "mask")
@@ -181,7 +198,7 @@ def run_recon(n_cases, view_step_deg, steps=None, save_dir=None, first=0):
             Path(save_dir).mkdir(parents=True, exist_ok=True)
             write_volume_nrrd(Path(save_dir) / f"recon{n}_occupancy.nrrd", rec.occupancy, geometry.volume)
         row = score(ph, rec.occupancy, geometry.volume, float(settings.region.threshold), masks, ph.truth["ostium_mm"], view_step_deg)
-        rows.append(dict(case=name, reconstruct_s=t_rec, **row))
+        rows.append(dict(case=name, reconstruct_s=t_rec, **extra, **row))
         print(f"{name}: " + ", ".join(f"{k}={v:.3g}" if isinstance(v, float) else f"{k}={v}" for k, v in rows[-1].items()),
               flush=True)
     return rows
@@ -224,6 +241,8 @@ def main(argv=None) -> int:
     ap.add_argument("--steps", type=int, default=None, help="recon suite: optimiser steps (default: the preset's)")
     ap.add_argument("--first", type=int, default=0, help="recon suite: index of the first case (0–4)")
     ap.add_argument("--save", help="recon suite: write each reconstruction's occupancy here")
+    ap.add_argument("--masks", choices=("clean", "segmented"), default="clean",
+                    help="recon suite: clean masks rendered from the tube, or masks segmented from its simulated angiograms")
     ap.add_argument("--view-step-deg", type=float, default=2.0)
     ap.add_argument("--csv", help="write the case rows here")
     args = ap.parse_args(argv)
@@ -233,7 +252,7 @@ def main(argv=None) -> int:
     elif args.suite == "trees":
         rows = run_truth(tree_cases(), args.spacing, args.view_step_deg)
     else:
-        rows = run_recon(args.cases, args.view_step_deg, args.steps, args.save, args.first)
+        rows = run_recon(args.cases, args.view_step_deg, args.steps, args.save, args.first, args.masks)
     print()
     print(summarise(rows))
     print(f"\n{len(rows)} cases in {time.perf_counter() - t0:.0f} s")

@@ -28,8 +28,9 @@ def _add_optimiser_options(p: argparse.ArgumentParser, preset_default: str = "fa
     p.add_argument("--threads", type=_positive_int, default=None, help="CPU threads for torch")
     p.add_argument("--correct-motion", action="store_true",
                    help="search each view's shift across its epipolar lines with view 1 before reconstructing (table, "
-                        "patient or heart moved between the acquisitions; about 8 short fits per view, so several times "
-                        "slower); the shift found is in report.json (calibrate=true)")
+                        "patient or heart moved between the acquisitions; 7 short fits per view, so several times "
+                        "slower); --set calibration_rotation_range_deg=3 searches two rotations as well; what was found "
+                        "is in report.json (calibrate=true)")
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                    help="any other setting, repeatable (e.g. --set support_margin_mm=1 --set memory_check=false); "
                         "the settings with the published recipe's values: " + setting_help().replace("%", "%%"))
