@@ -171,7 +171,24 @@ def segmented_masks(tree, seed):
     return realistic.masks, [round(v["mask_dice"], 4) for v in realistic.info["views"]]
 
 
-def run_recon(n_cases, view_step_deg, steps=None, save_dir=None, first=0, mask_source="clean"):
+def axis_foreshortening_pct(direction) -> List[float]:
+    """Foreshortening (%) of a straight segment along ``direction`` in each acquisition view."""
+    d = np.asarray(direction, float) / np.linalg.norm(direction)
+    return [100.0 * (1.0 - float(np.sqrt(max(0.0, 1.0 - float(d @ v.detector_direction) ** 2)))) for v in VIEWS]
+
+
+def tube_direction(seed: int, max_foreshortening_pct=None) -> np.ndarray:
+    """The case's random tube axis; with a limit, the first draw of its stream that no view foreshortens
+    more (as a clinician picks views that show the lesion)."""
+    rng = np.random.default_rng(seed)
+    while True:
+        direction = rng.normal(size=3)
+        if max_foreshortening_pct is None or max(axis_foreshortening_pct(direction)) <= max_foreshortening_pct:
+            return direction
+
+
+def run_recon(n_cases, view_step_deg, steps=None, save_dir=None, first=0, mask_source="clean", max_foreshortening_pct=None):
+    from SDFCARLib.masks import MaskError
     from SDFCARLib.optimiser import make_settings, reconstruct
 
     rows = []
@@ -181,11 +198,17 @@ def run_recon(n_cases, view_step_deg, steps=None, save_dir=None, first=0, mask_s
              ("70%/5mm/4mm/con", dict(stenosis_pct=70, lesion_length_mm=5, diameter_mm=4.0, eccentric=False)),
              ("30%/10mm/2mm/con", dict(stenosis_pct=30, lesion_length_mm=10, diameter_mm=2.0, eccentric=False))]
     for n, (name, kw) in list(enumerate(picks))[first:first + n_cases]:
-        ph = stenosed_tube(length_mm=40.0, direction=np.random.default_rng(n).normal(size=3), **kw)
+        direction = tube_direction(n, max_foreshortening_pct)
+        ph = stenosed_tube(length_mm=40.0, direction=direction, **kw)
         geometry = Geometry(VolumeGrid((128, 128, 128), (0.4, 0.4, 0.4)), VIEWS)
-        extra = {}
+        extra = {"axis_foreshortening_pct": [round(v, 1) for v in axis_foreshortening_pct(direction)]}
         if mask_source == "segmented":
-            masks, extra["input_mask_dice"] = segmented_masks(ph.tree, n)
+            try:
+                masks, extra["input_mask_dice"] = segmented_masks(ph.tree, n)
+            except MaskError as exc:  # e.g. a tube seen almost end-on in one view: no elongated vessel there
+                rows.append(dict(case=name, **extra, error=str(exc)))
+                print(f"{name}: {extra} — {exc}", flush=True)
+                continue
         else:
             masks = [render_mask(ph.tree, v) for v in VIEWS]
         settings = make_settings("fast", **({"steps": steps} if steps else {}))
@@ -241,6 +264,8 @@ def main(argv=None) -> int:
     ap.add_argument("--steps", type=int, default=None, help="recon suite: optimiser steps (default: the preset's)")
     ap.add_argument("--first", type=int, default=0, help="recon suite: index of the first case (0–4)")
     ap.add_argument("--save", help="recon suite: write each reconstruction's occupancy here")
+    ap.add_argument("--max-foreshortening-pct", type=float, default=None,
+                    help="recon suite: draw each tube's axis until no view foreshortens it more (default: the first draw)")
     ap.add_argument("--masks", choices=("clean", "segmented"), default="clean",
                     help="recon suite: clean masks rendered from the tube, or masks segmented from its simulated angiograms")
     ap.add_argument("--view-step-deg", type=float, default=2.0)
@@ -252,7 +277,8 @@ def main(argv=None) -> int:
     elif args.suite == "trees":
         rows = run_truth(tree_cases(), args.spacing, args.view_step_deg)
     else:
-        rows = run_recon(args.cases, args.view_step_deg, args.steps, args.save, args.first, args.masks)
+        rows = run_recon(args.cases, args.view_step_deg, args.steps, args.save, args.first, args.masks,
+                         args.max_foreshortening_pct)
     print()
     print(summarise(rows))
     print(f"\n{len(rows)} cases in {time.perf_counter() - t0:.0f} s")
