@@ -18,18 +18,30 @@ from SDFCARLib.phantoms import Branch, CentrelineTree, beer_lambert_counts, make
 JPEG_LOSSLESS_SV1 = "1.2.840.10008.1.2.4.70"
 
 
+LAO30 = CArmView(30.0, 0.0, 1000.0, 757.0, (1.0, 1.0), (64, 64))
+RAO30_CRA10 = CArmView(-30.0, 10.0, 1040.0, 760.0, (1.0, 1.0), (64, 64))
+
+
+def tube_runs(views):
+    """A small tube on a 24³ grid seen in ``views``: the geometry, and per view (n, view, three frames
+    of 12-bit counts at rising contrast, the clean mask)."""
+    geometry = Geometry(VolumeGrid((24, 24, 24), (2.0, 2.0, 2.0)), views)
+    tube = CentrelineTree([Branch(np.array([[-12.0, 0, -10], [10.0, 4, 12]]), np.array([3.0, 2.5]))])
+    case = make_case(tube, geometry)
+    runs = []
+    for n, (view, line_integral, mask) in enumerate(zip(views, case.line_integrals, case.masks), start=1):
+        frames = np.stack([beer_lambert_counts(c * line_integral, 0.25, 3000.0, 12) for c in (0.2, 1.0, 0.5)])
+        runs.append((n, view, frames, mask))
+    return geometry, runs
+
+
 @pytest.fixture(scope="module")
 def dicom_pair(tmp_path_factory):
     """Two multi-frame JPEG-Lossless XA runs of a small tube; view 1 lacks ImagerPixelSpacing."""
     folder = tmp_path_factory.mktemp("xa")
-    views = (CArmView(30.0, 0.0, 1000.0, 757.0, (1.0, 1.0), (64, 64)),
-             CArmView(-30.0, 10.0, 1040.0, 760.0, (1.0, 1.0), (64, 64)))
-    geometry = Geometry(VolumeGrid((24, 24, 24), (2.0, 2.0, 2.0)), views)
-    tube = CentrelineTree([Branch(np.array([[-12.0, 0, -10], [10.0, 4, 12]]), np.array([3.0, 2.5]))])
-    case = make_case(tube, geometry)
+    geometry, runs = tube_runs((LAO30, RAO30_CRA10))
     paths, masks = [], []
-    for n, (view, line_integral, mask) in enumerate(zip(views, case.line_integrals, case.masks), start=1):
-        frames = np.stack([beer_lambert_counts(c * line_integral, 0.25, 3000.0, 12) for c in (0.2, 1.0, 0.5)])
+    for n, view, frames, mask in runs:
         native = write_xa(folder / f"native{n}.dcm", frames, view, bits_stored=12,
                           omit=("ImagerPixelSpacing",) if n == 1 else ())
         paths.append(fx.recompress(native, folder / f"view{n}.dcm", JPEG_LOSSLESS_SV1))
@@ -102,15 +114,9 @@ def dicom_three(tmp_path_factory):
     """Three 3-frame XA runs (LAO 30, RAO 30 cranial 10, AP cranial 30) of a small tube, their masks; run 3
     lacks ImagerPixelSpacing."""
     folder = tmp_path_factory.mktemp("xa3")
-    views = (CArmView(30.0, 0.0, 1000.0, 757.0, (1.0, 1.0), (64, 64)),
-             CArmView(-30.0, 10.0, 1040.0, 760.0, (1.0, 1.0), (64, 64)),
-             CArmView(0.0, 30.0, 1000.0, 750.0, (1.0, 1.0), (64, 64)))
-    geometry = Geometry(VolumeGrid((24, 24, 24), (2.0, 2.0, 2.0)), views)
-    tube = CentrelineTree([Branch(np.array([[-12.0, 0, -10], [10.0, 4, 12]]), np.array([3.0, 2.5]))])
-    case = make_case(tube, geometry)
+    geometry, runs = tube_runs((LAO30, RAO30_CRA10, CArmView(0.0, 30.0, 1000.0, 750.0, (1.0, 1.0), (64, 64))))
     paths, masks = [], []
-    for n, (view, line_integral, mask) in enumerate(zip(views, case.line_integrals, case.masks), start=1):
-        frames = np.stack([beer_lambert_counts(c * line_integral, 0.25, 3000.0, 12) for c in (0.2, 1.0, 0.5)])
+    for n, view, frames, mask in runs:
         paths.append(str(write_xa(folder / f"run{n}.dcm", frames, view, bits_stored=12,
                                   omit=("ImagerPixelSpacing",) if n == 3 else ())))
         masks.append(str(write_mask_png(folder / f"mask{n}.png", mask)))
