@@ -9,7 +9,8 @@
    in the modes that use it (``settings.MODES``), reporting progress and honouring cancel;
 3. ``finish`` evaluates the field on the grid, thresholds it, prunes the pieces no mask pixel
    needs when asked (``pruning.py``), joins fragments to the tree through the field when asked
-   (``connectivity.py``), and writes the report.
+   (``connectivity.py``), removes the detached fragments that not every view confirms when asked
+   (``pruning.unconfirmed_fragments``), and writes the report.
 
 Learning rates
     Adam moves every weight by about lr per step. The SDF's occupancy logit is −α·s, so a step of
@@ -50,7 +51,7 @@ from .connectivity import ReconnectSettings, field_values, reconnect_fragments
 from .metrics import component_counts
 from .projector import ConeBeamProjector, project_volume
 from .qa import qa_warnings, reprojection_qa
-from .pruning import PruneSettings, prune_redundant_branches, removal_zone
+from .pruning import PruneSettings, prune_redundant_branches, removal_zone, unconfirmed_fragments
 from .settings import MASK_THRESHOLD_MM, TARGET_KINDS, ReconstructionError, Settings, make_settings
 
 Progress = Optional[Callable[[Dict[str, Any]], None]]
@@ -310,6 +311,17 @@ def finish(problem: Problem, model: ImplicitField, history: List[Dict[str, float
         for bridge in reconnection["bridges"]:  # where the vessel was broken, in LPS mm for the 3D-QCA
             ijk = np.asarray(bridge.pop("voxels_ijk"), dtype=np.float64).reshape(-1, 3)
             bridge["points_mm"] = np.round(geometry.volume.index_to_world(ijk), 3).tolist()
+    unconfirmed: Optional[Dict[str, Any]] = None
+    if settings.region.drop_unconfirmed_fragments and segmentation.any():
+        if _is_cancelled(cancel):
+            raise ReconstructionCancelled("cancelled before checking the fragments")
+        removed, unconfirmed = unconfirmed_fragments(
+            segmentation, vessel_pixels(problem.targets, problem.target_kind), geometry)
+        if removed.any():
+            zone = removal_zone(segmentation, segmentation & ~removed, geometry.volume.spacing_mm)
+            occupancy_volume[zone] = 0.0
+            field_volume[zone] = float(field_volume.max()) if settings.mode.field_kind == "sdf" else float(field_volume.min())
+            segmentation = occupancy_volume >= threshold
     projected = reprojected_masks(segmentation, geometry)
     references = vessel_pixels(problem.targets, problem.target_kind)
     qa = [reprojection_qa(p, m, v) for p, m, v in zip(projected, references, geometry.views)]
@@ -333,6 +345,7 @@ def finish(problem: Problem, model: ImplicitField, history: List[Dict[str, float
         "segmented_voxels": int(segmentation.sum()),
         "pruning": pruning,
         "reconnection": reconnection,
+        "unconfirmed_fragments": unconfirmed,
         "components": component_counts(segmentation),
         "projector_nonzeros": [p.nnz for p in problem.projectors],
         "final_losses": {k: v for k, v in history[-1].items() if k != "step"} if history else {},

@@ -21,6 +21,14 @@ Method (a greedy minimal set cover at the level of skeleton pieces)
 
 Pieces of about 6 mm are the default: whole branches are too coarse to separate a ghost from
 its true vessel, pieces of a few voxels too short to be told apart (bench/RESULTS.md).
+
+Unconfirmed fragments (``unconfirmed_fragments``)
+    A component detached from the tree is kept only if every view that sees it has a mask pixel
+    that it alone explains. A ghost is made where one view's rays must explain vessel pixels
+    that the other view's mask cannot place (a vessel that mask missed, or a pixel of border
+    error): it sits in the other view's shadow of some other vessel, so that view has no pixel
+    that needs it. A true fragment of the tree is seen on its own somewhere in each view. The
+    pieces still attached to the tree are left to the set cover above.
 """
 
 from __future__ import annotations
@@ -184,6 +192,49 @@ def prune_redundant_branches(
     info.update(removed_pieces=int(count - alive.sum()), removed_voxels=int(segmentation.sum() - kept.sum()),
                 seconds=time.perf_counter() - t0)
     return kept, info
+
+
+def unconfirmed_fragments(
+    segmentation: np.ndarray,
+    masks: Sequence[np.ndarray],
+    geometry: Geometry,
+    threshold_mm: float = PruneSettings.threshold_mm,
+) -> Tuple[np.ndarray, Dict[str, Any]]:
+    """Voxels of the components other than the largest that some view seeing them does not need.
+
+    A component is confirmed by a view when it covers at least one of that view's mask pixels that
+    no other component covers (line integral above ``threshold_mm``); a view onto whose detector it
+    does not project at all neither confirms nor rejects it. Returns the boolean volume of the
+    unconfirmed components' voxels and a report (fragments, removed fragments and voxels, seconds).
+    """
+    t0 = time.perf_counter()
+    segmentation = np.asarray(segmentation, dtype=bool)
+    if len(masks) != len(geometry.views):
+        raise ValueError(f"unconfirmed_fragments: {len(masks)} mask(s) for {len(geometry.views)} view(s)")
+    components, sizes = component_labels(segmentation)
+    removed = np.zeros(segmentation.shape, dtype=bool)
+    info: Dict[str, Any] = {"fragments": max(int(sizes.size) - 1, 0), "removed_fragments": 0, "removed_voxels": 0}
+    if sizes.size < 2:
+        info["seconds"] = time.perf_counter() - t0
+        return removed, info
+    voxels = np.flatnonzero(segmentation.reshape(-1))
+    indicator = torch.zeros(voxels.size, sizes.size)
+    indicator[torch.arange(voxels.size), torch.as_tensor(components.reshape(-1)[voxels] - 1)] = 1.0
+    confirmed = np.ones(sizes.size, dtype=bool)
+    for mask, view in zip(masks, geometry.views):
+        if tuple(np.shape(mask)) != tuple(view.detector_shape):
+            raise ValueError(f"unconfirmed_fragments: mask shape {np.shape(mask)} differs from the detector {tuple(view.detector_shape)}")
+        projector = ConeBeamProjector(view, geometry.volume, voxels=voxels)
+        integrals = torch.mm(projector.operator.matrix, indicator).numpy()
+        seen = integrals.sum(axis=0) > 0
+        covered = (integrals > threshold_mm) & np.asarray(mask, dtype=bool).reshape(-1)[projector.pixels][:, None]
+        alone = (covered & (covered.sum(axis=1) == 1)[:, None]).sum(axis=0)
+        confirmed &= (alone > 0) | ~seen
+    confirmed[int(np.argmax(sizes))] = True  # the tree itself
+    removed = np.isin(components, np.flatnonzero(~confirmed) + 1)
+    info.update(removed_fragments=int((~confirmed).sum()), removed_voxels=int(removed.sum()),
+                seconds=time.perf_counter() - t0)
+    return removed, info
 
 
 def removal_zone(segmentation: np.ndarray, kept: np.ndarray, spacing_mm: Sequence[float]) -> np.ndarray:

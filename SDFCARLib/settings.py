@@ -120,6 +120,8 @@ class RegionSettings:
     reconnect: bool = False  # join fragments to the tree along bright, short paths of the field (connectivity.py)
     reconnect_max_gap_mm: float = 4.0  # longest gap a bridge may cross
     reconnect_min_occupancy: float = 0.1  # lowest geometric-mean occupancy along the gap
+    # then remove the detached fragments that some view does not need (pruning.unconfirmed_fragments)
+    drop_unconfirmed_fragments: bool = False
 
 
 #: a calibration candidate's score is its mean loss over this many last steps (Adam's steps are noisy)

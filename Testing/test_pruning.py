@@ -4,13 +4,17 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from scipy import ndimage
 
 from SDFCARLib.geometry import CArmView, Geometry, VolumeGrid
 from SDFCARLib.metrics import mask_dice
 from SDFCARLib.settings import make_settings
 from SDFCARLib.phantoms import Branch, CentrelineTree, simulate_views, voxelize
 from SDFCARLib.projector import project_volume
-from SDFCARLib.pruning import PruneSettings, prune_redundant_branches, removal_zone, skeleton_pieces
+from SDFCARLib.hull import visual_hull
+from SDFCARLib.optimiser import reconstruct
+from SDFCARLib.pruning import (PruneSettings, prune_redundant_branches, removal_zone, skeleton_pieces,
+                               unconfirmed_fragments)
 
 GRID = VolumeGrid((40, 40, 40), (1.0, 1.0, 1.0))
 # AP sees (x, z), LAO 90 sees (y, z): two vertical vessels make two lines in each view.
@@ -115,3 +119,87 @@ def test_removal_zone_covers_the_removed_voxels_and_spares_the_kept(ghost_case):
 def test_presets_prune_only_in_fast():
     assert make_settings("fast").region.prune is True
     assert make_settings("paper").region.prune is False  # the published recipe has no post-processing
+
+
+def _segment(start, end, radius):
+    return voxelize(CentrelineTree([Branch(np.array([start, end], float), np.array([radius, radius]))]), GRID)
+
+
+@pytest.fixture(scope="module")
+def missed_vessel_case():
+    """Vessel B crosses the volume obliquely at z = 5; view 2's mask (LAO 90, sees (y, z)) misses it.
+
+    AP's rays through B (along y) meet view 2's mask only on vertical vessel A's shadow (y = −8), so
+    the only voxels that can explain B's AP pixels form a rod at y = −8, z = 5 under B's x-range:
+    detached from A (x = 8) and from B, and in view 2 inside A's shadow — the ghost.
+    """
+    vessel_a = _segment([8.0, -8.0, -15.0], [8.0, -8.0, 15.0], 1.5)
+    vessel_b = _segment([-15.0, 2.0, 5.0], [-3.0, 14.0, 5.0], 1.5)
+    _, (ap_mask, _) = simulate_views(vessel_a | vessel_b, GRID, VIEWS)
+    _, (_, lao_mask) = simulate_views(vessel_a, GRID, VIEWS)
+    masks = [ap_mask, lao_mask]
+    # the part of that rod the masks allow (cone-beam magnification differs along it)
+    ghost = _segment([-15.0, -8.0, 5.0], [-3.0, -8.0, 5.0], 1.5) & visual_hull(masks, VIEWS, GRID) & ~vessel_a
+    return Geometry(GRID, VIEWS), vessel_a, vessel_b, ghost, masks
+
+
+def test_unconfirmed_fragments_removes_the_ghost_of_a_missed_vessel(missed_vessel_case):
+    geometry, vessel_a, _, ghost, masks = missed_vessel_case
+    # the ghost explains B's pixels in AP; in LAO 90 every mask pixel it covers, A covers too
+    covered = [project_volume(v.astype(np.float32), VIEWS[1], GRID) > 0.1 for v in (ghost, vessel_a)]
+    assert ghost.sum() >= 20 and np.any(covered[0] & masks[1]) and not np.any(covered[0] & masks[1] & ~covered[1])
+    removed, info = unconfirmed_fragments(vessel_a | ghost, masks, geometry)
+    np.testing.assert_array_equal(removed, ghost)
+    assert info["fragments"] == 1 and info["removed_fragments"] == 1 and info["removed_voxels"] == int(ghost.sum())
+
+
+def test_unconfirmed_fragments_keeps_a_fragment_that_both_views_see_alone(missed_vessel_case):
+    geometry, vessel_a, vessel_b, _, _ = missed_vessel_case
+    _, masks = simulate_views(vessel_a | vessel_b, GRID, VIEWS)
+    removed, info = unconfirmed_fragments(vessel_a | vessel_b, masks, geometry)
+    assert not removed.any() and info["fragments"] == 1 and info["removed_fragments"] == 0
+
+
+def test_unconfirmed_fragments_does_not_count_a_view_that_cannot_see_the_fragment():
+    # View 2's detector is 48 columns wide: it sees y in about [−9, 9] mm, not the fragment at y = 15.
+    views = [VIEWS[0], CArmView(90.0, 0.0, 1000.0, 750.0, (0.5, 0.5), (128, 48))]
+    vessel = _segment([8.0, -4.0, -15.0], [8.0, -4.0, 15.0], 1.5)
+    fragment = _segment([-8.0, 15.0, -5.0], [-8.0, 15.0, 5.0], 1.5)
+    masks = [m for m in simulate_views(vessel | fragment, GRID, views)[1]]
+    assert not np.any(project_volume(fragment.astype(np.float32), views[1], GRID) > 0)
+    removed, info = unconfirmed_fragments(vessel | fragment, masks, Geometry(GRID, views))
+    assert not removed.any() and info["fragments"] == 1
+
+
+def test_unconfirmed_fragments_of_one_piece_and_bad_masks(missed_vessel_case):
+    geometry, vessel_a, _, _, masks = missed_vessel_case
+    removed, info = unconfirmed_fragments(vessel_a, masks, geometry)
+    assert not removed.any() and info["fragments"] == 0
+    removed, info = unconfirmed_fragments(np.zeros(GRID.shape, bool), masks, geometry)
+    assert not removed.any() and info["fragments"] == 0
+    with pytest.raises(ValueError, match="1 mask"):
+        unconfirmed_fragments(vessel_a, masks[:1], geometry)
+    with pytest.raises(ValueError, match="mask shape"):
+        unconfirmed_fragments(vessel_a | _segment([-8.0, 0.0, 0.0], [-8.0, 0.0, 9.0], 1.5), [masks[0], masks[1][:64]], geometry)
+
+
+def test_a_vessel_missing_from_one_mask_is_not_replaced_by_a_ghost(missed_vessel_case):
+    """End to end: the reconstruction places the ghost rod when fragments are kept, not when dropped."""
+    geometry, vessel_a, vessel_b, ghost, masks = missed_vessel_case
+    ghost_zone = ndimage.binary_dilation(ghost, iterations=2) & ~ndimage.binary_dilation(vessel_a | vessel_b, iterations=3)
+    results = {}
+    for drop in (False, True):
+        settings = make_settings("fast", steps=250, seed=0, device="cpu", threads=1, drop_unconfirmed_fragments=drop)
+        results[drop] = reconstruct(geometry, [m.astype(np.float32) for m in masks], settings)
+    kept, dropped = results[False], results[True]
+    assert (kept.segmentation & ghost_zone).sum() >= 10  # the case does make a ghost
+    assert not np.any(dropped.segmentation & ghost_zone)
+    assert kept.report["unconfirmed_fragments"] is None
+    info = dropped.report["unconfirmed_fragments"]
+    assert info["removed_fragments"] >= 1 and info["removed_voxels"] >= 10
+    # vessel A, which both views see, is still there, and its surroundings unchanged
+    recall = (dropped.segmentation & vessel_a).sum() / vessel_a.sum()
+    assert recall > 0.9
+    near_a = ndimage.binary_dilation(vessel_a, iterations=3)
+    np.testing.assert_array_equal(dropped.segmentation & near_a, kept.segmentation & near_a)
+
