@@ -15,8 +15,9 @@ Settings
     The defaults are the published recipe (the ``paper`` preset). ``fast`` is written as the
     difference from it: the field only on the masks' visual hull, a smaller network and table, a
     higher learning rate for the hash table, fewer steps, L_geo on 2× max-pooled images, the
-    skeleton pieces no mask pixel needs pruned afterwards (``pruning.py``) and fragments joined to
-    the tree where the field bridges them (``connectivity.py``). Why each differs is
+    skeleton pieces no mask pixel needs pruned afterwards (``pruning.py``), fragments joined to
+    the tree where the field bridges them (``connectivity.py``), and the detached fragments that
+    not every view confirms removed (``pruning.unconfirmed_fragments``). Why each differs is
     said next to it; what it measured is in ``bench/RESULTS.md``.
 
 Modes
@@ -265,6 +266,8 @@ PRESETS: Dict[str, Dict[str, Any]] = {  # the default first: lists offer it firs
         prune=True,
         # then join fragments across short gaps where the field still shows a ridge of vessel
         reconnect=True,
+        # and drop the detached fragments that not every view confirms (ghosts of pixels one view cannot place)
+        drop_unconfirmed_fragments=True,
     ),
     "paper": {},
 }

@@ -203,3 +203,7 @@ def test_a_vessel_missing_from_one_mask_is_not_replaced_by_a_ghost(missed_vessel
     near_a = ndimage.binary_dilation(vessel_a, iterations=3)
     np.testing.assert_array_equal(dropped.segmentation & near_a, kept.segmentation & near_a)
 
+
+def test_presets_drop_unconfirmed_fragments_only_in_fast():
+    assert make_settings("fast").region.drop_unconfirmed_fragments is True
+    assert make_settings("paper").region.drop_unconfirmed_fragments is False
