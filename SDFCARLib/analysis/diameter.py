@@ -1,5 +1,7 @@
 """Lumen diameters along a centreline, from the 3D volume and from the 2D view masks.
 
+(Widths fitted to the frames' intensity profiles, sharper than any mask: ``frame_widths.py``.)
+
 3D cross-section (``cross_sections``)
     At each centreline point p with unit tangent t, the plane through p perpendicular to t is
     sampled along ``n_rays`` rays at angles θ_k (in-plane basis e1, e2 ⟂ t). Along each ray the
@@ -177,10 +179,16 @@ def mask_diameters(points_mm: np.ndarray, tangents: np.ndarray, masks: Sequence[
     if len(masks) != len(views):
         raise ValueError(f"{len(masks)} masks for {len(views)} views: give one mask per view")
     widths = np.stack([projected_widths(points_mm, tangents, m, v, **kwargs) for m, v in zip(masks, views)])
+    return {"view_widths_mm": widths, "equivalent_diameter_mm": ellipse_diameter(widths)}
+
+
+def ellipse_diameter(view_widths_mm: np.ndarray) -> np.ndarray:
+    """Per point, the equivalent diameter of the ellipse whose axes the views measured: the geometric
+    mean of the widths the views have there (NaN where none has)."""
+    widths = np.asarray(view_widths_mm, float)
     with np.errstate(invalid="ignore"), warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)  # points no view measured stay NaN
-        combined = np.exp(np.nanmean(np.log(np.where(widths > 0, widths, np.nan)), axis=0))
-    return {"view_widths_mm": widths, "equivalent_diameter_mm": combined}
+        return np.exp(np.nanmean(np.log(np.where(widths > 0, widths, np.nan)), axis=0))
 
 
 def junction_zones(tree: CentrelineTree, branch: CentrelineBranch, margin: float = 1.0) -> np.ndarray:

@@ -29,7 +29,7 @@ from typing import Any, Dict, List, Optional, Sequence, Union
 import numpy as np
 
 from ..geometry import Geometry
-from ..io import InputError, read_label, read_mask, read_volume, write_json
+from ..io import InputError, read_image, read_label, read_mask, read_volume, write_json
 from ..outputs import staged_directory
 from .pipeline import QCAResult, analyse_volume, summary
 
@@ -74,8 +74,11 @@ def profile_csv_text(result: QCAResult, branch_id: int) -> str:
     p = result.profile(branch_id)
     b = p.branch
     n_views = 0 if p.view_widths_mm is None else len(p.view_widths_mm)
+    n_frames = 0 if p.frame_view_widths_mm is None else len(p.frame_view_widths_mm)
     header = ["arc_mm", "diameter_3d_mm", "area_mm2", "min_diameter_mm", "max_diameter_mm", "diameter_masks_mm"]
-    header += [f"width_view{v + 1}_mm" for v in range(n_views)] + ["reference_mm", "excluded", "x_mm", "y_mm", "z_mm"]
+    header += [f"width_view{v + 1}_mm" for v in range(n_views)]
+    header += (["diameter_frames_mm"] + [f"frame_width_view{v + 1}_mm" for v in range(n_frames)]) if n_frames else []
+    header += ["reference_mm", "excluded", "x_mm", "y_mm", "z_mm"]
     ref = p.reference(b.arc_length_mm) if p.reference is not None else np.full(len(b.points_mm), np.nan)
     out = _io.StringIO()
     w = csv.writer(out, lineterminator="\n")
@@ -88,6 +91,8 @@ def profile_csv_text(result: QCAResult, branch_id: int) -> str:
         row = [f(b.arc_length_mm[i]), f(p.diameter_mm[i]), f(p.sections.area_mm2[i]), f(p.sections.min_diameter_mm[i]),
                f(p.sections.max_diameter_mm[i]), f(None if p.mask_diameter_mm is None else p.mask_diameter_mm[i])]
         row += [f(p.view_widths_mm[v, i]) for v in range(n_views)]
+        if n_frames:
+            row += [f(p.frame_diameter_mm[i])] + [f(p.frame_view_widths_mm[v, i]) for v in range(n_frames)]
         row += [f(ref[i]), int(p.excluded[i])] + [f(c) for c in b.points_mm[i]]
         w.writerow(row)
     return out.getvalue()
@@ -117,6 +122,8 @@ def plot_profiles(path: PathLike, result: QCAResult, max_branches: int = 6) -> b
         ax.plot(s, p.diameter_mm, color="C0", lw=1.5, label="3D cross-section")
         if p.mask_diameter_mm is not None:
             ax.plot(s, p.mask_diameter_mm, color="C2", lw=1, alpha=0.8, label="two-view masks (ellipse)")
+        if p.frame_diameter_mm is not None:
+            ax.plot(s, p.frame_diameter_mm, color="C3", lw=1, alpha=0.8, label="two-view frames (fitted profiles)")
         if p.reference is not None:
             ax.plot(s, p.reference(s), color="k", ls="--", lw=1, label="reference")
         ex = np.where(p.excluded, p.diameter_mm, np.nan)
@@ -208,6 +215,26 @@ def _masks_for(report: Dict[str, Any], geometry: Optional[Geometry], masks: Opti
     return [read_mask(p, geometry.views[i].detector_shape, f"mask of view {i + 1}") for i, p in enumerate(paths)], None
 
 
+def _frames_for(geometry: Optional[Geometry], view_masks, frames: Optional[Sequence[PathLike]], psf_sigma_mm: float):
+    if not frames:
+        return None
+    if not psf_sigma_mm >= 0:
+        raise InputError(f"--psf-sigma-mm must be a blur in mm at the detector (0 or more, default 0.3), got {psf_sigma_mm}")
+    if geometry is None or view_masks is None:
+        raise InputError("--frames needs the views' geometry and masks (report.json's or --masks): the masks' widths "
+                         "start the fit of each frame's profile")
+    if len(frames) != len(geometry.views):
+        raise InputError(f"{len(frames)} frames for {len(geometry.views)} views: give one frame per view, in the views' order")
+    images = []
+    for n, (path, view) in enumerate(zip(frames, geometry.views), start=1):
+        image = read_image(path, f"frame of view {n}")
+        if image.shape != tuple(view.detector_shape):
+            raise InputError(f"frame of view {n} ({path}) has shape {image.shape}, the view's detector is "
+                             f"{tuple(view.detector_shape)}: give the frame the mask was drawn on")
+        images.append(image)
+    return images
+
+
 def analysis_summary_lines(data: Dict[str, Any]) -> List[str]:
     """The headline of an analysis.json: the tree, each lesion, the suggested view (the command line
     prints these lines; the Slicer module shows them)."""
@@ -234,8 +261,12 @@ def analysis_summary_lines(data: Dict[str, Any]) -> List[str]:
 def analyse_result_dir(result_dir: PathLike, out_dir: Optional[PathLike] = None, overwrite: bool = False,
                        masks: Optional[Sequence[PathLike]] = None, ostium_mm: Optional[Sequence[float]] = None,
                        view_step_deg: float = 2.0, min_stenosis_pct: float = 20.0,
-                       min_component_share: Optional[float] = None) -> Dict[str, Path]:
-    """Analyse a reconstruction's result folder and write the QCA files (module docstring); return their paths."""
+                       min_component_share: Optional[float] = None, frames: Optional[Sequence[PathLike]] = None,
+                       psf_sigma_mm: float = 0.3) -> Dict[str, Path]:
+    """Analyse a reconstruction's result folder and write the QCA files (module docstring); return their paths.
+
+    ``frames``: the views' intensity images (vessels dark), one per view: the widths are then also
+    fitted to their profiles (``frame_widths.py``; needs the masks, which give the first guess)."""
     result_dir = Path(result_dir)
     if not result_dir.is_dir():
         raise InputError(f"{result_dir} is not a folder; give the result folder of `reconstruct`")
@@ -250,11 +281,13 @@ def analyse_result_dir(result_dir: PathLike, out_dir: Optional[PathLike] = None,
     volume, grid, level, source = _read_result_volume(result_dir, report)
     geometry = Geometry.from_dict(report["geometry"]) if isinstance(report.get("geometry"), dict) else None
     view_masks, mask_note = _masks_for(report, geometry, masks)
+    view_frames = _frames_for(geometry, view_masks, frames, psf_sigma_mm)
     reconnection = report.get("reconnection") or {}
     bridges = reconnection.get("bridges") or []
     result = analyse_volume(volume, grid, level=level, views=geometry.views if geometry else (), masks=view_masks,
                             ostium_mm=ostium_mm, view_step_deg=view_step_deg, min_stenosis_pct=min_stenosis_pct,
-                            bridges=bridges, **({} if min_component_share is None
+                            bridges=bridges, frames=view_frames, psf_sigma_mm=psf_sigma_mm,
+                            **({} if min_component_share is None
                                                 else {"min_component_share": min_component_share}))
     data = summary(result)
     data["source"] = {"result_dir": str(result_dir.absolute()), "volume": source, "level": level,

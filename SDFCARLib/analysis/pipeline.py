@@ -31,7 +31,8 @@ import numpy as np
 
 from ..geometry import CArmView, VolumeGrid
 from .centreline import CentrelineBranch, CentrelineTree, bifurcation_angles, extract_centrelines
-from .diameter import CrossSections, branch_cross_sections, junction_zones, mask_diameters
+from .diameter import CrossSections, branch_cross_sections, ellipse_diameter, junction_zones, mask_diameters
+from .frame_widths import frame_widths
 from .fragments import MIN_COMPONENT_SHARE, UNRELIABLE, Fragments, find_fragments, lesion_reasons
 from .lesion import Lesion, ReferenceFit, find_lesions, minimal_lumen, reference_fit
 from .views import ViewMap, foreshortening, overlap_fraction, view_label, view_map
@@ -57,6 +58,8 @@ class BranchProfile:
     excluded: np.ndarray  # bool: junction or end zone (not used for the reference)
     mask_diameter_mm: Optional[np.ndarray] = None
     view_widths_mm: Optional[np.ndarray] = None  # (views, N)
+    frame_diameter_mm: Optional[np.ndarray] = None  # from the frames' intensity profiles (frame_widths.py)
+    frame_view_widths_mm: Optional[np.ndarray] = None  # (views, N)
     reference: Optional[ReferenceFit] = None
     lesions: List[Lesion] = field(default_factory=list)  # reliable: measured on an intact vessel
     unreliable: List[UnreliableLesion] = field(default_factory=list)
@@ -116,11 +119,17 @@ def analyse_volume(volume: np.ndarray, grid: VolumeGrid, level: float = 0.5, vie
                    min_branch_mm: float = 3.0, min_stenosis_pct: float = 20.0, view_step_deg: float = 2.0,
                    target: Optional[Dict[str, Any]] = None, best_view: bool = True,
                    min_component_share: float = MIN_COMPONENT_SHARE,
-                   bridges: Sequence[Dict[str, Any]] = ()) -> QCAResult:
+                   bridges: Sequence[Dict[str, Any]] = (), frames: Optional[Sequence[np.ndarray]] = None,
+                   psf_sigma_mm: float = 0.3) -> QCAResult:
     """Every QCA measure of a vessel volume (module docstring); ``target`` overrides the chosen segment.
 
     ``bridges``: the gaps reconnection filled (report.json ``reconnection.bridges``), LPS mm.
+    ``frames`` (with ``masks``): the views' intensity images; the widths are then also fitted to
+    their profiles (``frame_widths.py``, detector blur ``psf_sigma_mm``), starting from the masks'.
     """
+    if frames is not None and (masks is None or len(frames) != len(views)):
+        raise ValueError(f"{len(frames)} frames for {len(views)} views and {'no' if masks is None else len(masks)} masks: "
+                         "frame widths need one frame and one mask per view, in the views' order")
     volume = np.asarray(volume)
     lumen = volume if volume.dtype == bool else volume >= level
     fragments = find_fragments(lumen, grid, min_component_share, ostium_mm)
@@ -140,6 +149,10 @@ def analyse_volume(volume: np.ndarray, grid: VolumeGrid, level: float = 0.5, vie
         if masks is not None and len(views):
             md = mask_diameters(branch.points_mm, branch.tangents(), masks, views)
             prof.mask_diameter_mm, prof.view_widths_mm = md["equivalent_diameter_mm"], md["view_widths_mm"]
+            if frames is not None:
+                fitted = np.stack([frame_widths(branch.points_mm, branch.tangents(), f, v, w, psf_sigma_mm)
+                                   for f, v, w in zip(frames, views, prof.view_widths_mm)])
+                prof.frame_view_widths_mm, prof.frame_diameter_mm = fitted, ellipse_diameter(fitted)
         s = branch.arc_length_mm
         try:
             prof.reference = reference_fit(s, sections.equivalent_diameter_mm, ~excluded)
@@ -241,6 +254,7 @@ def summary(result: QCAResult) -> Dict[str, Any]:
             "start_mm": b.points_mm[0].tolist(), "end_mm": b.points_mm[-1].tolist(),
             "diameter_3d": _stats(p.diameter_mm, healthy),
             "diameter_masks": _stats(p.mask_diameter_mm, healthy),
+            "diameter_frames": _stats(p.frame_diameter_mm, healthy),
             "reference": None if p.reference is None else {"intercept_mm": p.reference.intercept_mm,
                                                            "slope_mm_per_mm": p.reference.slope_mm_per_mm},
             "minimal_lumen": mld,

@@ -90,6 +90,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("result_dir", help="folder written by reconstruct (occupancy.nrrd or segmentation.seg.nrrd, report.json)")
     p.add_argument("--out", help="output folder (default RESULT_DIR/analysis)")
     p.add_argument("--masks", nargs="+", help="view masks for the 2D diameters (default: the masks report.json names)")
+    p.add_argument("--frames", nargs="+", metavar="IMAGE",
+                   help="the views' frames (PNG, TIFF or NRRD as recorded, vessels dark), one per view: the 2D widths are "
+                        "also fitted to their intensity profiles, sharper than a segmented mask's border")
+    p.add_argument("--psf-sigma-mm", type=float, default=0.3, metavar="MM",
+                   help="detector blur assumed by the --frames fit: Gaussian σ in mm at the detector (default 0.3)")
     p.add_argument("--ostium", type=float, nargs=3, metavar=("X", "Y", "Z"),
                    help="ostium in LPS mm (default: the thickest end of the tree)")
     p.add_argument("--view-step-deg", type=float, default=2.0, help="angle step of the best-view map (default 2)")
