@@ -76,13 +76,11 @@ def test_frame_widths_leave_unmeasurable_points_out_and_reject_bad_input(tube_fr
         frame_widths(points, tangents, frame, view, guesses, psf_sigma_mm=-1.0)
 
 
-def test_analyse_command_fits_the_frames(tmp_path, tube_frames, capsys):
-    import json
-
-    from SDFCARLib.cli import main
+def _tube_result_folder(tmp_path, realistic):
+    """A result folder of the 2 mm tube (its exact voxelisation as the occupancy, report.json naming the
+    masks), the segmented masks and the frames as files."""
     from SDFCARLib.io import write_image_nrrd, write_json, write_mask_png, write_volume_nrrd
 
-    realistic, _, _ = tube_frames
     tube = straight_tube(30.0, 2.0, (0.2, 0.25, 1.0))
     grid = grid_around(tube.tree, 0.3)
     folder = tmp_path / "result"
@@ -92,6 +90,15 @@ def test_analyse_command_fits_the_frames(tmp_path, tube_frames, capsys):
     frames = [str(write_image_nrrd(tmp_path / f"frame{n}.nrrd", f)) for n, f in enumerate(realistic.frames, start=1)]
     write_json(folder / "report.json", {"geometry": Geometry(grid, VIEWS).to_dict(), "settings": {"threshold": 0.5},
                                         "target_kind": "mask", "inputs": {"targets": masks}})
+    return folder, masks, frames
+
+
+def test_analyse_command_fits_the_frames(tmp_path, tube_frames, capsys):
+    import json
+
+    from SDFCARLib.cli import main
+
+    folder, masks, frames = _tube_result_folder(tmp_path, tube_frames[0])
     assert main(["analyse", str(folder), "--frames", *frames, "--view-step-deg", "20"]) == 0
     branch = json.loads((folder / "analysis" / "analysis.json").read_text())["branches"][0]
     assert branch["diameter_frames"]["mean_mm"] == pytest.approx(2.0, abs=0.15)
@@ -109,19 +116,9 @@ def test_analysis_job_passes_frames_as_options(tmp_path, tube_frames):
     """The path the Slicer module's analyse(resultNode, options=…) takes: a job folder run in this process."""
     import json
 
-    from SDFCARLib.io import write_image_nrrd, write_json, write_mask_png, write_volume_nrrd
     from SDFCARLib.jobs import prepare_analysis_job, run_analysis_job
 
-    realistic, _, _ = tube_frames
-    tube = straight_tube(30.0, 2.0, (0.2, 0.25, 1.0))
-    grid = grid_around(tube.tree, 0.3)
-    folder = tmp_path / "result"
-    folder.mkdir()
-    write_volume_nrrd(folder / "occupancy.nrrd", voxelize_exact(tube.tree, grid).astype(np.float32), grid)
-    write_json(folder / "report.json", {"geometry": Geometry(grid, VIEWS).to_dict(), "settings": {"threshold": 0.5},
-                                        "target_kind": "mask"})
-    masks = [str(write_mask_png(tmp_path / f"mask{n}.png", m)) for n, m in enumerate(realistic.masks, start=1)]
-    frames = [str(write_image_nrrd(tmp_path / f"frame{n}.nrrd", f)) for n, f in enumerate(realistic.frames, start=1)]
+    folder, masks, frames = _tube_result_folder(tmp_path, tube_frames[0])
     job = prepare_analysis_job(tmp_path / "job", folder, masks=masks,
                                options={"frames": frames, "psf_sigma_mm": 0.3, "view_step_deg": 20.0})
     files = run_analysis_job(job)

@@ -145,25 +145,44 @@ def branch_cross_sections(volume: np.ndarray, grid: VolumeGrid, branch: Centreli
     return cross_sections(volume, grid, branch.points_mm, branch.tangents(), level, **kwargs)
 
 
-def projected_widths(points_mm: np.ndarray, tangents: np.ndarray, mask: np.ndarray, view: CArmView,
-                     max_width_mm: float = 8.0, max_foreshortening: float = 0.7) -> np.ndarray:
-    """Width (mm at each point's depth) of the vessel in one view's mask, perpendicular to its projection."""
+@dataclass
+class ProjectedCentreline:
+    """Centreline points in one view: pixel position, magnification, foreshortening and the image-plane
+    unit tangent and normal of the projected centreline (in detector mm: rows and columns may differ)."""
+
+    row: np.ndarray
+    col: np.ndarray
+    magnification: np.ndarray  # SID / depth of each point
+    foreshortening: np.ndarray  # 1 − projected / true length of a short step along the tangent
+    tangent_rc: np.ndarray  # (2, N): detector-mm unit tangent (row, col components)
+    normal_rc: np.ndarray  # (2, N): the tangent turned by 90°
+
+
+def project_centreline(points_mm: np.ndarray, tangents: np.ndarray, view: CArmView) -> ProjectedCentreline:
     points = np.asarray(points_mm, float)
     t = np.asarray(tangents, float)
     row, col, depth = view.project(points)
     row2, col2, _ = view.project(points + 0.5 * t)
     spacing = np.asarray(view.pixel_spacing_mm, float)
-    # Image-plane direction of the tangent, in mm on the detector (rows and columns may differ in size).
     dr, dc = (row2 - row) * spacing[0], (col2 - col) * spacing[1]
     norm = np.hypot(dr, dc)
     mag = view.sid_mm / depth
-    fore = 1.0 - norm / (0.5 * mag)  # 1 − projected / true length of the half-mm step
-    nr, nc = -dc / np.maximum(norm, 1e-12), dr / np.maximum(norm, 1e-12)  # detector-mm normal
+    tr, tc = dr / np.maximum(norm, 1e-12), dc / np.maximum(norm, 1e-12)
+    return ProjectedCentreline(row, col, mag, 1.0 - norm / (0.5 * mag), np.stack([tr, tc]), np.stack([-tc, tr]))
+
+
+def projected_widths(points_mm: np.ndarray, tangents: np.ndarray, mask: np.ndarray, view: CArmView,
+                     max_width_mm: float = 8.0, max_foreshortening: float = 0.7) -> np.ndarray:
+    """Width (mm at each point's depth) of the vessel in one view's mask, perpendicular to its projection."""
+    projected = project_centreline(points_mm, tangents, view)
+    row, col, mag, fore = projected.row, projected.col, projected.magnification, projected.foreshortening
+    nr, nc = projected.normal_rc
+    spacing = np.asarray(view.pixel_spacing_mm, float)
     half_px = max_width_mm * float(np.max(mag)) / float(np.min(spacing)) / 2
     step_px = 0.1
     offs = np.arange(0.0, half_px + step_px, step_px)
     image = np.asarray(mask, np.float32)
-    widths_px_mm = np.zeros(len(points))
+    widths_px_mm = np.zeros(len(row))
     for sign in (1.0, -1.0):
         rr = row[:, None] + sign * offs[None, :] * nr[:, None] * (np.min(spacing) / spacing[0])
         cc = col[:, None] + sign * offs[None, :] * nc[:, None] * (np.min(spacing) / spacing[1])

@@ -28,6 +28,7 @@ import numpy as np
 from scipy import ndimage, optimize
 
 from ..geometry import CArmView
+from .diameter import project_centreline
 
 _QUADRATURE = np.linspace(-4.0, 4.0, 41)  # Gaussian nodes, in units of σ
 _WEIGHTS = np.exp(-0.5 * _QUADRATURE ** 2) / np.exp(-0.5 * _QUADRATURE ** 2).sum()
@@ -92,21 +93,14 @@ def frame_widths(points_mm: np.ndarray, tangents: np.ndarray, frame: np.ndarray,
     if psf_sigma_mm < 0:
         raise ValueError(f"psf_sigma_mm must not be negative, got {psf_sigma_mm}")
     absorbance = -np.log(np.maximum(image, 1.0))
-    points = np.asarray(points_mm, float)
-    t = np.asarray(tangents, float)
-    row, col, depth = view.project(points)
-    row2, col2, _ = view.project(points + 0.5 * t)
+    projected = project_centreline(points_mm, tangents, view)
+    row, col, mag, fore = projected.row, projected.col, projected.magnification, projected.foreshortening
+    (tr, tc), (nr, nc) = projected.tangent_rc, projected.normal_rc
     spacing = np.asarray(view.pixel_spacing_mm, float)
-    dr, dc = (row2 - row) * spacing[0], (col2 - col) * spacing[1]
-    norm = np.hypot(dr, dc)
-    mag = view.sid_mm / depth
-    fore = 1.0 - norm / (0.5 * mag)
-    tr, tc = dr / np.maximum(norm, 1e-12), dc / np.maximum(norm, 1e-12)  # detector-mm tangent
-    nr, nc = -tc, tr
     step = 0.5 * float(np.min(spacing))
-    widths = np.full(len(points), np.nan)
+    widths = np.full(len(row), np.nan)
     guesses = np.asarray(guess_widths_mm, float) * mag
-    for i in range(len(points)):
+    for i in range(len(row)):
         if not np.isfinite(guesses[i]) or guesses[i] <= 0 or fore[i] > max_foreshortening:
             continue
         half = guesses[i] + 4.0 * psf_sigma_mm + 1.0
