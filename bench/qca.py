@@ -226,13 +226,13 @@ def run_recon(n_cases, view_step_deg, steps=None, save_dir=None, first=0, mask_s
         extra = {"axis_foreshortening_pct": [round(v, 1) for v in axis_foreshortening_pct(direction)]}
         if mask_source == "segmented":
             try:
-                masks, extra["input_mask_dice"], _ = segmented_masks(ph.tree, n)
+                masks, extra["input_mask_dice"], frames = segmented_masks(ph.tree, n)
             except MaskError as exc:  # e.g. a tube seen almost end-on in one view: no elongated vessel there
                 rows.append(dict(case=name, **extra, error=str(exc)))
                 print(f"{name}: {extra} — {exc}", flush=True)
                 continue
         else:
-            masks = [render_mask(ph.tree, v) for v in VIEWS]
+            masks, frames = [render_mask(ph.tree, v) for v in VIEWS], None
         settings = make_settings("fast", **({"steps": steps} if steps else {}))
         t0 = time.perf_counter()
         rec = reconstruct(geometry, masks, settings, "mask")
@@ -242,7 +242,8 @@ def run_recon(n_cases, view_step_deg, steps=None, save_dir=None, first=0, mask_s
 
             Path(save_dir).mkdir(parents=True, exist_ok=True)
             write_volume_nrrd(Path(save_dir) / f"recon{n}_occupancy.nrrd", rec.occupancy, geometry.volume)
-        row = score(ph, rec.occupancy, geometry.volume, float(settings.region.threshold), masks, ph.truth["ostium_mm"], view_step_deg)
+        row = score(ph, rec.occupancy, geometry.volume, float(settings.region.threshold), masks, ph.truth["ostium_mm"],
+                    view_step_deg, frames)
         rows.append(dict(case=name, reconstruct_s=t_rec, **extra, **row))
         print(f"{name}: " + ", ".join(f"{k}={v:.3g}" if isinstance(v, float) else f"{k}={v}" for k, v in rows[-1].items()),
               flush=True)
