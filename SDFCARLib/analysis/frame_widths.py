@@ -15,8 +15,8 @@ Model (detector mm along the image normal x of the projected centreline)
         a(x) = b₀ + b₁·x + A · (chord(·, c, r) ⊛ G_σ)(x)
 
     The convolution is a fixed quadrature over the Gaussian (``_QUADRATURE`` nodes within ±4σ).
-    Fitted by least squares (c, r, A, b₀, b₁; σ known) on three parallel profiles averaged, in a
-    window of twice the guessed width plus the blur around the projected centreline point.
+    Fitted by least squares (c, r, A, b₀, b₁; σ known) on three parallel profiles a pixel apart,
+    averaged, reaching the guessed width + 4σ + 1 mm to each side of the projected centreline point.
     Width = 2r divided by the point's magnification (SID / source distance): mm at the vessel.
 """
 
@@ -97,7 +97,8 @@ def frame_widths(points_mm: np.ndarray, tangents: np.ndarray, frame: np.ndarray,
     row, col, mag, fore = projected.row, projected.col, projected.magnification, projected.foreshortening
     (tr, tc), (nr, nc) = projected.tangent_rc, projected.normal_rc
     spacing = np.asarray(view.pixel_spacing_mm, float)
-    step = 0.5 * float(np.min(spacing))
+    pixel_mm = float(np.min(spacing))
+    step = 0.5 * pixel_mm
     widths = np.full(len(row), np.nan)
     guesses = np.asarray(guess_widths_mm, float) * mag
     for i in range(len(row)):
@@ -107,8 +108,8 @@ def frame_widths(points_mm: np.ndarray, tangents: np.ndarray, frame: np.ndarray,
         x = np.arange(-half, half + step / 2, step)
         profiles = []
         for along in (-1.0, 0.0, 1.0):  # three parallel profiles a pixel apart, averaged
-            rr = row[i] + (x * nr[i] + along * spacing[0] * tr[i]) / spacing[0]
-            cc = col[i] + (x * nc[i] + along * spacing[1] * tc[i]) / spacing[1]
+            rr = row[i] + (x * nr[i] + along * pixel_mm * tr[i]) / spacing[0]
+            cc = col[i] + (x * nc[i] + along * pixel_mm * tc[i]) / spacing[1]
             if rr.min() < 0 or cc.min() < 0 or rr.max() > image.shape[0] - 1 or cc.max() > image.shape[1] - 1:
                 break
             profiles.append(ndimage.map_coordinates(absorbance, [rr, cc], order=1))
