@@ -124,3 +124,26 @@ def test_analysis_job_passes_frames_as_options(tmp_path, tube_frames):
     files = run_analysis_job(job)
     branch = json.loads(open(files["analysis.json"]).read())["branches"][0]
     assert branch["diameter_frames"]["mean_mm"] == pytest.approx(2.0, abs=0.15)
+
+
+def test_the_blur_is_estimated_from_the_frames(tmp_path, tube_frames, capsys):
+    import json
+
+    from SDFCARLib.analysis.frame_widths import estimate_psf_sigma_mm
+    from SDFCARLib.cli import main
+
+    realistic, points, tangents = tube_frames
+    simulated = AngiogramSettings().psf_sigma_mm
+    for frame, mask, view in zip(realistic.frames, realistic.masks, VIEWS):
+        guesses = projected_widths(points, tangents, mask, view)
+        assert estimate_psf_sigma_mm(points, tangents, frame, view, guesses) == pytest.approx(simulated, abs=0.1)
+        assert estimate_psf_sigma_mm(points[:5], tangents[:5], frame, view, guesses[:5]) is None  # too few profiles
+    folder, _, frames = _tube_result_folder(tmp_path, realistic)
+    assert main(["analyse", str(folder), "--frames", *frames, "--psf-sigma-mm", "auto", "--view-step-deg", "20"]) == 0
+    data = json.loads((folder / "analysis" / "analysis.json").read_text())
+    assert data["settings"]["psf_sigma_estimated"] == [True, True]
+    assert all(s == pytest.approx(simulated, abs=0.1) for s in data["settings"]["psf_sigma_mm"])
+    assert data["branches"][0]["diameter_frames"]["mean_mm"] == pytest.approx(2.0, abs=0.15)
+    capsys.readouterr()
+    assert main(["analyse", str(folder), "--frames", *frames, "--psf-sigma-mm", "wide", "--out", str(tmp_path / "a4")]) == 2
+    assert "'auto'" in capsys.readouterr().err

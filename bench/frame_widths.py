@@ -25,7 +25,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))  # this checkout's SDFCARLib
 
 from SDFCARLib.analysis.diameter import projected_widths  # noqa: E402
-from SDFCARLib.analysis.frame_widths import frame_widths  # noqa: E402
+from SDFCARLib.analysis.frame_widths import estimate_psf_sigma_mm, frame_widths  # noqa: E402
 from SDFCARLib.analysis.phantoms import grid_around, straight_tube, voxelize_exact  # noqa: E402
 from SDFCARLib.angiogram import AngiogramSettings  # noqa: E402
 from SDFCARLib.geometry import Geometry, standard_geometry  # noqa: E402
@@ -42,17 +42,19 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--diameters", type=float, nargs="+", default=[1.5, 2.0, 3.0, 4.0])
     parser.add_argument("--seeds", type=int, default=3)
-    parser.add_argument("--fit-psf-sigma-mm", type=float, default=None,
-                        help="the blur the fit assumes (default: the simulator's, 0.3 mm): how wrong may it be?")
+    parser.add_argument("--fit-psf-sigma-mm", default=None,
+                        help="the blur the fit assumes (default: the simulator's, 0.3 mm): how wrong may it be? "
+                             "'auto': estimated from each frame (estimate_psf_sigma_mm)")
     args = parser.parse_args()
     psf = AngiogramSettings().psf_sigma_mm
-    fit_psf = psf if args.fit_psf_sigma_mm is None else args.fit_psf_sigma_mm
+    auto = args.fit_psf_sigma_mm == "auto"
+    fit_psf = psf if args.fit_psf_sigma_mm is None else (None if auto else float(args.fit_psf_sigma_mm))
     print(f"# {platform.processor() or platform.machine()}, {os.cpu_count()} cores; views "
-          f"{', '.join(v.describe() for v in VIEWS)}, {VIEWS[0].detector_shape}, psf σ {psf} mm, assumed by the fit {fit_psf} mm", flush=True)
+          f"{', '.join(v.describe() for v in VIEWS)}, {VIEWS[0].detector_shape}, psf σ {psf} mm, assumed by the fit {'estimated' if auto else fit_psf} mm", flush=True)
     print("diameter (mm) | mask: error ± SD, MAE (mm) | frame: error ± SD, MAE (mm) | frame points measured | s")
     for diameter in args.diameters:
         errors = {"mask": [], "frame": []}
-        measured, total, t0 = 0, 0, time.perf_counter()
+        measured, total, t0, estimates = 0, 0, time.perf_counter(), []
         for seed in range(args.seeds):
             rng = np.random.default_rng(seed)
             while True:
@@ -71,13 +73,16 @@ def main() -> None:
             tangents = np.repeat(np.asarray(direction)[None], len(s), axis=0)
             for frame, mask, view in zip(realistic.frames, realistic.masks, VIEWS):
                 from_mask = projected_widths(points, tangents, mask, view)
-                from_frame = frame_widths(points, tangents, frame, view, from_mask, psf_sigma_mm=fit_psf)
+                sigma = estimate_psf_sigma_mm(points, tangents, frame, view, from_mask) if auto else fit_psf
+                estimates.append(sigma)
+                from_frame = frame_widths(points, tangents, frame, view, from_mask, psf_sigma_mm=sigma)
                 errors["mask"] += list(from_mask[np.isfinite(from_mask)] - diameter)
                 errors["frame"] += list(from_frame[np.isfinite(from_frame)] - diameter)
                 measured += int(np.isfinite(from_frame).sum())
                 total += len(s)
         cells = [f"{np.mean(e):+.3f} ± {np.std(e):.3f}, {np.mean(np.abs(e)):.3f}" for e in (errors["mask"], errors["frame"])]
-        print(f"{diameter:.1f} | {cells[0]} | {cells[1]} | {measured}/{total} | {time.perf_counter() - t0:.0f}", flush=True)
+        blur = f" | σ estimated {np.mean(estimates):.3f} ({np.min(estimates):.3f}–{np.max(estimates):.3f})" if auto else ""
+        print(f"{diameter:.1f} | {cells[0]} | {cells[1]} | {measured}/{total} | {time.perf_counter() - t0:.0f}{blur}", flush=True)
 
 
 if __name__ == "__main__":

@@ -32,6 +32,7 @@ from .diameter import project_centreline
 
 _QUADRATURE = np.linspace(-4.0, 4.0, 41)  # Gaussian nodes, in units of σ
 _WEIGHTS = np.exp(-0.5 * _QUADRATURE ** 2) / np.exp(-0.5 * _QUADRATURE ** 2).sum()
+DEFAULT_PSF_SIGMA_MM = 0.3  # a flat-panel detector's blur, about 1.5–2 pixels (the simulated angiograms' too)
 # Peak absorbance a lumen must reach to count as measured: a 0.3 mm vessel at a tenth of the iodine of
 # the simulated angiograms still peaks near 0.002 after the blur; noise-free flat profiles fit far below.
 _MIN_CONTRAST = 1e-3
@@ -78,20 +79,11 @@ def fit_profile(x_mm: np.ndarray, absorbance: np.ndarray, psf_sigma_mm: float, g
     return radius
 
 
-def frame_widths(points_mm: np.ndarray, tangents: np.ndarray, frame: np.ndarray, view: CArmView,
-                 guess_widths_mm: np.ndarray, psf_sigma_mm: float = 0.3, max_foreshortening: float = 0.7) -> np.ndarray:
-    """Width (mm at each point's depth) of the vessel in one view's frame, perpendicular to its projection.
-
-    ``frame``: the view's intensity image (vessels dark, as recorded). ``guess_widths_mm``: a first
-    width per point (e.g. the mask's), which sets the fitting window; NaN guesses give NaN.
-    ``psf_sigma_mm``: the detector blur (Gaussian σ at the detector). NaN where the tangent is
-    foreshortened by more than ``max_foreshortening``, the window leaves the frame, or the fit fails.
-    """
+def _profiles(points_mm, tangents, frame, view, guess_widths_mm, psf_sigma_mm, max_foreshortening):
+    """(index, offsets in detector mm, mean absorbance profile, magnification) of each measurable point."""
     image = np.asarray(frame, np.float64)
     if image.shape != tuple(view.detector_shape):
         raise ValueError(f"frame shape {image.shape} differs from the view's detector {tuple(view.detector_shape)}")
-    if psf_sigma_mm < 0:
-        raise ValueError(f"psf_sigma_mm must not be negative, got {psf_sigma_mm}")
     absorbance = -np.log(np.maximum(image, 1.0))
     projected = project_centreline(points_mm, tangents, view)
     row, col, mag, fore = projected.row, projected.col, projected.magnification, projected.foreshortening
@@ -99,7 +91,6 @@ def frame_widths(points_mm: np.ndarray, tangents: np.ndarray, frame: np.ndarray,
     spacing = np.asarray(view.pixel_spacing_mm, float)
     pixel_mm = float(np.min(spacing))
     step = 0.5 * pixel_mm
-    widths = np.full(len(row), np.nan)
     guesses = np.asarray(guess_widths_mm, float) * mag
     for i in range(len(row)):
         if not np.isfinite(guesses[i]) or guesses[i] <= 0 or fore[i] > max_foreshortening:
@@ -113,9 +104,55 @@ def frame_widths(points_mm: np.ndarray, tangents: np.ndarray, frame: np.ndarray,
             if rr.min() < 0 or cc.min() < 0 or rr.max() > image.shape[0] - 1 or cc.max() > image.shape[1] - 1:
                 break
             profiles.append(ndimage.map_coordinates(absorbance, [rr, cc], order=1))
-        if len(profiles) < 3:
-            continue
-        radius = fit_profile(x, np.mean(profiles, axis=0), psf_sigma_mm, guesses[i] / 2)
+        if len(profiles) == 3:
+            yield i, x, np.mean(profiles, axis=0), float(mag[i]), guesses[i]
+
+
+def frame_widths(points_mm: np.ndarray, tangents: np.ndarray, frame: np.ndarray, view: CArmView,
+                 guess_widths_mm: np.ndarray, psf_sigma_mm: float = DEFAULT_PSF_SIGMA_MM, max_foreshortening: float = 0.7) -> np.ndarray:
+    """Width (mm at each point's depth) of the vessel in one view's frame, perpendicular to its projection.
+
+    ``frame``: the view's intensity image (vessels dark, as recorded). ``guess_widths_mm``: a first
+    width per point (e.g. the mask's), which sets the fitting window; NaN guesses give NaN.
+    ``psf_sigma_mm``: the detector blur (Gaussian σ at the detector; ``estimate_psf_sigma_mm``
+    when unknown). NaN where the tangent is foreshortened by more than ``max_foreshortening``, the
+    window leaves the frame, or the fit fails.
+    """
+    if not psf_sigma_mm >= 0:
+        raise ValueError(f"psf_sigma_mm must not be negative, got {psf_sigma_mm}")
+    widths = np.full(len(np.asarray(points_mm)), np.nan)
+    for i, x, profile, mag, guess in _profiles(points_mm, tangents, frame, view, guess_widths_mm, psf_sigma_mm,
+                                               max_foreshortening):
+        radius = fit_profile(x, profile, psf_sigma_mm, guess / 2)
         if radius is not None:
-            widths[i] = 2.0 * radius / mag[i]
+            widths[i] = 2.0 * radius / mag
     return widths
+
+
+#: fewest profiles whose free fit the blur estimate takes the median of
+MIN_BLUR_PROFILES = 10
+
+
+def estimate_psf_sigma_mm(points_mm: np.ndarray, tangents: np.ndarray, frame: np.ndarray, view: CArmView,
+                          guess_widths_mm: np.ndarray, max_foreshortening: float = 0.7) -> Optional[float]:
+    """The detector blur (Gaussian σ, mm at the detector) as the median of free fits of σ along the
+    vessels (the model above with σ a sixth parameter); None with fewer than ``MIN_BLUR_PROFILES``
+    successful fits. Thick vessels tell it best: their two edges are the blur's own profile."""
+    sigmas = []
+    for _, x, a, _, guess in _profiles(points_mm, tangents, frame, view, guess_widths_mm, 0.5, max_foreshortening):
+        base = float(np.median(np.r_[a[:3], a[-3:]]))
+
+        def model(xx, c, r, amp, b0, slope, sigma):
+            return b0 + slope * xx + amp * blurred_chord(xx, c, r, sigma)
+
+        span = float(x.max() - x.min())
+        p0 = [0.0, float(np.clip(guess / 2, 0.05, span / 2 * 0.9)), max(float(a.max() - base), 1e-6) / max(guess, 1e-3),
+              base, 0.0, 0.3]
+        try:
+            params, _ = optimize.curve_fit(model, x, a, p0=p0, maxfev=3000, bounds=(
+                [-span / 4, 0.02, 0.0, -np.inf, -np.inf, 0.01], [span / 4, span / 2, np.inf, np.inf, np.inf, 2.0]))
+        except (RuntimeError, ValueError):
+            continue
+        if 0.011 < params[5] < 1.99 and params[2] > 0:
+            sigmas.append(float(params[5]))
+    return float(np.median(sigmas)) if len(sigmas) >= MIN_BLUR_PROFILES else None

@@ -215,11 +215,13 @@ def _masks_for(report: Dict[str, Any], geometry: Optional[Geometry], masks: Opti
     return [read_mask(p, geometry.views[i].detector_shape, f"mask of view {i + 1}") for i, p in enumerate(paths)], None
 
 
-def _frames_for(geometry: Optional[Geometry], view_masks, frames: Optional[Sequence[PathLike]], psf_sigma_mm: float):
+def _frames_for(geometry: Optional[Geometry], view_masks, frames: Optional[Sequence[PathLike]],
+                psf_sigma_mm: Optional[float]):
     if not frames:
         return None
-    if not psf_sigma_mm >= 0:
-        raise InputError(f"--psf-sigma-mm must be a blur in mm at the detector (0 or more, default 0.3), got {psf_sigma_mm}")
+    if psf_sigma_mm is not None and not psf_sigma_mm >= 0:
+        raise InputError(f"--psf-sigma-mm must be a blur in mm at the detector (0 or more, default 0.3) or 'auto', "
+                         f"got {psf_sigma_mm}")
     if geometry is None or view_masks is None:
         raise InputError("--frames needs the views' geometry and masks (report.json's or --masks): the masks' widths "
                          "start the fit of each frame's profile")
@@ -262,11 +264,12 @@ def analyse_result_dir(result_dir: PathLike, out_dir: Optional[PathLike] = None,
                        masks: Optional[Sequence[PathLike]] = None, ostium_mm: Optional[Sequence[float]] = None,
                        view_step_deg: float = 2.0, min_stenosis_pct: float = 20.0,
                        min_component_share: Optional[float] = None, frames: Optional[Sequence[PathLike]] = None,
-                       psf_sigma_mm: float = 0.3) -> Dict[str, Path]:
+                       psf_sigma_mm: Optional[float] = 0.3) -> Dict[str, Path]:
     """Analyse a reconstruction's result folder and write the QCA files (module docstring); return their paths.
 
     ``frames``: the views' intensity images (vessels dark), one per view: the widths are then also
-    fitted to their profiles (``frame_widths.py``; needs the masks, which give the first guess)."""
+    fitted to their profiles (``frame_widths.py``; needs the masks, which give the first guess);
+    ``psf_sigma_mm`` None estimates the detector blur from the frames."""
     result_dir = Path(result_dir)
     if not result_dir.is_dir():
         raise InputError(f"{result_dir} is not a folder; give the result folder of `reconstruct`")

@@ -32,7 +32,7 @@ import numpy as np
 from ..geometry import CArmView, VolumeGrid
 from .centreline import CentrelineBranch, CentrelineTree, bifurcation_angles, extract_centrelines
 from .diameter import CrossSections, branch_cross_sections, ellipse_diameter, junction_zones, mask_diameters
-from .frame_widths import frame_widths
+from .frame_widths import DEFAULT_PSF_SIGMA_MM, estimate_psf_sigma_mm, frame_widths
 from .fragments import MIN_COMPONENT_SHARE, UNRELIABLE, Fragments, find_fragments, lesion_reasons
 from .lesion import Lesion, ReferenceFit, find_lesions, minimal_lumen, reference_fit
 from .views import ViewMap, foreshortening, overlap_fraction, view_label, view_map
@@ -120,12 +120,13 @@ def analyse_volume(volume: np.ndarray, grid: VolumeGrid, level: float = 0.5, vie
                    target: Optional[Dict[str, Any]] = None, best_view: bool = True,
                    min_component_share: float = MIN_COMPONENT_SHARE,
                    bridges: Sequence[Dict[str, Any]] = (), frames: Optional[Sequence[np.ndarray]] = None,
-                   psf_sigma_mm: float = 0.3) -> QCAResult:
+                   psf_sigma_mm: Optional[float] = DEFAULT_PSF_SIGMA_MM) -> QCAResult:
     """Every QCA measure of a vessel volume (module docstring); ``target`` overrides the chosen segment.
 
     ``bridges``: the gaps reconnection filled (report.json ``reconnection.bridges``), LPS mm.
     ``frames`` (with ``masks``): the views' intensity images; the widths are then also fitted to
-    their profiles (``frame_widths.py``, detector blur ``psf_sigma_mm``), starting from the masks'.
+    their profiles (``frame_widths.py``, detector blur ``psf_sigma_mm``; None: estimated per view
+    from the frames, the default where too few profiles allow it), starting from the masks'.
     """
     if frames is not None and (masks is None or len(frames) != len(views)):
         raise ValueError(f"{len(frames)} frames for {len(views)} views and {'no' if masks is None else len(masks)} masks: "
@@ -149,10 +150,6 @@ def analyse_volume(volume: np.ndarray, grid: VolumeGrid, level: float = 0.5, vie
         if masks is not None and len(views):
             md = mask_diameters(branch.points_mm, branch.tangents(), masks, views)
             prof.mask_diameter_mm, prof.view_widths_mm = md["equivalent_diameter_mm"], md["view_widths_mm"]
-            if frames is not None:
-                fitted = np.stack([frame_widths(branch.points_mm, branch.tangents(), f, v, w, psf_sigma_mm)
-                                   for f, v, w in zip(frames, views, prof.view_widths_mm)])
-                prof.frame_view_widths_mm, prof.frame_diameter_mm = fitted, ellipse_diameter(fitted)
         s = branch.arc_length_mm
         try:
             prof.reference = reference_fit(s, sections.equivalent_diameter_mm, ~excluded)
@@ -190,10 +187,32 @@ def analyse_volume(volume: np.ndarray, grid: VolumeGrid, level: float = 0.5, vie
              "overlap": overlap_fraction(seg, seg_r, others, others_r, v.primary_deg, v.secondary_deg)} for v in views]
         if best_view:
             vm = view_map(seg, seg_r, others, others_r, step_deg=view_step_deg)
-    settings = {"level": level, "min_branch_mm": min_branch_mm, "min_stenosis_pct": min_stenosis_pct,
+    blur: Dict[str, Any] = {}
+    if frames is not None and profiles:
+        blur = _fit_frame_widths(profiles, frames, views, psf_sigma_mm)
+    settings = {"level": level, "min_branch_mm": min_branch_mm, "min_stenosis_pct": min_stenosis_pct, **blur,
                 "view_step_deg": view_step_deg, "ostium_mm": None if ostium_mm is None else list(map(float, ostium_mm)),
                 "min_component_share": min_component_share, "bridges_checked": len(bridges)}
     return QCAResult(tree, profiles, bifurcation_angles(tree), list(views), fore, target, vm, settings, fragments)
+
+
+def _fit_frame_widths(profiles: List[BranchProfile], frames: Sequence[np.ndarray], views: Sequence[CArmView],
+                      psf_sigma_mm: Optional[float]) -> Dict[str, Any]:
+    """Each profile's widths fitted to the frames; the blur used per view (estimated when None)."""
+    sigmas, estimated = [], []
+    for n, (frame, view) in enumerate(zip(frames, views)):
+        sigma = psf_sigma_mm
+        if sigma is None:
+            sigma = estimate_psf_sigma_mm(np.concatenate([p.branch.points_mm for p in profiles]),
+                                          np.concatenate([p.branch.tangents() for p in profiles]), frame, view,
+                                          np.concatenate([p.view_widths_mm[n] for p in profiles]))
+        estimated.append(psf_sigma_mm is None and sigma is not None)
+        sigmas.append(float(DEFAULT_PSF_SIGMA_MM if sigma is None else sigma))
+    for p in profiles:
+        fitted = np.stack([frame_widths(p.branch.points_mm, p.branch.tangents(), f, v, w, sigma)
+                           for f, v, w, sigma in zip(frames, views, p.view_widths_mm, sigmas)])
+        p.frame_view_widths_mm, p.frame_diameter_mm = fitted, ellipse_diameter(fitted)
+    return {"psf_sigma_mm": sigmas, "psf_sigma_estimated": estimated}
 
 
 def _end_caps(branch: CentrelineBranch) -> np.ndarray:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 import traceback
 from typing import Optional, Sequence
@@ -16,6 +17,19 @@ from ..settings import DEFAULT_MODE, MASK_THRESHOLD_MM, MODES, PAPER_DETECTOR_SP
 from .common import EXIT_BAD_INPUT, EXIT_CANCELLED, EXIT_FAILURE
 from .data import cmd_evaluate, cmd_geometry_template, cmd_segment, cmd_simulate
 from .reconstruct import cmd_analyse, cmd_demo, cmd_geometry, cmd_reconstruct
+
+def _blur_sigma(text: str) -> Optional[float]:
+    """argparse type of --psf-sigma-mm: 'auto' (None: estimated from the frames) or a blur ≥ 0 in mm."""
+    if text.strip().lower() == "auto":
+        return None
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be a blur in mm (0 or more) or 'auto', got {text!r}") from None
+    if not (math.isfinite(value) and value >= 0):
+        raise argparse.ArgumentTypeError(f"must be a blur in mm (0 or more) or 'auto', got {text}")
+    return value
+
 
 def _add_optimiser_options(p: argparse.ArgumentParser, preset_default: str = "fast") -> None:
     p.add_argument("--preset", default=preset_default,
@@ -93,8 +107,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--frames", nargs="+", metavar="IMAGE",
                    help="the views' frames (PNG, TIFF or NRRD as recorded, vessels dark), one per view: the 2D widths are "
                         "also fitted to their intensity profiles, sharper than a segmented mask's border")
-    p.add_argument("--psf-sigma-mm", type=float, default=0.3, metavar="MM",
-                   help="detector blur assumed by the --frames fit: Gaussian σ in mm at the detector (default 0.3)")
+    p.add_argument("--psf-sigma-mm", type=_blur_sigma, default=0.3, metavar="MM|auto",
+                   help="detector blur assumed by the --frames fit: Gaussian σ in mm at the detector (default 0.3), "
+                        "or 'auto' to estimate it from the frames (analysis.json settings say what was used)")
     p.add_argument("--ostium", type=float, nargs=3, metavar=("X", "Y", "Z"),
                    help="ostium in LPS mm (default: the thickest end of the tree)")
     p.add_argument("--view-step-deg", type=float, default=2.0, help="angle step of the best-view map (default 2)")
