@@ -316,7 +316,8 @@ def finish(problem: Problem, model: ImplicitField, history: List[Dict[str, float
         if _is_cancelled(cancel):
             raise ReconstructionCancelled("cancelled before checking the fragments")
         removed, unconfirmed = unconfirmed_fragments(
-            segmentation, vessel_pixels(problem.targets, problem.target_kind), geometry)
+            segmentation, vessel_pixels(problem.targets, problem.target_kind), geometry,
+            projectors=problem.projectors if problem.support is not None else None)
         if removed.any():
             zone = removal_zone(segmentation, segmentation & ~removed, geometry.volume.spacing_mm)
             occupancy_volume[zone] = 0.0

@@ -199,12 +199,15 @@ def unconfirmed_fragments(
     masks: Sequence[np.ndarray],
     geometry: Geometry,
     threshold_mm: float = PruneSettings.threshold_mm,
+    projectors: Optional[Sequence[ConeBeamProjector]] = None,
 ) -> Tuple[np.ndarray, Dict[str, Any]]:
     """Voxels of the components other than the largest that some view seeing them does not need.
 
     A component is confirmed by a view when it covers at least one of that view's mask pixels that
     no other component covers (line integral above ``threshold_mm``); a view onto whose detector it
-    does not project at all neither confirms nor rejects it. Returns the boolean volume of the
+    does not project at all neither confirms nor rejects it. ``projectors``: one per view whose
+    voxels hold every segmented voxel (the reconstruction's own, which already traced these rays);
+    otherwise projectors of the segmented voxels are built. Returns the boolean volume of the
     unconfirmed components' voxels and a report (fragments, removed fragments and voxels, seconds).
     """
     t0 = time.perf_counter()
@@ -217,17 +220,15 @@ def unconfirmed_fragments(
     if sizes.size < 2:
         info["seconds"] = time.perf_counter() - t0
         return removed, info
-    voxels = np.flatnonzero(segmentation.reshape(-1))
-    indicator = torch.zeros(voxels.size, sizes.size)
-    indicator[torch.arange(voxels.size), torch.as_tensor(components.reshape(-1)[voxels] - 1)] = 1.0
+    segmented = np.flatnonzero(segmentation.reshape(-1))
+    if projectors is None or any(p.voxels is None or not np.isin(segmented, p.voxels).all() for p in projectors):
+        projectors = [ConeBeamProjector(view, geometry.volume, voxels=segmented) for view in geometry.views]
     confirmed = np.ones(sizes.size, dtype=bool)
-    for mask, view in zip(masks, geometry.views):
+    for mask, view, projector in zip(masks, geometry.views, projectors):
         if tuple(np.shape(mask)) != tuple(view.detector_shape):
             raise ValueError(f"unconfirmed_fragments: mask shape {np.shape(mask)} differs from the detector {tuple(view.detector_shape)}")
-        projector = ConeBeamProjector(view, geometry.volume, voxels=voxels)
-        integrals = torch.mm(projector.operator.matrix, indicator).numpy()
-        seen = integrals.sum(axis=0) > 0
-        covered = (integrals > threshold_mm) & np.asarray(mask, dtype=bool).reshape(-1)[projector.pixels][:, None]
+        integrals, pixels, seen = _component_integrals(projector, components.reshape(-1), sizes.size)
+        covered = (integrals > threshold_mm) & np.asarray(mask, dtype=bool).reshape(-1)[pixels][:, None]
         alone = (covered & (covered.sum(axis=1) == 1)[:, None]).sum(axis=0)
         confirmed &= (alone > 0) | ~seen
     confirmed[int(np.argmax(sizes))] = True  # the tree itself
@@ -235,6 +236,22 @@ def unconfirmed_fragments(
     info.update(removed_fragments=int((~confirmed).sum()), removed_voxels=int(removed.sum()),
                 seconds=time.perf_counter() - t0)
     return removed, info
+
+
+def _component_integrals(projector: ConeBeamProjector, labels_flat: np.ndarray, count: int):
+    """Line integral of each labelled component (1..count) along every ray that meets one:
+    (pixels × count) integrals, those pixels' flat indices, and which components the view sees.
+    Summed from the operator's entries in the components' voxels only, so a projector of a large
+    support costs no more than one of the segmentation."""
+    matrix = projector.operator.matrix
+    crow = matrix.crow_indices().cpu().numpy()
+    row = np.repeat(np.arange(crow.size - 1), np.diff(crow))
+    label = labels_flat[projector.voxels[matrix.col_indices().cpu().numpy()]]
+    keep = label > 0
+    row, label, value = row[keep], label[keep] - 1, matrix.values().cpu().numpy()[keep]
+    hit, local = np.unique(row, return_inverse=True)
+    integrals = np.bincount(local * count + label, weights=value, minlength=hit.size * count).reshape(hit.size, count)
+    return integrals, projector.pixels[hit], np.bincount(label, weights=value, minlength=count) > 0
 
 
 def removal_zone(segmentation: np.ndarray, kept: np.ndarray, spacing_mm: Sequence[float]) -> np.ndarray:

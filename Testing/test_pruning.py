@@ -207,3 +207,20 @@ def test_a_vessel_missing_from_one_mask_is_not_replaced_by_a_ghost(missed_vessel
 def test_presets_drop_unconfirmed_fragments_only_in_fast():
     assert make_settings("fast").region.drop_unconfirmed_fragments is True
     assert make_settings("paper").region.drop_unconfirmed_fragments is False
+
+
+def test_unconfirmed_fragments_reads_the_reconstructions_own_projectors(missed_vessel_case):
+    """Projectors of a larger voxel set (the support) give the same answer as ones of the segmentation;
+    projectors that miss a segmented voxel are not used."""
+    from SDFCARLib.projector import ConeBeamProjector
+
+    geometry, vessel_a, _, ghost, masks = missed_vessel_case
+    segmentation = vessel_a | ghost
+    support = np.flatnonzero(ndimage.binary_dilation(segmentation, iterations=2).reshape(-1))
+    removed, _ = unconfirmed_fragments(segmentation, masks, geometry,
+                                       projectors=[ConeBeamProjector(v, GRID, voxels=support) for v in VIEWS])
+    np.testing.assert_array_equal(removed, ghost)
+    too_few = np.flatnonzero(vessel_a.reshape(-1))  # the ghost's voxels are missing: rebuilt, same answer
+    removed, _ = unconfirmed_fragments(segmentation, masks, geometry,
+                                       projectors=[ConeBeamProjector(v, GRID, voxels=too_few) for v in VIEWS])
+    np.testing.assert_array_equal(removed, ghost)
