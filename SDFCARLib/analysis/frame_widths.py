@@ -36,6 +36,8 @@ DEFAULT_PSF_SIGMA_MM = 0.3  # a flat-panel detector's blur, about 1.5–2 pixels
 # Peak absorbance a lumen must reach to count as measured: a 0.3 mm vessel at a tenth of the iodine of
 # the simulated angiograms still peaks near 0.002 after the blur; noise-free flat profiles fit far below.
 _MIN_CONTRAST = 1e-3
+_SIGMA_RANGE_MM = (0.01, 2.0)  # bounds of a free blur fit
+_SIGMA_WINDOW_MM = 0.5  # the blur the profiles' window is sized for while σ is being estimated
 
 
 def chord_mm(x: np.ndarray, radius: float) -> np.ndarray:
@@ -49,34 +51,43 @@ def blurred_chord(x: np.ndarray, centre: float, radius: float, sigma: float) -> 
     return chord_mm(shifted, radius) @ _WEIGHTS
 
 
+def _fit_lumen(x: np.ndarray, a: np.ndarray, guess_radius_mm: float, psf_sigma_mm: Optional[float]):
+    """Least-squares fit of the module's model to one profile: (centre, radius, amplitude, base, slope[,
+    sigma]) and the RMS residual, with σ fixed when given and a free sixth parameter when None; None
+    when the optimiser fails."""
+    span = float(x.max() - x.min())
+    base = float(np.median(np.r_[a[:3], a[-3:]]))
+    lower = [-span / 4, 0.02, 0.0, -np.inf, -np.inf]
+    upper = [span / 4, span / 2, np.inf, np.inf, np.inf]
+    p0 = [0.0, float(np.clip(guess_radius_mm, lower[1] * 1.01, upper[1] * 0.99)),
+          max(float(a.max() - base), 1e-6) / max(2.0 * guess_radius_mm, 1e-3), base, 0.0]
+    if psf_sigma_mm is None:
+        lower, upper, p0 = lower + [_SIGMA_RANGE_MM[0]], upper + [_SIGMA_RANGE_MM[1]], p0 + [DEFAULT_PSF_SIGMA_MM]
+
+    def model(xx, c, r, amp, b0, slope, sigma=psf_sigma_mm):
+        return b0 + slope * xx + amp * blurred_chord(xx, c, r, sigma)
+
+    try:
+        params, _ = optimize.curve_fit(model, x, a, p0=p0, bounds=(lower, upper), maxfev=3000)
+    except (RuntimeError, ValueError):
+        return None
+    return params, float(np.sqrt(np.mean(np.square(model(x, *params) - a)))), (lower, upper)
+
+
 def fit_profile(x_mm: np.ndarray, absorbance: np.ndarray, psf_sigma_mm: float, guess_radius_mm: float) -> Optional[float]:
     """Lumen radius (detector mm) fitted to one absorbance profile; None if the fit fails or is implausible."""
     x = np.asarray(x_mm, float)
     a = np.asarray(absorbance, float)
     if x.size < 8 or not np.all(np.isfinite(a)):
         return None
-    span = float(x.max() - x.min())
-    edge = np.r_[a[:3], a[-3:]]
-    b0 = float(np.median(edge))
-    guess_amplitude = max(float(a.max() - b0), 1e-6) / max(2.0 * guess_radius_mm, 1e-3)
-
-    def model(xx, c, r, amp, base, slope):
-        return base + slope * xx + amp * blurred_chord(xx, c, r, psf_sigma_mm)
-
-    p0 = [0.0, guess_radius_mm, guess_amplitude, b0, 0.0]
-    lower = [-span / 4, 0.02, 0.0, -np.inf, -np.inf]
-    upper = [span / 4, span / 2, np.inf, np.inf, np.inf]
-    p0[1] = float(np.clip(p0[1], lower[1] * 1.01, upper[1] * 0.99))
-    try:
-        params, _ = optimize.curve_fit(model, x, a, p0=p0, bounds=(lower, upper), maxfev=2000)
-    except (RuntimeError, ValueError):
+    fitted = _fit_lumen(x, a, guess_radius_mm, psf_sigma_mm)
+    if fitted is None:
         return None
-    centre, radius, amplitude = (float(v) for v in params[:3])
+    (centre, radius, amplitude, _, _), noise, (lower, upper) = fitted
     peak = amplitude * float(blurred_chord(np.array([centre]), centre, radius, psf_sigma_mm)[0])
-    noise = float(np.sqrt(np.mean(np.square(model(x, *params) - a))))
     if radius >= 0.98 * upper[1] or radius <= 1.02 * lower[1] or not peak > max(3.0 * noise, _MIN_CONTRAST):
         return None  # the lumen fills the window, or no vessel stands out of the noise: not a measurement
-    return radius
+    return float(radius)
 
 
 def _profiles(points_mm, tangents, frame, view, guess_widths_mm, psf_sigma_mm, max_foreshortening):
@@ -139,20 +150,13 @@ def estimate_psf_sigma_mm(points_mm: np.ndarray, tangents: np.ndarray, frame: np
     vessels (the model above with σ a sixth parameter); None with fewer than ``MIN_BLUR_PROFILES``
     successful fits. Thick vessels tell it best: their two edges are the blur's own profile."""
     sigmas = []
-    for _, x, a, _, guess in _profiles(points_mm, tangents, frame, view, guess_widths_mm, 0.5, max_foreshortening):
-        base = float(np.median(np.r_[a[:3], a[-3:]]))
-
-        def model(xx, c, r, amp, b0, slope, sigma):
-            return b0 + slope * xx + amp * blurred_chord(xx, c, r, sigma)
-
-        span = float(x.max() - x.min())
-        p0 = [0.0, float(np.clip(guess / 2, 0.05, span / 2 * 0.9)), max(float(a.max() - base), 1e-6) / max(guess, 1e-3),
-              base, 0.0, 0.3]
-        try:
-            params, _ = optimize.curve_fit(model, x, a, p0=p0, maxfev=3000, bounds=(
-                [-span / 4, 0.02, 0.0, -np.inf, -np.inf, 0.01], [span / 4, span / 2, np.inf, np.inf, np.inf, 2.0]))
-        except (RuntimeError, ValueError):
+    # The window is sized for a blur up to _SIGMA_WINDOW_MM, as σ is not known yet.
+    for _, x, a, _, guess in _profiles(points_mm, tangents, frame, view, guess_widths_mm, _SIGMA_WINDOW_MM,
+                                       max_foreshortening):
+        fitted = _fit_lumen(x, a, guess / 2, None)
+        if fitted is None:
             continue
-        if 0.011 < params[5] < 1.99 and params[2] > 0:
+        params = fitted[0]
+        if 1.1 * _SIGMA_RANGE_MM[0] < params[5] < 0.99 * _SIGMA_RANGE_MM[1] and params[2] > 0:  # not at a bound
             sigmas.append(float(params[5]))
     return float(np.median(sigmas)) if len(sigmas) >= MIN_BLUR_PROFILES else None
