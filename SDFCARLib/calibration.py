@@ -130,21 +130,28 @@ def search_1d(loss_at: Callable[[float], float], half_range: float, candidates: 
     return best, scores, True
 
 
+def pose_score(geometry: Geometry, targets: Sequence[np.ndarray], settings, target_kind: str, cancel=None) -> float:
+    """A candidate pose's score: the mean loss of the last ``CALIBRATION_SCORE_STEPS`` steps of a field
+    fitted from scratch for ``calibration_steps`` steps (lower: the views agree better)."""
+    from .optimiser import fitted_loss
+
+    short = settings.replace(steps=settings.calibration.calibration_steps, prune=False, reconnect=False)
+    return fitted_loss(geometry, targets, short, target_kind, CALIBRATION_SCORE_STEPS, cancel)
+
+
 def calibrate(geometry: Geometry, targets: Sequence[np.ndarray], settings, target_kind: str,
               score: Optional[Callable[[Geometry], float]] = None, progress=None, cancel=None) -> Calibration:
     """Search each view's observable rigid motion against view 1 (module docstring).
 
     ``score(geometry)`` — lower is better — defaults to the loss of a short re-fit; tests pass their own.
     """
-    from .optimiser import ReconstructionCancelled, _is_cancelled, _report, fitted_loss
+    from .optimiser import ReconstructionCancelled, _is_cancelled, _report
 
     c = settings.calibration
     t0 = time.perf_counter()
     if score is None:
-        short = settings.replace(steps=c.calibration_steps, prune=False, reconnect=False)
-
         def score(candidate: Geometry) -> float:
-            return fitted_loss(candidate, targets, short, target_kind, CALIBRATION_SCORE_STEPS, cancel)
+            return pose_score(candidate, targets, settings, target_kind, cancel)
 
     views = list(geometry.views)
     centre = np.asarray(geometry.volume.center_mm, float)  # rotations turn the object about the region's centre

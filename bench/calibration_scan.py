@@ -26,12 +26,11 @@ import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
 from SDFCARLib.benchmark.cases import GridOptions, protocol_geometry  # noqa: E402
-from SDFCARLib.calibration import moved, search_axes  # noqa: E402
+from SDFCARLib.calibration import moved, pose_score, search_axes  # noqa: E402
 from SDFCARLib.geometry import Geometry  # noqa: E402
-from SDFCARLib.optimiser import fitted_loss  # noqa: E402
 from SDFCARLib.phantoms import lad_tree, rca_tree, simulate_views, voxelize  # noqa: E402
 from SDFCARLib.realistic import RealisticOptions, realistic_input  # noqa: E402
-from SDFCARLib.settings import CALIBRATION_SCORE_STEPS, make_settings  # noqa: E402
+from SDFCARLib.settings import make_settings  # noqa: E402
 
 
 def main() -> int:
@@ -57,7 +56,6 @@ def main() -> int:
     label = voxelize((rca_tree if args.suite == "rca" else lad_tree)(args.case), geometry.volume)
     truth = Geometry(geometry.volume, (reference, at(args.true)))
     settings = make_settings("fast", seed=args.case, calibrate=True)
-    short = settings.replace(steps=settings.calibration.calibration_steps, prune=False, reconnect=False)
     print(f"# {platform.processor() or platform.machine()}, {os.cpu_count()} cores, torch {torch.__version__}, "
           f"{args.threads} thread(s); {args.suite.upper()}-{args.case}, view 2 moved {args.true:+g} along {args.motion}",
           flush=True)
@@ -68,7 +66,7 @@ def main() -> int:
             masks = realistic_input(label, truth, args.case, RealisticOptions(max_shift_mm=0.0, max_rotation_deg=0.0)).masks
         for value in args.candidates:
             t0 = time.perf_counter()
-            loss = fitted_loss(Geometry(geometry.volume, (reference, at(value))), masks, short, "mask", CALIBRATION_SCORE_STEPS)
+            loss = pose_score(Geometry(geometry.volume, (reference, at(value))), masks, settings, "mask")
             print(f"{kind:9s} candidate {value:+6.2f}: loss {loss:.6f}  ({time.perf_counter() - t0:.0f} s)", flush=True)
     return 0
 
