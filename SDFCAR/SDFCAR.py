@@ -975,20 +975,22 @@ class SDFCARLogic(ScriptedLoadableModuleLogic):
         return base / f"{safe}-{time.strftime('%Y%m%d-%H%M%S')}"
 
     @staticmethod
-    def _startJob(jobDir, geometry, masks, settings, name):
+    def _startJob(jobDir, geometry, masks, settings, name, frames=None):
         import shutil
 
         from SDFCARLib.jobs import ReconstructionJob
 
         jobDir.parent.mkdir(parents=True, exist_ok=True)
-        # The worker runs in Slicer's own Python (PythonSlicer), outside the GUI process.
-        return ReconstructionJob.start(jobDir, geometry, masks, settings, name, python=shutil.which("PythonSlicer"))
+        # The worker runs in Slicer's own Python (PythonSlicer), outside the GUI process. The frames go
+        # with the masks: with the frame_evidence setting the occupancy is fitted to them.
+        return ReconstructionJob.start(jobDir, geometry, masks, settings, name, python=shutil.which("PythonSlicer"),
+                                       frames=frames)
 
     def startReconstruction(self, p):
         """Start a background job; returns (job, context for ``addResults``)."""
         geometry, masks, frames, frameNodes = self.inputs(p, withFrameNodes=True)
         jobDir = self.jobDirectory(p)
-        job = self._startJob(jobDir, geometry, masks, self.settings(p), p.outputName)
+        job = self._startJob(jobDir, geometry, masks, self.settings(p), p.outputName, frames)
         context = {"name": p.outputName, "geometry": geometry, "frames": frames, "frameNodes": frameNodes,
                    "jobDir": str(jobDir), "includeOccupancy": p.includeOccupancy, "showCArm": p.showCArm,
                    "analyse": p.analyseAfterReconstruction}
@@ -1038,7 +1040,7 @@ class SDFCARLogic(ScriptedLoadableModuleLogic):
                              f"of {count} views: give one frame, one mask and one index per view, in the geometry's order")
         frameArrays, maskArrays, frameNodes = self._viewInputs(frames, masks, indices)
         jobDir = Path(jobDir) if jobDir else Path(slicer.app.temporaryPath) / "SDFCAR" / f"console-{time.strftime('%Y%m%d-%H%M%S')}"
-        job = self._startJob(jobDir, geometry, maskArrays, settings or {"preset": "fast"}, name)
+        job = self._startJob(jobDir, geometry, maskArrays, settings or {"preset": "fast"}, name, frameArrays)
         if job.wait(timeout) == "running":
             job.cancel()
         context = {"name": name, "geometry": geometry, "frames": frameArrays, "frameNodes": frameNodes, "jobDir": str(jobDir),

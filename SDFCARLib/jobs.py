@@ -67,16 +67,22 @@ class JobFolderError(ValueError):
 
 # --- job folder ---------------------------------------------------------------------------------------
 def prepare_job(job_dir: PathLike, geometry: Geometry, targets: Sequence[np.ndarray], settings: Optional[Dict[str, Any]] = None,
-                name: str = "reconstruction", target_kind: str = "mask") -> Path:
-    """Write a job folder (refusing a folder that already holds a job) and validate it."""
+                name: str = "reconstruction", target_kind: str = "mask",
+                frames: Optional[Sequence[np.ndarray]] = None) -> Path:
+    """Write a job folder (refusing a folder that already holds a job) and validate it. ``frames``:
+    the X-ray frames the masks were made from (one per view), for ``frame_evidence``."""
     job_dir = Path(job_dir)
     if (job_dir / "job.json").exists():
         raise JobFolderError(f"{job_dir} already holds a job; choose a new folder for a new job")
     _check_inputs(geometry, targets, dict(settings or {}), target_kind)  # before anything is written
+    if frames is not None:
+        _check_frames(geometry, frames)
     job_dir.mkdir(parents=True, exist_ok=True)
     geometry.save(job_dir / "geometry.json")
     for n, target in enumerate(targets, start=1):
         np.save(job_dir / f"view{n}.npy", np.asarray(target, dtype=np.float32))
+    for n, frame in enumerate(frames or [], start=1):
+        np.save(job_dir / f"frame{n}.npy", np.asarray(frame, dtype=np.float32))
     write_json(job_dir / "job.json", {"name": name, "target_kind": target_kind, "settings": dict(settings or {}),
                                        "views": len(targets)})
     validate_job_folder(job_dir)
@@ -94,6 +100,15 @@ def _check_inputs(geometry: Geometry, targets: Sequence[np.ndarray], settings: D
     except ReconstructionError as exc:
         raise JobFolderError(str(exc)) from exc
     return checked
+
+
+def _check_frames(geometry: Geometry, frames: Sequence[np.ndarray]) -> None:
+    if len(frames) != len(geometry.views):
+        raise JobFolderError(f"{len(frames)} frame(s) for {len(geometry.views)} views: give one frame per view or none")
+    for n, (frame, view) in enumerate(zip(frames, geometry.views), start=1):
+        if np.shape(frame) != tuple(view.detector_shape):
+            raise JobFolderError(f"frame {n} has shape {np.shape(frame)} but view {n}'s detector is "
+                                 f"{tuple(view.detector_shape)}: give the frame the mask was made from")
 
 
 def _load_job(job_dir: Path):
@@ -122,7 +137,16 @@ def _load_job(job_dir: Path):
             raise JobFolderError(f"{path} is not a readable .npy image: {exc}") from exc
     kind = manifest.get("target_kind", "mask")
     settings = _check_inputs(geometry, targets, manifest.get("settings", {}), kind)
-    return manifest, geometry, targets, settings, kind
+    frame_paths = [job_dir / f"frame{n}.npy" for n in range(1, len(geometry.views) + 1)]
+    frames = None
+    if any(p.is_file() for p in frame_paths):
+        try:
+            frames = [np.load(p, allow_pickle=False) for p in frame_paths]
+        except (ValueError, OSError) as exc:
+            raise JobFolderError(f"{job_dir}: the frames (frame1.npy …) must be one readable .npy image per view: "
+                                 f"{exc}") from exc
+        _check_frames(geometry, frames)
+    return manifest, geometry, targets, settings, kind, frames
 
 
 def validate_job_folder(job_dir: PathLike) -> None:
@@ -145,9 +169,9 @@ def run_job(job_dir: PathLike, progress: Optional[Callable[[Dict[str, Any]], Non
     cancel_flag = job_dir / "cancel"
     progress_file, on_progress = _progress_writer(job_dir, progress)
     try:
-        manifest, geometry, targets, settings, kind = _load_job(job_dir)
+        manifest, geometry, targets, settings, kind, frames = _load_job(job_dir)
         result = reconstruct(geometry, targets, settings, target_kind=kind, progress=on_progress,
-                             cancel=cancel_flag.exists)
+                             cancel=cancel_flag.exists, frames=frames)
         on_progress({"phase": "writing", "step": settings.optimisation.steps, "total": settings.optimisation.steps})
         paths = write_reconstruction(result, job_dir / "output", name=manifest.get("name"))
         paths = {k: str(v) for k, v in paths.items()}
@@ -245,9 +269,10 @@ class ReconstructionJob:
 
     @classmethod
     def start(cls, job_dir: PathLike, geometry: Geometry, targets: Sequence[np.ndarray], settings: Optional[Dict[str, Any]] = None,
-              name: str = "reconstruction", target_kind: str = "mask", python: Optional[str] = None) -> "ReconstructionJob":
+              name: str = "reconstruction", target_kind: str = "mask", python: Optional[str] = None,
+              frames: Optional[Sequence[np.ndarray]] = None) -> "ReconstructionJob":
         """Write the job folder, validate it, and start the worker. Bad inputs raise before any start."""
-        prepare_job(job_dir, geometry, targets, settings, name, target_kind)
+        prepare_job(job_dir, geometry, targets, settings, name, target_kind, frames)
         return cls.launch(job_dir, python)
 
     @classmethod

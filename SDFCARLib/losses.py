@@ -9,7 +9,9 @@ Image model
     thick overlaps are not over-penalised. S has a non-zero gradient everywhere, also at L = 0.
     With line-integral targets (the NeCA/SDF-CAR simulation protocol) the occupancy term compares
     L / L_ref with the target / L_ref, L_ref the target's maximum, and the geometric term uses the
-    silhouettes of both.
+    silhouettes of both. Where the frames are given with the masks (``frame_evidence``), the
+    occupancy term compares L / L_ref with the path lengths read off the frames (``evidence.py``)
+    and the geometric term keeps the masks (``frame_target``).
 
 L_occ
     Mean over the image of (target − image)², Eq. (3) of the paper, averaged over views.
@@ -230,6 +232,18 @@ class ViewTarget:
         if self.kind == "mask":
             return self.silhouette_of(line_integral)
         return line_integral / self.reference_mm
+
+
+def frame_target(line_integral_mm: torch.Tensor, mask_target: ViewTarget) -> ViewTarget:
+    """A mask's view with L_occ on path lengths read off its frame (``evidence.py``): L / L_ref against
+    the evidence / L_ref, L_ref its 99.5th percentile (a noise spike does not set the scale); the
+    silhouette for L_geo stays the mask."""
+    values = line_integral_mm[line_integral_mm > 0]
+    if values.numel() == 0:
+        raise ValueError("the frame shows no vessel inside the mask: no evidence to fit")
+    reference = float(torch.quantile(values.float(), 0.995)) if values.numel() < 2**24 else float(values.max())
+    image = (line_integral_mm.to(torch.float32) / reference)
+    return ViewTarget(image, mask_target.silhouette, "line_integral", reference, mask_target.silhouette_length_mm)
 
 
 def make_target(data: torch.Tensor, kind: str, silhouette_length_mm: float) -> ViewTarget:

@@ -43,7 +43,7 @@ from .device import available_memory_bytes, check_host_memory, choose_device, de
 from .field import FieldConfig, ImplicitField
 from .geometry import Geometry
 from .hull import support_mask
-from .losses import DistanceSettings, GeometricLoss, ViewTarget, make_target, occupancy_loss
+from .losses import DistanceSettings, GeometricLoss, ViewTarget, frame_target, make_target, occupancy_loss
 from .consistency import consistency_warnings, view_consistency
 from .mask_checks import mask_warnings, support_masks
 from .masks import MaskError, binarise_mask
@@ -145,6 +145,7 @@ class Problem:
     setup_s: float = 0.0
     warnings: List[str] = field(default_factory=list)  # for report.json (mask checks, support, consistency)
     consistency: List[float] = field(default_factory=list)  # per view: centreline with a partner (consistency.py)
+    evidence: Optional[Dict[str, Any]] = None  # the frames' line-integral evidence, when used (evidence.py)
 
 
 def _normalised_points(geometry: Geometry, flat: np.ndarray, device: torch.device) -> torch.Tensor:
@@ -169,12 +170,45 @@ def versions() -> Dict[str, str]:
     }
 
 
+def _frame_evidence(frames: Optional[Sequence[np.ndarray]], masks: Sequence[np.ndarray], geometry: Geometry,
+                    settings: Settings, target_kind: str) -> Tuple[Optional[List[np.ndarray]], Dict[str, Any], List[str]]:
+    """(per-view line integrals read off the frames or None, the report's record, warnings)."""
+    if not settings.loss.frame_evidence:
+        return None, {"used": False, "why": "frame_evidence is off"}, []
+    if frames is None:
+        return None, {"used": False, "why": "no frames were given"}, []
+    if target_kind != "mask":
+        return None, {"used": False, "why": "the targets are line integrals already"}, []
+    if len(frames) != len(geometry.views):
+        raise ReconstructionError(f"{len(frames)} frame(s) for {len(geometry.views)} views: give one frame per view, "
+                                  "in the geometry's order, or none")
+    from .evidence import EvidenceError, view_evidence
+
+    images, views = [], []
+    for n, (frame, mask, view) in enumerate(zip(frames, masks, geometry.views), start=1):
+        if frame is None or np.shape(frame) != tuple(view.detector_shape):
+            shape = None if frame is None else np.shape(frame)
+            raise ReconstructionError(f"view {n}: the frame has shape {shape} but the view's detector is "
+                                      f"{tuple(view.detector_shape)}: give the frame the mask was made from")
+        try:
+            found = view_evidence(frame, mask, view)
+        except EvidenceError as exc:
+            message = (f"view {n}: the frames are not used as evidence, the masks alone are fitted: {exc}")
+            return None, {"used": False, "why": message}, [message]
+        images.append(found.line_integral_mm)
+        views.append({"attenuation_per_mm": round(found.attenuation_per_mm, 5), "profiles": found.info["profiles"],
+                      "attenuation_spread_per_mm": round(found.info["spread_per_mm"], 5)})
+    return images, {"used": True, "views": views}, []
+
+
 def build_problem(geometry: Geometry, targets: Sequence[np.ndarray], settings: Settings, target_kind: str,
-                  progress: Progress = None, check_masks: bool = True) -> Problem:
+                  progress: Progress = None, check_masks: bool = True,
+                  frames: Optional[Sequence[np.ndarray]] = None) -> Problem:
     """Step 1: check the inputs, choose support and device, build projectors and losses.
 
     ``check_masks=False`` skips the mask and consistency checks (for the calibration's repeated
-    short fits of the same masks, which the run itself checks once)."""
+    short fits of the same masks, which the run itself checks once). ``frames``: the X-ray frames
+    the masks were made from, one per view, for ``frame_evidence``."""
     t_start = time.perf_counter()
     arrays = validate_targets(targets, geometry, target_kind)
     _report(progress, phase="setup", step=0, total=settings.optimisation.steps, elapsed_s=0.0, eta_s=None,
@@ -195,6 +229,9 @@ def build_problem(geometry: Geometry, targets: Sequence[np.ndarray], settings: S
     if settings.region.support == "hull":
         pixels = despeckled
         warnings += left_out
+    evidence_images, evidence, evidence_warnings = _frame_evidence(frames, vessel_pixels(arrays, target_kind), geometry,
+                                                                   settings, target_kind)
+    warnings += evidence_warnings
     for message in warnings:
         _report(progress, phase="warning", message=message, step=0, total=settings.optimisation.steps,
                 elapsed_s=0.0, eta_s=None, device=settings.run.device)
@@ -217,6 +254,9 @@ def build_problem(geometry: Geometry, targets: Sequence[np.ndarray], settings: S
     ]
     view_targets = [make_target(torch.as_tensor(a, device=device), target_kind, settings.loss.silhouette_length_mm)
                     for a in arrays]
+    if evidence_images is not None:
+        # L_occ on the frames' path lengths; L_geo and the support stay on the masks.
+        view_targets = [frame_target(torch.as_tensor(e, device=device), t) for e, t in zip(evidence_images, view_targets)]
     geometric: Optional[GeometricLoss] = None
     if settings.mode.geometric_loss:
         loss = settings.loss
@@ -227,7 +267,7 @@ def build_problem(geometry: Geometry, targets: Sequence[np.ndarray], settings: S
             DistanceSettings(loss.dt_downsample, loss.dt_threshold, loss.dt_truncation_mm, loss.dt_kernel_size),
         )
     return Problem(geometry, settings, target_kind, arrays, support, voxels, device, device_reason, needed_bytes,
-                   projectors, view_targets, geometric, time.perf_counter() - t_start, warnings, consistency)
+                   projectors, view_targets, geometric, time.perf_counter() - t_start, warnings, consistency, evidence)
 
 
 def optimise(problem: Problem, model: ImplicitField, progress: Progress = None, cancel: Cancel = None,
@@ -356,6 +396,7 @@ def finish(problem: Problem, model: ImplicitField, history: List[Dict[str, float
                       "total": time.perf_counter() - t_start, "per_step": optimise_s / steps},
         "warnings": list(problem.warnings) + qa_warned,
         "view_consistency": list(problem.consistency),
+        "frame_evidence": problem.evidence,
     }
     return Reconstruction(geometry, settings, occupancy_volume, field_volume, segmentation, problem.support, report, history,
                           list(zip(projected, references)))
@@ -382,8 +423,12 @@ def reconstruct(
     progress_interval_s: float = 0.5,
     snapshot: Optional[Callable[[int, np.ndarray], None]] = None,
     snapshot_every: int = 0,
+    frames: Optional[Sequence[np.ndarray]] = None,
 ) -> Reconstruction:
     """Reconstruct the vessel tree seen in ``targets`` (one image per view of ``geometry``).
+
+    ``frames``: the X-ray frames the masks were drawn or segmented on, one per view (optional);
+    with ``frame_evidence`` the occupancy is fitted to the path lengths read off them (``evidence.py``).
 
     ``snapshot(step, occupancy)`` — for benchmarks of time to accuracy — receives the occupancy
     volume every ``snapshot_every`` steps (its time is excluded from the optimisation timings).
@@ -402,7 +447,7 @@ def reconstruct(
         calibration = calibrate(geometry, targets, settings, target_kind, progress=progress, cancel=cancel)
         geometry = calibration.geometry
         torch.manual_seed(settings.run.seed)
-    problem = build_problem(geometry, targets, settings, target_kind, progress)
+    problem = build_problem(geometry, targets, settings, target_kind, progress, frames=frames)
     if _is_cancelled(cancel):
         raise ReconstructionCancelled("cancelled before the optimisation started")
     model = ImplicitField(field_config(settings)).to(problem.device)

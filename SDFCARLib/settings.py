@@ -16,8 +16,9 @@ Settings
     difference from it: the field only on the masks' visual hull, a smaller network and table, a
     higher learning rate for the hash table, fewer steps, L_geo on 2× max-pooled images, the
     skeleton pieces no mask pixel needs pruned afterwards (``pruning.py``), fragments joined to
-    the tree where the field bridges them (``connectivity.py``), and the detached fragments that
-    not every view confirms removed (``pruning.unconfirmed_fragments``). Why each differs is
+    the tree where the field bridges them (``connectivity.py``), the detached fragments that
+    not every view confirms removed (``pruning.unconfirmed_fragments``), and, where the X-ray frames
+    are given with the masks, the occupancy fitted to the path lengths they show (``evidence.py``). Why each differs is
     said next to it; what it measured is in ``bench/RESULTS.md``.
 
 Modes
@@ -106,6 +107,9 @@ class LossSettings:
     dt_threshold: float = 0.5
     dt_truncation_mm: float = 5.0  # distances clipped here
     dt_kernel_size: int = 3
+    # where the frames are given with the masks: L_occ on the rays' path lengths read off the frames
+    # (evidence.py) instead of the masks, so a ghost in the shadow of a real vessel costs what it adds
+    frame_evidence: bool = False
 
 
 @dataclass
@@ -268,6 +272,8 @@ PRESETS: Dict[str, Dict[str, Any]] = {  # the default first: lists offer it firs
         reconnect=True,
         # and drop the detached fragments that not every view confirms (ghosts of pixels one view cannot place)
         drop_unconfirmed_fragments=True,
+        # where the frames come with the masks, fit the path lengths they show (ghosts add path the frame lacks)
+        frame_evidence=True,
     ),
     "paper": {},
 }

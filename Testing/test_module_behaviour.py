@@ -306,10 +306,12 @@ def test_apply_sends_every_view_to_the_job(sdfcar, monkeypatch):
     p.analyseAfterReconstruction = True
     started = {}
     monkeypatch.setattr(sdfcar.SDFCARLogic, "_startJob", staticmethod(
-        lambda jobDir, geometry, masks, settings, name: started.update(geometry=geometry, masks=masks) or "job"))
+        lambda jobDir, geometry, masks, settings, name, frames=None:
+        started.update(geometry=geometry, masks=masks, frames=frames) or "job"))
     job, context = widget.logic.startReconstruction(p)
     geometry = started["geometry"]
     assert len(started["masks"]) == 3 and len(geometry.views) == 3 and len(context["frameNodes"]) == 3
+    assert [f.shape for f in started["frames"]] == [m.shape for m in started["masks"]]  # the frames go with the job
     assert (geometry.views[2].secondary_deg, geometry.views[1].sid_mm, geometry.views[2].sid_mm) == (30.0, 1100.0, 1100.0)
     assert geometry.views[2].detector_shape == (20, 30) and context["analyse"] is True
 

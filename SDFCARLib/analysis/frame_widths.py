@@ -51,7 +51,7 @@ def blurred_chord(x: np.ndarray, centre: float, radius: float, sigma: float) -> 
     return chord_mm(shifted, radius) @ _WEIGHTS
 
 
-def _fit_lumen(x: np.ndarray, a: np.ndarray, guess_radius_mm: float, psf_sigma_mm: Optional[float]):
+def fit_lumen(x: np.ndarray, a: np.ndarray, guess_radius_mm: float, psf_sigma_mm: Optional[float]):
     """Least-squares fit of the module's model to one profile: (centre, radius, amplitude, base, slope[,
     sigma]) and the RMS residual, with σ fixed when given and a free sixth parameter when None; None
     when the optimiser fails."""
@@ -80,7 +80,7 @@ def fit_profile(x_mm: np.ndarray, absorbance: np.ndarray, psf_sigma_mm: float, g
     a = np.asarray(absorbance, float)
     if x.size < 8 or not np.all(np.isfinite(a)):
         return None
-    fitted = _fit_lumen(x, a, guess_radius_mm, psf_sigma_mm)
+    fitted = fit_lumen(x, a, guess_radius_mm, psf_sigma_mm)
     if fitted is None:
         return None
     (centre, radius, amplitude, _, _), noise, (lower, upper) = fitted
@@ -153,7 +153,7 @@ def estimate_psf_sigma_mm(points_mm: np.ndarray, tangents: np.ndarray, frame: np
     # The window is sized for a blur up to _SIGMA_WINDOW_MM, as σ is not known yet.
     for _, x, a, _, guess in _profiles(points_mm, tangents, frame, view, guess_widths_mm, _SIGMA_WINDOW_MM,
                                        max_foreshortening):
-        fitted = _fit_lumen(x, a, guess / 2, None)
+        fitted = fit_lumen(x, a, guess / 2, None)
         if fitted is None:
             continue
         params = fitted[0]

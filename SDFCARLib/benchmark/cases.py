@@ -208,6 +208,7 @@ class PreparedCase:
     target_kind: str
     info: Dict[str, Any] = field(default_factory=dict)
     prepare_s: float = 0.0
+    frames: Optional[List[np.ndarray]] = None  # the simulated angiograms of the realistic protocols
 
 
 def prepare_case(spec: CaseSpec, protocol: str, grid: Optional[GridOptions] = None) -> PreparedCase:
@@ -234,10 +235,11 @@ def prepare_case(spec: CaseSpec, protocol: str, grid: Optional[GridOptions] = No
         from ..realistic import RealisticOptions, realistic_input
 
         realistic = realistic_input(label, geometry, spec.seed, RealisticOptions(**REALISTIC_PROTOCOLS[protocol]))
-        line_integrals, masks = [], realistic.masks
+        line_integrals, masks, frames = [], realistic.masks, realistic.frames
         info.update(realistic=realistic.info)
     else:
         line_integrals, masks = simulate_views(label, geometry.volume, geometry.views, MASK_THRESHOLD_MM)
+        frames = None
     for n, (mask, view) in enumerate(zip(masks, geometry.views), start=1):
         if not mask.any() or mask.all():
             raise BenchmarkError(f"case {spec.name}: view {n} ({view.describe()}) sees {'no' if not mask.any() else 'only'} "
@@ -245,4 +247,4 @@ def prepare_case(spec: CaseSpec, protocol: str, grid: Optional[GridOptions] = No
     target_kind = PROTOCOLS[protocol][1]
     targets = line_integrals if target_kind == "line_integral" else [m.astype(np.float32) for m in masks]
     info["label_voxels"] = int(label.sum())
-    return PreparedCase(geometry, label, masks, targets, target_kind, info, time.perf_counter() - t0)
+    return PreparedCase(geometry, label, masks, targets, target_kind, info, time.perf_counter() - t0, frames)

@@ -32,11 +32,12 @@ from ..settings import PROTOCOLS, make_settings
 
 
 # --- one task: a case × mode ------------------------------------------------------------------------
-def _reconstruct(geometry, targets, settings, target_kind):
-    """The optimiser call (a seam: tests replace ``SDFCARLib.benchmark.run._reconstruct`` to inject failures)."""
+def _reconstruct(geometry, targets, settings, target_kind, frames=None):
+    """The optimiser call (a seam: tests replace ``SDFCARLib.benchmark.run._reconstruct`` to inject failures).
+    ``frames``: the realistic protocols' angiograms, fitted where ``frame_evidence`` is set."""
     from ..optimiser import reconstruct
 
-    return reconstruct(geometry, targets, settings, target_kind=target_kind)
+    return reconstruct(geometry, targets, settings, target_kind=target_kind, frames=frames)
 
 
 def _pack(mask: np.ndarray) -> Tuple[bytes, Tuple[int, ...]]:
@@ -100,7 +101,7 @@ def run_task(prepared: Dict[str, Any], spec: CaseSpec, mode: str, task: Dict[str
         else:
             settings = make_settings(task["preset"], mode=mode, seed=spec.seed, steps=task["steps"], **task["overrides"])
             row["steps"] = settings.optimisation.steps
-            result = _reconstruct(case.geometry, case.targets, settings, case.target_kind)
+            result = _reconstruct(case.geometry, case.targets, settings, case.target_kind, case.frames)
             prediction = result.segmentation
             row["device"] = result.report.get("device", "")
             row["wall_s"] = float(result.report.get("timings_s", {}).get("total", time.perf_counter() - t0))

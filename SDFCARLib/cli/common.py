@@ -86,13 +86,14 @@ class CancelOnInterrupt:
             self._previous = None
 
 
-def run_reconstruction(geometry, targets, settings, target_kind: str, show_progress: bool):
+def run_reconstruction(geometry, targets, settings, target_kind: str, show_progress: bool, frames=None):
     from ..optimiser import reconstruct
 
     bar = ProgressBar(show_progress)
     try:
         with CancelOnInterrupt() as cancel:
-            return reconstruct(geometry, targets, settings, target_kind=target_kind, progress=bar, cancel=cancel)
+            return reconstruct(geometry, targets, settings, target_kind=target_kind, progress=bar, cancel=cancel,
+                               frames=frames)
     finally:
         bar.close()
 

@@ -213,7 +213,9 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
         label = align_to_grid(label, label_grid, geometry.volume, what="ground-truth label")
     settings = settings_from_args(args)
     check_destination(args.out, result_file_names(len(geometry.views)), args.overwrite)  # before minutes of work
-    result = run_reconstruction(geometry, targets, settings, kind, not args.no_progress)
+    # the frames the auto masks came from: the evidence of --set frame_evidence=true
+    frames = [frame for _, frame, _ in auto] if auto else None
+    result = run_reconstruction(geometry, targets, settings, kind, not args.no_progress, frames=frames)
     result.report["warnings"] = grid_warnings + list(result.report.get("warnings", []))
     inputs = {"geometry": absolute_path(args.geometry), "label": absolute_path(args.label),
               "dicom": [absolute_path(run.path) for run in dicom_runs_from_args(args)] or None,

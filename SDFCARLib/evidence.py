@@ -1,0 +1,167 @@
+"""Line-integral evidence from the frames: how much vessel each ray crossed, read off the angiogram.
+
+Why
+    A binary mask says only *whether* a ray met vessel. Where one view's ray crosses a vessel, the
+    optimiser may add vessel anywhere along it at no cost in that view — this is where ghosts of
+    what the other view's mask missed or widened settle (bench/RESULTS.md §12b, §15). The frame
+    says *how much* vessel the ray crossed: with it as the occupancy target, a ghost in the shadow
+    of a real vessel adds path length the frame does not show.
+
+Model (Beer–Lambert, as ``angiogram.py`` simulates and real cine frames record)
+    −log I = μ·L + B, L the mm of contrast-filled vessel along the ray, μ its attenuation per mm,
+    B the tissue and exposure, smooth at the scale of a vessel. Per view:
+
+    1. absorbance a = −log I;
+    2. the background B̂: a averaged around the vessels — outside the mask widened by
+       ``clearance_px`` — by a normalised Gaussian of ``background_scale_mm``, i.e. the tissue under
+       a vessel interpolated from beside it;
+    3. μ: the blurred-circular-lumen model of ``analysis.frame_widths`` fitted across the thick
+       vessels of the mask (skeleton points whose half-width is ≥ ``min_radius_mm`` at the
+       isocenter, away from junctions); its amplitude is absorbance per detector-mm of chord, so
+       μ = amplitude · magnification. The median over the profiles. The profile's shape fixes the
+       radius, so μ does not depend on the mask's width (which is off by tenths of a mm);
+    4. L̂ = max(a − B̂, 0) / μ on the mask widened by ``reach_px`` (its borders are a pixel off
+       either way), 0 elsewhere: outside the vessels the frame's noise would read as faint vessel
+       everywhere.
+
+Units: detector mm for the frame's lengths (pixel spacing), mm of vessel for L̂.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, Dict, Sequence
+
+import numpy as np
+from scipy import ndimage
+
+from .analysis.frame_widths import DEFAULT_PSF_SIGMA_MM, fit_lumen
+from .geometry import CArmView
+
+
+class EvidenceError(ValueError):
+    """The frames cannot give line-integral evidence (the message says why and what to do)."""
+
+
+@dataclass(frozen=True)
+class EvidenceSettings:
+    reach_px: int = 2  # the mask is widened by this many pixels before the evidence is kept
+    clearance_px: int = 4  # the background is read this far outside the mask
+    background_scale_mm: float = 5.0  # Gaussian σ (detector mm) of the background interpolation
+    min_radius_mm: float = 0.8  # profiles for μ only across vessels at least this thick (radius at the isocenter)
+    max_profiles: int = 150
+    min_profiles: int = 5
+    psf_sigma_mm: float = DEFAULT_PSF_SIGMA_MM
+
+
+@dataclass
+class ViewEvidence:
+    line_integral_mm: np.ndarray  # (rows, cols) float32: L̂
+    attenuation_per_mm: float  # μ
+    info: Dict[str, Any]
+
+
+def _widened(mask: np.ndarray, pixels: int) -> np.ndarray:
+    # scipy dilates until nothing changes when iterations < 1
+    return ndimage.binary_dilation(mask, iterations=pixels) if pixels > 0 else np.asarray(mask, bool)
+
+
+def absorbance_above_background(frame: np.ndarray, mask: np.ndarray, pixel_spacing_mm: Sequence[float],
+                                settings: EvidenceSettings = EvidenceSettings()) -> np.ndarray:
+    """a − B̂ (steps 1–2 of the module docstring), everywhere in the image."""
+    absorbance = -np.log(np.maximum(np.asarray(frame, np.float64), 1.0))
+    outside = ~_widened(mask, settings.clearance_px)
+    if not outside.any():
+        raise EvidenceError("the mask covers the whole frame: no background left to subtract")
+    sigma_px = [settings.background_scale_mm / s for s in pixel_spacing_mm]
+    weight = ndimage.gaussian_filter(outside.astype(np.float64), sigma_px, mode="nearest")
+    total = ndimage.gaussian_filter(np.where(outside, absorbance, 0.0), sigma_px, mode="nearest")
+    # Far from any background pixel the weight underflows; the nearest estimate is used there.
+    background = total / np.maximum(weight, 1e-12)
+    thin = weight < 1e-6
+    if thin.any():
+        _, (ri, ci) = ndimage.distance_transform_edt(thin, return_indices=True)
+        background = background[ri, ci]
+    return absorbance - background
+
+
+def _skeleton_directions(skeleton: np.ndarray, spacing: np.ndarray, points: np.ndarray, half_window: int = 3) -> np.ndarray:
+    """Unit tangents (row, col in mm) of the skeleton at ``points`` from the principal axis of its pixels nearby."""
+    tangents = np.zeros((len(points), 2))
+    for n, (r, c) in enumerate(points):
+        r0, c0 = max(r - half_window, 0), max(c - half_window, 0)
+        rr, cc = np.nonzero(skeleton[r0:r + half_window + 1, c0:c + half_window + 1])
+        xy = np.stack([(rr + r0 - r) * spacing[0], (cc + c0 - c) * spacing[1]], axis=1)
+        _, _, vt = np.linalg.svd(xy - xy.mean(axis=0), full_matrices=False)
+        tangents[n] = vt[0]
+    return tangents
+
+
+def estimate_attenuation_per_mm(frame: np.ndarray, mask: np.ndarray, view: CArmView,
+                                settings: EvidenceSettings = EvidenceSettings()) -> Dict[str, Any]:
+    """μ (per mm of vessel) from lumen fits across the mask's thick vessels (step 3); raises
+    ``EvidenceError`` when fewer than ``settings.min_profiles`` fits succeed."""
+    from skimage.morphology import skeletonize
+
+    spacing = np.asarray(view.pixel_spacing_mm, float)
+    magnification = float(view.magnification)
+    skeleton = skeletonize(mask)
+    half_width = ndimage.distance_transform_edt(mask, sampling=spacing)  # detector mm
+    neighbours = ndimage.convolve(skeleton.astype(np.int32), np.ones((3, 3), np.int32), mode="constant") - 1
+    candidates = skeleton & (neighbours == 2) & (half_width >= settings.min_radius_mm * magnification)
+    points = np.argwhere(candidates)
+    if len(points) > settings.max_profiles:  # evenly over the candidates: deterministic
+        points = points[np.linspace(0, len(points) - 1, settings.max_profiles).round().astype(int)]
+    absorbance = -np.log(np.maximum(np.asarray(frame, np.float64), 1.0))
+    tangents = _skeleton_directions(skeleton, spacing, points)
+    pixel_mm = float(spacing.min())
+    # A pixel averages the image over its width: a box of variance p²/12 on top of the detector blur.
+    sigma = float(np.hypot(settings.psf_sigma_mm, pixel_mm / np.sqrt(12.0)))
+    values = []
+    for (r, c), (tr, tc) in zip(points, tangents):
+        guess = float(half_width[r, c])
+        half = 2.0 * guess + 4.0 * sigma + 1.0
+        x = np.arange(-half, half + pixel_mm / 4, pixel_mm / 2)
+        nr, nc = -tc, tr
+        profiles = []
+        for along in (-1.0, 0.0, 1.0):
+            rr = r + (x * nr + along * pixel_mm * tr) / spacing[0]
+            cc = c + (x * nc + along * pixel_mm * tc) / spacing[1]
+            if rr.min() < 0 or cc.min() < 0 or rr.max() > mask.shape[0] - 1 or cc.max() > mask.shape[1] - 1:
+                break
+            profiles.append(ndimage.map_coordinates(absorbance, [rr, cc], order=1))
+        if len(profiles) < 3:
+            continue
+        fitted = fit_lumen(x, np.mean(profiles, axis=0), guess, sigma)
+        if fitted is None:
+            continue
+        (_, radius, amplitude, _, _), _, (lower, upper) = fitted
+        if amplitude > 0 and 0.5 * guess < radius < min(2.0 * guess, 0.98 * upper[1]):
+            values.append(amplitude * magnification)
+    if len(values) < settings.min_profiles:
+        raise EvidenceError(
+            f"the iodine's attenuation could not be read from the frame: {len(values)} lumen fit(s) across vessels "
+            f"of radius ≥ {settings.min_radius_mm:g} mm succeeded (at least {settings.min_profiles} needed); "
+            "check that the frame belongs to the mask's view and shows contrast, or reconstruct from the masks alone")
+    return {"attenuation_per_mm": float(np.median(values)), "profiles": len(values),
+            "spread_per_mm": float(1.4826 * np.median(np.abs(np.asarray(values) - np.median(values))))}
+
+
+def view_evidence(frame: np.ndarray, mask: np.ndarray, view: CArmView,
+                  settings: EvidenceSettings = EvidenceSettings()) -> ViewEvidence:
+    """L̂ of one view (module docstring), with μ and what it was read from."""
+    frame = np.asarray(frame)
+    mask = np.asarray(mask, bool)
+    if frame.ndim != 2 or frame.shape != mask.shape:
+        raise EvidenceError(f"the frame has shape {frame.shape} but the view's mask {mask.shape}: give the frame "
+                            "the mask was drawn or segmented on (same rows and columns)")
+    if not np.all(np.isfinite(frame)) or float(np.max(frame)) <= 0:
+        raise EvidenceError("the frame has no positive finite intensities: give the recorded X-ray frame "
+                            "(vessels dark), not a mask or a processed image")
+    if not mask.any():
+        raise EvidenceError("the view's mask is empty: no vessel to read evidence for")
+    mu = estimate_attenuation_per_mm(frame, mask, view, settings)
+    above = absorbance_above_background(frame, mask, view.pixel_spacing_mm, settings)
+    keep = _widened(mask, settings.reach_px)
+    line_integral = np.where(keep, np.maximum(above, 0.0) / mu["attenuation_per_mm"], 0.0).astype(np.float32)
+    return ViewEvidence(line_integral, mu["attenuation_per_mm"], mu)
