@@ -79,6 +79,9 @@ def test_reconstruct_from_dicom_files(dicom_pair, tmp_path, capsys):
     assert report["geometry_digest"] == geometry.digest()
     assert report["inputs"]["dicom"][0].endswith("view1.dcm")
     assert report["inputs"]["geometry_provenance"]["views"][0]["fields"]["pixel_spacing_mm"]["source"] == "user"
+    # The chosen frames are the path-length evidence (fast): the runs' iodine is 0.25 per mm.
+    assert report["frame_evidence"]["used"] is True
+    assert [v["attenuation_per_mm"] for v in report["frame_evidence"]["views"]] == pytest.approx([0.25, 0.25], rel=0.25)
     # Both --geometry and DICOM, or neither: a clear error and nothing written.
     code = main(args[:1] + ["--geometry", "x.json"] + args[1:-5] + ["--out", str(tmp_path / "b")])
     assert code == 2 and "not both" in capsys.readouterr().err and not (tmp_path / "b").exists()

@@ -83,6 +83,9 @@ def test_bad_frames_are_refused_with_the_reason():
         view_evidence(frame, np.zeros_like(mask), VIEW)
     with pytest.raises(EvidenceError, match="positive"):
         view_evidence(np.zeros_like(frame), mask, VIEW)
+    for not_a_frame in (mask * 255.0, np.where(mask, 3000.0, 1000.0)):  # a mask, an inverted frame
+        with pytest.raises(EvidenceError):
+            view_evidence(not_a_frame, mask, VIEW)
     thin = _tubes_image(radii_mm=(0.3, 0.3))  # no vessel thick enough to read μ across
     with pytest.raises(EvidenceError, match="attenuation"):
         view_evidence(_frame(thin[1], 1.0), thin[2], VIEW)
@@ -143,6 +146,10 @@ def test_frames_are_ignored_unless_asked_and_checked_when_used(angiogram_case):
     on = make_settings("fast", steps=5, frame_evidence=True)
     none = reconstruct(geometry, masks, on, "mask")
     assert none.report["frame_evidence"]["why"] == "no frames were given"
+    masks_as_frames = [m.astype(np.float32) * 255.0 for m in masks]  # not X-ray frames: the masks alone are fitted
+    fallback = reconstruct(geometry, masks, on, "mask", frames=masks_as_frames)
+    assert fallback.report["frame_evidence"]["used"] is False
+    assert any("frames are not used" in w for w in fallback.report["warnings"])
     with pytest.raises(ReconstructionError, match="1 frame"):
         reconstruct(geometry, masks, on, "mask", frames=frames[:1])
     with pytest.raises(ReconstructionError, match="view 2: the frame has shape"):

@@ -28,7 +28,7 @@ from SDFCARLib.metrics import evaluate  # noqa: E402
 from SDFCARLib.optimiser import reconstruct  # noqa: E402
 from SDFCARLib.phantoms import lad_tree, rca_tree, voxelize  # noqa: E402
 from SDFCARLib.realistic import RealisticOptions, realistic_input  # noqa: E402
-from SDFCARLib.settings import make_settings  # noqa: E402
+from SDFCARLib.settings import make_settings, parse_setting_overrides  # noqa: E402
 
 PROTOCOL = "realistic-static-lao30-rao30"
 KEYS = ("cldice", "tprec", "tsens", "dice", "chamfer_l2_mm")
@@ -40,6 +40,9 @@ def main() -> int:
     parser.add_argument("--first", type=int, default=0)
     parser.add_argument("--cases", type=int, default=4)
     parser.add_argument("--thresholds", type=float, nargs="+", default=[0.5])
+    parser.add_argument("--variant", action="append", default=[], metavar="KEY=VALUE[,KEY=VALUE]",
+                        help="one more variant with the frames and these settings (threshold 0.5), e.g. support_margin_mm=1.5")
+    parser.add_argument("--no-masks-only", action="store_true", help="skip the masks-only variant")
     parser.add_argument("--paper-grid", action="store_true", help="128³ at 0.8 mm, 512² at 0.278 mm")
     parser.add_argument("--threads", type=int, default=1)
     args = parser.parse_args()
@@ -49,7 +52,7 @@ def main() -> int:
     print(f"# {platform.processor() or platform.machine()}, {os.cpu_count()} cores, torch {torch.__version__}, "
           f"{args.threads} thread(s); {args.suite} cases {args.first}..{args.first + args.cases - 1}, {PROTOCOL}, "
           f"{'paper grid' if args.paper_grid else 'grid80'}", flush=True)
-    variants = ["masks"] + [f"frames@{t:g}" for t in args.thresholds]
+    variants = ([] if args.no_masks_only else ["masks"]) + [f"frames@{t:g}" for t in args.thresholds] + [f"frames+{v}" for v in args.variant]
     table = {v: [] for v in variants}
     for seed in range(args.first, args.first + args.cases):
         name = f"{args.suite.upper()}-{seed}"
@@ -59,6 +62,10 @@ def main() -> int:
             t0 = time.perf_counter()
             if variant == "masks":
                 settings, frames = make_settings("fast", seed=seed), None
+            elif variant.startswith("frames+"):
+                overrides = parse_setting_overrides(variant[len("frames+"):].split(","))
+                settings = make_settings("fast", seed=seed, frame_evidence=True, **overrides)
+                frames = realistic.frames
             else:
                 settings = make_settings("fast", seed=seed, frame_evidence=True, threshold=float(variant.split("@")[1]))
                 frames = realistic.frames
@@ -71,14 +78,14 @@ def main() -> int:
             print(f"{name} {variant:11s} clDice {m['cldice']:.3f} Tprec {m['tprec']:.3f} Tsens {m['tsens']:.3f} "
                   f"Dice {m['dice']:.3f} Chamfer {m['chamfer_l2_mm']:.2f} pieces {m['pieces']}/{m.get('components_label')} "
                   f"{time.perf_counter() - t0:.0f} s" + (f"  mu {mu}" if mu else ""), flush=True)
-    print("# means over the cases (clDice, Tprec, Tsens, Dice in %; Chamfer mm; pieces); better than masks on clDice")
-    base = np.array([m["cldice"] for m in table["masks"]])
+    print(f"# means over the cases (clDice, Tprec, Tsens, Dice in %; Chamfer mm; pieces); better than {variants[0]} on clDice")
+    base = np.array([m["cldice"] for m in table[variants[0]]])
     for variant, rows in table.items():
         means = {k: float(np.mean([r[k] for r in rows])) for k in KEYS + ("pieces",)}
         better = int(np.sum(np.array([r["cldice"] for r in rows]) > base))
         print(f"{variant:11s} " + "  ".join(f"{k} {100 * means[k]:.2f}" if k not in ("chamfer_l2_mm", "pieces")
                                             else f"{k} {means[k]:.2f}" for k in KEYS + ("pieces",))
-              + ("" if variant == "masks" else f"  better {better}/{len(rows)}"))
+              + ("" if variant == variants[0] else f"  better {better}/{len(rows)}"))
     return 0
 
 

@@ -62,7 +62,7 @@ def main() -> int:
     label = voxelize((rca_tree if args.suite == "rca" else lad_tree)(spec.seed), geometry.volume)
     case = realistic_input(label, geometry, spec.seed, RealisticOptions(**REALISTIC_PROTOCOLS[args.protocol]))
     targets = [m.astype(np.float32) for m in case.masks]
-    result = reconstruct(geometry, targets, make_settings("fast", seed=spec.seed), "mask")
+    result = reconstruct(geometry, targets, make_settings("fast", seed=spec.seed), "mask", frames=case.frames)
     m = evaluate(result.segmentation, label, geometry.volume, geometry.views, case.true_masks)
     summary = (f"{spec.name}, {args.protocol}: clDice {m['cldice']:.3f}, Dice {m['dice']:.3f}, "
                f"{m.get('components')} components (truth {m.get('components_label')})")

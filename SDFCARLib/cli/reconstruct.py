@@ -191,6 +191,16 @@ def _auto_masks(args: argparse.Namespace, geometry, provenance) -> List[Tuple[Di
     return auto
 
 
+def _dicom_frames(args: argparse.Namespace, provenance, kind: str) -> Optional[List[np.ndarray]]:
+    """The chosen frame of each XA run the geometry was read from (the frames the masks were drawn on), or None."""
+    runs = dicom_runs_from_args(args)
+    if not runs or kind != "mask" or provenance is None:
+        return None
+    from ..dicom import load_xa
+
+    return [load_xa(run.path).frames[int(info["frame"]["index"])] for run, info in zip(runs, provenance["views"])]
+
+
 def cmd_reconstruct(args: argparse.Namespace) -> int:
     from ..io import align_to_grid, read_label
     from ..outputs import check_destination, result_file_names, write_reconstruction
@@ -213,8 +223,8 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
         label = align_to_grid(label, label_grid, geometry.volume, what="ground-truth label")
     settings = settings_from_args(args)
     check_destination(args.out, result_file_names(len(geometry.views)), args.overwrite)  # before minutes of work
-    # the frames the auto masks came from: the evidence of --set frame_evidence=true
-    frames = [frame for _, frame, _ in auto] if auto else None
+    # the frames the masks were made on: the path-length evidence of frame_evidence (on in fast)
+    frames = [frame for _, frame, _ in auto] if auto else _dicom_frames(args, provenance, kind)
     result = run_reconstruction(geometry, targets, settings, kind, not args.no_progress, frames=frames)
     result.report["warnings"] = grid_warnings + list(result.report.get("warnings", []))
     inputs = {"geometry": absolute_path(args.geometry), "label": absolute_path(args.label),
