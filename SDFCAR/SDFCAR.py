@@ -1123,15 +1123,20 @@ class SDFCARLogic(ScriptedLoadableModuleLogic):
 
         The files go to a new folder beside the result's (analysis, analysis-2, …: an earlier
         analysis is kept). The view masks of the reconstruction job, when its folder is still
-        there, give the 2D diameters."""
+        there, give the 2D diameters, and its frames the widths fitted to their intensity profiles
+        (unless ``options`` names other frames)."""
         import shutil
         import tempfile
 
-        from SDFCARLib.jobs import AnalysisJob, job_masks
+        from SDFCARLib.jobs import AnalysisJob, job_frames, job_masks
 
         folder = SDFCARLogic.resultFolder(resultNode)
         jobFolder = resultNode.GetAttribute("SDFCAR.jobFolder")
         masks = job_masks(jobFolder) if jobFolder else None
+        frames = job_frames(jobFolder) if jobFolder and masks is not None else None
+        options = dict(options or {})
+        if frames and "frames" not in options:
+            options["frames"] = frames
         base = Path(slicer.app.temporaryPath) / "SDFCAR"
         base.mkdir(parents=True, exist_ok=True)
         jobDir = Path(tempfile.mkdtemp(prefix=f"analysis-{time.strftime('%Y%m%d-%H%M%S')}-", dir=str(base)))

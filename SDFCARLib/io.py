@@ -38,7 +38,7 @@ from .masks import MaskError, binarise_mask
 
 PathLike = Union[str, Path]
 
-IMAGE_FORMATS = "PNG (.png), TIFF (.tif, .tiff) or NRRD (.nrrd, .nhdr)"
+IMAGE_FORMATS = "PNG (.png), TIFF (.tif, .tiff), NRRD (.nrrd, .nhdr) or NumPy (.npy)"
 VOLUME_FORMATS = "NRRD (.nrrd, .nhdr, .seg.nrrd) or NIfTI (.nii, .nii.gz)"
 CENTRELINE_FORMATS = "VTK polydata (.vtk, .vtp)"
 
@@ -115,7 +115,7 @@ def _single_channel(data: np.ndarray, path: Path) -> np.ndarray:
 
 
 def read_image(path: PathLike, what: str = "image") -> np.ndarray:
-    """A 2D detector image ``(rows, cols)`` (row 0 = top) from PNG, TIFF or NRRD.
+    """A 2D detector image ``(rows, cols)`` (row 0 = top) from PNG, TIFF, NRRD or .npy.
 
     Colour images are accepted when their colour channels are equal (and an alpha channel, if
     any, is constant); a 3D NRRD/TIFF is accepted when one of its axes has length 1.
@@ -139,6 +139,11 @@ def read_image(path: PathLike, what: str = "image") -> np.ndarray:
     elif suffix in (".nrrd", ".nhdr"):
         # C order puts NRRD's fastest axis (image columns) last: (rows, cols).
         data, _ = _read_nrrd(path, index_order="C")
+    elif suffix == ".npy":  # as the job folders store the views' images
+        try:
+            data = np.load(path, allow_pickle=False)
+        except (ValueError, OSError) as exc:
+            raise InputError(f"cannot read {path} as a NumPy image: {exc}") from exc
     else:
         raise InputError(f"{path}: unsupported {what} format {suffix or '(no extension)'!r}; use {IMAGE_FORMATS}")
     if data.ndim > 2:

@@ -450,6 +450,18 @@ def job_masks(job_dir: PathLike) -> Optional[List[np.ndarray]]:
         return None
 
 
+def job_frames(job_dir: PathLike) -> Optional[List[str]]:
+    """The paths of the X-ray frames stored with a reconstruction job folder (frame<n>.npy, one per
+    view), or None when the job had none or its files are gone."""
+    job_dir = Path(job_dir)
+    try:
+        count = int(json.loads((job_dir / "job.json").read_text(encoding="utf-8")).get("views") or 0)
+    except (OSError, ValueError, AttributeError, TypeError):
+        return None
+    paths = [job_dir / f"frame{n}.npy" for n in range(1, count + 1)]
+    return [str(p) for p in paths] if paths and all(p.is_file() for p in paths) else None
+
+
 def prepare_analysis_job(job_dir: PathLike, result_dir: PathLike, out_dir: Optional[PathLike] = None,
                          masks: Optional[Sequence[Any]] = None, options: Optional[Dict[str, Any]] = None) -> Path:
     """Write an analysis job folder: the result to analyse, where to write, the view masks (arrays are

@@ -244,12 +244,15 @@ def test_a_three_view_job_runs_and_writes_three_overlays(tmp_path):
 
 def test_frames_travel_with_the_job_and_are_checked_first(tiny_case, tmp_path):
     from SDFCARLib.angiogram import simulate_angiogram
+    from SDFCARLib.jobs import job_frames
 
     frames = [simulate_angiogram(li, v.pixel_spacing_mm, n)[0]
               for n, (li, v) in enumerate(zip(tiny_case.line_integrals, tiny_case.geometry.views))]
     folder = prepare_job(tmp_path / "job", tiny_case.geometry, tiny_case.masks, dict(SMALL, steps=3, frame_evidence=True),
                          frames=frames)
     assert sorted(p.name for p in folder.glob("frame*.npy")) == ["frame1.npy", "frame2.npy"]
+    assert job_frames(folder) == [str(folder / "frame1.npy"), str(folder / "frame2.npy")]  # for the 3D-QCA's widths
+    assert job_frames(prepare_job(tmp_path / "plain", tiny_case.geometry, tiny_case.masks, SMALL)) is None
     report = json.loads(Path(run_job(folder)["report"]).read_text())
     assert report["frame_evidence"]["used"] is True and len(report["frame_evidence"]["views"]) == 2
     with pytest.raises(JobFolderError, match="frame 2 has shape"):

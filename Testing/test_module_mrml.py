@@ -10,6 +10,7 @@ section's text and QA overlay come from them, and Analyse runs the real worker p
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -28,7 +29,7 @@ def three_view_result(tmp_path_factory):
     from SDFCARLib.jobs import prepare_job
     from SDFCARLib.optimiser import Reconstruction
     from SDFCARLib.outputs import write_reconstruction
-    from SDFCARLib.phantoms import make_case
+    from SDFCARLib.phantoms import beer_lambert_counts, make_case
     from SDFCARLib.qa import qa_warnings, reprojection_qa
     from SDFCARLib.settings import make_settings
 
@@ -49,7 +50,8 @@ def three_view_result(tmp_path_factory):
     result = Reconstruction(geometry, settings, label.astype(np.float32), label.astype(np.float32) * 2 - 1, label, None,
                             report, qa_masks=qa_masks)
     job = tmp_path_factory.mktemp("job") / "Tree-20260101-000000"
-    prepare_job(job, geometry, case.masks, {"preset": "fast", "steps": 1}, name="Tree")
+    frames = [beer_lambert_counts(li, 0.25, 3000.0, 12) for li in case.line_integrals]  # the frames the masks came from
+    prepare_job(job, geometry, case.masks, {"preset": "fast", "steps": 1}, name="Tree", frames=frames)
     files = write_reconstruction(result, job / "output", name="Tree")
     return {k: str(v) for k, v in files.items()}, job, geometry, case
 
@@ -118,6 +120,7 @@ def test_analyse_adds_the_qca_and_the_suggested_view_turns_the_camera(module, th
     assert job_handle.wait(300) == "finished", (job_handle.job_dir / "worker.log").read_text()
     manifest = json.loads((job_handle.job_dir / "analysis_job.json").read_text())
     assert len(manifest["masks"]) == 3  # the job's masks give the 2D diameters
+    assert [Path(f).name for f in manifest["options"]["frames"]] == ["frame1.npy", "frame2.npy", "frame3.npy"]  # and its frames
     qca = logic.addAnalysis(job_handle.result(), context)
     folder = job / "output" / "analysis"
     assert nodes.segmentation.GetAttribute("SDFCAR.analysisFolder") == str(folder)
