@@ -160,11 +160,11 @@ def view_evidence(frame: np.ndarray, mask: np.ndarray, view: CArmView,
                             "(vessels dark), not a mask or a processed image")
     if not mask.any():
         raise EvidenceError("the view's mask is empty: no vessel to read evidence for")
-    mu = estimate_attenuation_per_mm(frame, mask, view, settings)
     above = absorbance_above_background(frame, mask, view.pixel_spacing_mm, settings)
+    if not np.median(above[mask]) > 0:
+        raise EvidenceError("inside the mask the frame is not darker than around it: give the recorded frame "
+                            "with the vessels dark (raw X-ray intensity, not inverted), the one the mask was made on")
+    mu = estimate_attenuation_per_mm(frame, mask, view, settings)
     keep = _widened(mask, settings.reach_px)
     line_integral = np.where(keep, np.maximum(above, 0.0) / mu["attenuation_per_mm"], 0.0).astype(np.float32)
-    if not np.any(line_integral[mask] > 0):
-        raise EvidenceError("inside the mask the frame is nowhere darker than around it: give the recorded frame "
-                            "with the vessels dark (raw X-ray intensity, not inverted or a mask)")
     return ViewEvidence(line_integral, mu["attenuation_per_mm"], mu)

@@ -452,14 +452,22 @@ def job_masks(job_dir: PathLike) -> Optional[List[np.ndarray]]:
 
 def job_frames(job_dir: PathLike) -> Optional[List[str]]:
     """The paths of the X-ray frames stored with a reconstruction job folder (frame<n>.npy, one per
-    view), or None when the job had none or its files are gone."""
+    view), or None when the job had none, its files are gone, or they are binary images (the sample
+    case shows its masks as frames: no intensity profile to fit)."""
     job_dir = Path(job_dir)
     try:
         count = int(json.loads((job_dir / "job.json").read_text(encoding="utf-8")).get("views") or 0)
     except (OSError, ValueError, AttributeError, TypeError):
         return None
     paths = [job_dir / f"frame{n}.npy" for n in range(1, count + 1)]
-    return [str(p) for p in paths] if paths and all(p.is_file() for p in paths) else None
+    if not paths or not all(p.is_file() for p in paths):
+        return None
+    try:
+        if any(np.unique(np.load(p, allow_pickle=False)).size <= 2 for p in paths):
+            return None
+    except (ValueError, OSError):
+        return None
+    return [str(p) for p in paths]
 
 
 def prepare_analysis_job(job_dir: PathLike, result_dir: PathLike, out_dir: Optional[PathLike] = None,

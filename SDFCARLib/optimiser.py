@@ -184,6 +184,9 @@ def _frame_evidence(frames: Optional[Sequence[np.ndarray]], masks: Sequence[np.n
                                   "in the geometry's order, or none")
     from .evidence import EvidenceError, view_evidence
 
+    if any(frame is not None and np.unique(np.asarray(frame)).size <= 2 for frame in frames):
+        # e.g. the sample case, whose "frames" are its masks: nothing to read, nothing to warn about
+        return None, {"used": False, "why": "the frames are binary images (masks), not recorded X-ray frames"}, []
     images, views = [], []
     for n, (frame, mask, view) in enumerate(zip(frames, masks, geometry.views), start=1):
         if frame is None or np.shape(frame) != tuple(view.detector_shape):

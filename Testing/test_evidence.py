@@ -146,8 +146,13 @@ def test_frames_are_ignored_unless_asked_and_checked_when_used(angiogram_case):
     on = make_settings("fast", steps=5, frame_evidence=True)
     none = reconstruct(geometry, masks, on, "mask")
     assert none.report["frame_evidence"]["why"] == "no frames were given"
-    masks_as_frames = [m.astype(np.float32) * 255.0 for m in masks]  # not X-ray frames: the masks alone are fitted
-    fallback = reconstruct(geometry, masks, on, "mask", frames=masks_as_frames)
+    masks_as_frames = [m.astype(np.float32) * 255.0 for m in masks]  # the sample case's "frames": no evidence, no warning
+    binary = reconstruct(geometry, masks, on, "mask", frames=masks_as_frames)
+    assert binary.report["frame_evidence"] == {"used": False, "why": "the frames are binary images (masks), not recorded "
+                                                                    "X-ray frames"}
+    assert not any("frames" in w for w in binary.report["warnings"])
+    inverted = [f.max() + 1.0 - f.astype(np.float32) for f in frames]  # vessels bright: not usable, and said so
+    fallback = reconstruct(geometry, masks, on, "mask", frames=inverted)
     assert fallback.report["frame_evidence"]["used"] is False
     assert any("frames are not used" in w for w in fallback.report["warnings"])
     with pytest.raises(ReconstructionError, match="1 frame"):

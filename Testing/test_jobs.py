@@ -253,6 +253,9 @@ def test_frames_travel_with_the_job_and_are_checked_first(tiny_case, tmp_path):
     assert sorted(p.name for p in folder.glob("frame*.npy")) == ["frame1.npy", "frame2.npy"]
     assert job_frames(folder) == [str(folder / "frame1.npy"), str(folder / "frame2.npy")]  # for the 3D-QCA's widths
     assert job_frames(prepare_job(tmp_path / "plain", tiny_case.geometry, tiny_case.masks, SMALL)) is None
+    masks_as_frames = [m.astype(np.float32) * 255 for m in tiny_case.masks]  # the sample case's "frames"
+    assert job_frames(prepare_job(tmp_path / "binary", tiny_case.geometry, tiny_case.masks, SMALL,
+                                  frames=masks_as_frames)) is None
     report = json.loads(Path(run_job(folder)["report"]).read_text())
     assert report["frame_evidence"]["used"] is True and len(report["frame_evidence"]["views"]) == 2
     with pytest.raises(JobFolderError, match="frame 2 has shape"):
