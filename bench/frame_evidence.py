@@ -12,8 +12,6 @@ the attenuation read off the frames (the simulator's is 0.25 per mm), the means,
 from __future__ import annotations
 
 import argparse
-import os
-import platform
 import sys
 import time
 from pathlib import Path
@@ -21,9 +19,8 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import numpy as np  # noqa: E402
-import torch  # noqa: E402
 
-from SDFCARLib.benchmark.cases import GridOptions, protocol_geometry  # noqa: E402
+from bench.realistic_cases import add_grid_arguments, protocol_setup  # noqa: E402
 from SDFCARLib.metrics import evaluate  # noqa: E402
 from SDFCARLib.optimiser import reconstruct  # noqa: E402
 from SDFCARLib.phantoms import lad_tree, rca_tree, voxelize  # noqa: E402
@@ -43,15 +40,9 @@ def main() -> int:
     parser.add_argument("--variant", action="append", default=[], metavar="KEY=VALUE[,KEY=VALUE]",
                         help="one more variant with the frames and these settings (threshold 0.5), e.g. support_margin_mm=1.5")
     parser.add_argument("--no-masks-only", action="store_true", help="skip the masks-only variant")
-    parser.add_argument("--paper-grid", action="store_true", help="128³ at 0.8 mm, 512² at 0.278 mm")
-    parser.add_argument("--threads", type=int, default=1)
+    add_grid_arguments(parser)
     args = parser.parse_args()
-    torch.set_num_threads(args.threads)
-    grid = None if args.paper_grid else GridOptions((80, 80, 80), 1.3, (192, 192), 0.8)
-    geometry = protocol_geometry(PROTOCOL, args.suite, grid)
-    print(f"# {platform.processor() or platform.machine()}, {os.cpu_count()} cores, torch {torch.__version__}, "
-          f"{args.threads} thread(s); {args.suite} cases {args.first}..{args.first + args.cases - 1}, {PROTOCOL}, "
-          f"{'paper grid' if args.paper_grid else 'grid80'}", flush=True)
+    geometry = protocol_setup(args, PROTOCOL, f"{args.first}..{args.first + args.cases - 1}")
     variants = ([] if args.no_masks_only else ["masks"]) + [f"frames@{t:g}" for t in args.thresholds] + [f"frames+{v}" for v in args.variant]
     table = {v: [] for v in variants}
     for seed in range(args.first, args.first + args.cases):

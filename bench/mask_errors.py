@@ -12,17 +12,14 @@ its extra pixels remain). Prints each variant's metrics against the truth and th
 from __future__ import annotations
 
 import argparse
-import os
-import platform
 import sys
 import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-import torch  # noqa: E402
 
-from SDFCARLib.benchmark.cases import GridOptions, protocol_geometry  # noqa: E402
+from bench.realistic_cases import add_grid_arguments, protocol_setup  # noqa: E402
 from SDFCARLib.metrics import evaluate  # noqa: E402
 from SDFCARLib.optimiser import reconstruct  # noqa: E402
 from SDFCARLib.phantoms import lad_tree, rca_tree, voxelize  # noqa: E402
@@ -36,15 +33,9 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--suite", choices=("rca", "lad"), default="rca")
     parser.add_argument("--case", type=int, nargs="+", default=[0], help="case seeds")
-    parser.add_argument("--paper-grid", action="store_true", help="128³ at 0.8 mm, 512² at 0.278 mm")
-    parser.add_argument("--threads", type=int, default=1)
+    add_grid_arguments(parser)
     args = parser.parse_args()
-    torch.set_num_threads(args.threads)
-    grid = None if args.paper_grid else GridOptions((80, 80, 80), 1.3, (192, 192), 0.8)
-    geometry = protocol_geometry(PROTOCOL, args.suite, grid)
-    print(f"# {platform.processor() or platform.machine()}, {os.cpu_count()} cores, torch {torch.__version__}, "
-          f"{args.threads} thread(s); {args.suite} cases {args.case}, {PROTOCOL}, "
-          f"{'paper grid' if args.paper_grid else 'grid80'}", flush=True)
+    geometry = protocol_setup(args, PROTOCOL, str(args.case))
     for seed in args.case:
         name = f"{args.suite.upper()}-{seed}"
         label = voxelize((rca_tree if args.suite == "rca" else lad_tree)(seed), geometry.volume)
