@@ -236,12 +236,16 @@ class ViewTarget:
 
 def frame_target(line_integral_mm: torch.Tensor, mask_target: ViewTarget) -> ViewTarget:
     """A mask's view with L_occ on path lengths read off its frame (``evidence.py``): L / L_ref against
-    the evidence / L_ref, L_ref its 99.5th percentile (a noise spike does not set the scale); the
-    silhouette for L_geo stays the mask."""
-    values = line_integral_mm[line_integral_mm > 0]
+    the evidence / L_ref; the silhouette for L_geo stays the mask.
+
+    L_ref is the median evidence over the mask's vessel pixels, so a typical vessel pixel reads 1
+    as it does in a mask and λ_occ keeps its meaning: scaled by the maximum instead (as for
+    simulated line integrals), a thin vessel's pixels weighed a few per cent of a mask pixel and
+    were lost (bench/RESULTS.md §15)."""
+    values = line_integral_mm[(line_integral_mm > 0) & (mask_target.silhouette > 0)]
     if values.numel() == 0:
         raise ValueError("the frame shows no vessel inside the mask: no evidence to fit")
-    reference = float(torch.quantile(values.float(), 0.995)) if values.numel() < 2**24 else float(values.max())
+    reference = float(torch.median(values.float()))
     image = (line_integral_mm.to(torch.float32) / reference)
     return ViewTarget(image, mask_target.silhouette, "line_integral", reference, mask_target.silhouette_length_mm)
 

@@ -99,7 +99,9 @@ def test_frame_target_fits_path_lengths_and_keeps_the_mask_silhouette():
     evidence = torch.zeros(8, 8)
     evidence[2:6, 3:5] = torch.tensor([1.0, 2.0])
     target = frame_target(evidence, make_target(mask, "mask", 0.3))
-    assert target.reference_mm == pytest.approx(2.0, rel=0.01)
+    evidence[0, 0] = 9.0  # evidence outside the mask does not set the scale
+    target = frame_target(evidence, make_target(mask, "mask", 0.3))
+    assert target.reference_mm == pytest.approx(1.0)  # the median over the mask's pixels: a typical vessel pixel reads 1
     assert torch.equal(target.silhouette, mask)
     assert torch.allclose(target.rendered(evidence), target.image)  # the evidence itself is a perfect rendering
     with pytest.raises(ValueError, match="no vessel"):
