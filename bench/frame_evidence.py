@@ -2,10 +2,11 @@
 
     .venv/bin/python bench/frame_evidence.py --suite rca --cases 10
 
-Realistic static protocol (LAO 30 / RAO 30, masks segmented from simulated angiograms, no motion;
+Realistic static protocol (LAO 30 / RAO 30, masks segmented from simulated angiograms, no motion, or
+with ``--motion`` the heart moved up to 3 mm / 2° between the acquisitions;
 coarse grid 80³ at 1.3 mm and 192² at 0.8 mm unless --paper-grid). Per case, from the same masks
 and seed, ``fast`` is run on the masks alone and with the frames as evidence at the segmentation
-segmentation thresholds given (``threshold``); prints each variant's metrics against the truth,
+thresholds given (``threshold``) and with any ``--variant`` settings; prints each variant's metrics against the truth,
 the attenuation read off the frames (the simulator's is 0.25 per mm), the means, and the machine.
 """
 
@@ -25,9 +26,10 @@ from SDFCARLib.metrics import evaluate  # noqa: E402
 from SDFCARLib.optimiser import reconstruct  # noqa: E402
 from SDFCARLib.phantoms import lad_tree, rca_tree, voxelize  # noqa: E402
 from SDFCARLib.realistic import RealisticOptions, realistic_input  # noqa: E402
-from SDFCARLib.settings import make_settings, parse_setting_overrides  # noqa: E402
+from SDFCARLib.settings import REALISTIC_PROTOCOLS, make_settings, parse_setting_overrides  # noqa: E402
 
 PROTOCOL = "realistic-static-lao30-rao30"
+MOVING = "realistic-lao30-rao30"  # the same with the heart moving up to 3 mm / 2° between the acquisitions
 KEYS = ("cldice", "tprec", "tsens", "dice", "chamfer_l2_mm")
 
 
@@ -40,15 +42,18 @@ def main() -> int:
     parser.add_argument("--variant", action="append", default=[], metavar="KEY=VALUE[,KEY=VALUE]",
                         help="one more variant with the frames and these settings (threshold 0.5), e.g. support_margin_mm=1.5")
     parser.add_argument("--no-masks-only", action="store_true", help="skip the masks-only variant")
+    parser.add_argument("--motion", action="store_true", help=f"protocol {MOVING} (no calibration)")
     add_grid_arguments(parser)
     args = parser.parse_args()
-    geometry = protocol_setup(args, PROTOCOL, f"{args.first}..{args.first + args.cases - 1}")
+    protocol = MOVING if args.motion else PROTOCOL
+    geometry = protocol_setup(args, protocol, f"{args.first}..{args.first + args.cases - 1}")
     variants = ([] if args.no_masks_only else ["masks"]) + [f"frames@{t:g}" for t in args.thresholds] + [f"frames+{v}" for v in args.variant]
     table = {v: [] for v in variants}
     for seed in range(args.first, args.first + args.cases):
         name = f"{args.suite.upper()}-{seed}"
         label = voxelize((rca_tree if args.suite == "rca" else lad_tree)(seed), geometry.volume)
-        realistic = realistic_input(label, geometry, seed, RealisticOptions(max_shift_mm=0.0, max_rotation_deg=0.0))
+        options = RealisticOptions(**REALISTIC_PROTOCOLS[protocol])
+        realistic = realistic_input(label, geometry, seed, options)
         for variant in variants:
             t0 = time.perf_counter()
             if variant == "masks":
