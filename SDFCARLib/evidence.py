@@ -15,7 +15,7 @@ Model (Beer–Lambert, as ``angiogram.py`` simulates and real cine frames record
     2. the background B̂: a averaged around the vessels — outside the mask widened by
        ``clearance_px`` — by a normalised Gaussian of ``background_scale_mm``, i.e. the tissue under
        a vessel interpolated from beside it;
-    3. μ: the blurred-circular-lumen model of ``analysis.frame_widths`` fitted across the thick
+    3. μ: the blurred-circular-lumen model of ``lumen_profile`` fitted across the thick
        vessels of the mask (skeleton points whose half-width is ≥ ``min_radius_mm`` at the
        isocenter, away from junctions); its amplitude is absorbance per detector-mm of chord, so
        μ = amplitude · magnification. The median over the profiles. The profile's shape fixes the
@@ -35,7 +35,7 @@ from typing import Any, Dict, Sequence
 import numpy as np
 from scipy import ndimage
 
-from .analysis.frame_widths import DEFAULT_PSF_SIGMA_MM, fit_lumen
+from .lumen_profile import DEFAULT_PSF_SIGMA_MM, fit_lumen
 from .geometry import CArmView
 
 

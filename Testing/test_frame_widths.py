@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 from SDFCARLib.analysis.diameter import projected_widths
-from SDFCARLib.analysis.frame_widths import blurred_chord, chord_mm, fit_profile, frame_widths
+from SDFCARLib.analysis.frame_widths import fit_profile, frame_widths
+from SDFCARLib.lumen_profile import blurred_chord, chord_mm
 from SDFCARLib.analysis.phantoms import grid_around, straight_tube, voxelize_exact
 from SDFCARLib.angiogram import AngiogramSettings
 from SDFCARLib.geometry import Geometry, standard_geometry

@@ -7,14 +7,8 @@ Why
     are off by several tenths of a millimetre either way (bench/RESULTS.md). Clinical 2D-QCA
     measures on the image itself; this module fits the image model the frame was formed by.
 
-Model (detector mm along the image normal x of the projected centreline)
-    Contrast-filled lumen of radius r centred at c crosses a ray over the chord 2·√(r² − (x − c)²);
-    Beer–Lambert makes the absorbance −log I linear in it; the detector blurs with a Gaussian of
-    ``psf_sigma_mm``; the anatomical background is smooth, linear across the short window:
-
-        a(x) = b₀ + b₁·x + A · (chord(·, c, r) ⊛ G_σ)(x)
-
-    The convolution is a fixed quadrature over the Gaussian (``_QUADRATURE`` nodes within ±4σ).
+Model
+    The blurred circular lumen on a linear background of ``lumen_profile.py`` (σ = ``psf_sigma_mm``).
     Fitted by least squares (c, r, A, b₀, b₁; σ known) on three parallel profiles a pixel apart,
     averaged, reaching the guessed width + 4σ + 1 mm to each side of the projected centreline point.
     Width = 2r divided by the point's magnification (SID / source distance): mm at the vessel.
@@ -25,53 +19,16 @@ from __future__ import annotations
 from typing import Optional
 
 import numpy as np
-from scipy import ndimage, optimize
+from scipy import ndimage
 
 from ..geometry import CArmView
+from ..lumen_profile import DEFAULT_PSF_SIGMA_MM, SIGMA_RANGE_MM, blurred_chord, fit_lumen
 from .diameter import project_centreline
 
-_QUADRATURE = np.linspace(-4.0, 4.0, 41)  # Gaussian nodes, in units of σ
-_WEIGHTS = np.exp(-0.5 * _QUADRATURE ** 2) / np.exp(-0.5 * _QUADRATURE ** 2).sum()
-DEFAULT_PSF_SIGMA_MM = 0.3  # a flat-panel detector's blur, about 1.5–2 pixels (the simulated angiograms' too)
 # Peak absorbance a lumen must reach to count as measured: a 0.3 mm vessel at a tenth of the iodine of
 # the simulated angiograms still peaks near 0.002 after the blur; noise-free flat profiles fit far below.
 _MIN_CONTRAST = 1e-3
-_SIGMA_RANGE_MM = (0.01, 2.0)  # bounds of a free blur fit
 _SIGMA_WINDOW_MM = 0.5  # the blur the profiles' window is sized for while σ is being estimated
-
-
-def chord_mm(x: np.ndarray, radius: float) -> np.ndarray:
-    """Path length through a circle of ``radius`` of a ray at distance ``x`` from its centre."""
-    return 2.0 * np.sqrt(np.clip(radius * radius - np.square(x), 0.0, None))
-
-
-def blurred_chord(x: np.ndarray, centre: float, radius: float, sigma: float) -> np.ndarray:
-    """The chord profile convolved with a Gaussian of standard deviation ``sigma`` (same units)."""
-    shifted = np.asarray(x, float)[:, None] - centre - sigma * _QUADRATURE[None, :]
-    return chord_mm(shifted, radius) @ _WEIGHTS
-
-
-def fit_lumen(x: np.ndarray, a: np.ndarray, guess_radius_mm: float, psf_sigma_mm: Optional[float]):
-    """Least-squares fit of the module's model to one profile: (centre, radius, amplitude, base, slope[,
-    sigma]) and the RMS residual, with σ fixed when given and a free sixth parameter when None; None
-    when the optimiser fails."""
-    span = float(x.max() - x.min())
-    base = float(np.median(np.r_[a[:3], a[-3:]]))
-    lower = [-span / 4, 0.02, 0.0, -np.inf, -np.inf]
-    upper = [span / 4, span / 2, np.inf, np.inf, np.inf]
-    p0 = [0.0, float(np.clip(guess_radius_mm, lower[1] * 1.01, upper[1] * 0.99)),
-          max(float(a.max() - base), 1e-6) / max(2.0 * guess_radius_mm, 1e-3), base, 0.0]
-    if psf_sigma_mm is None:
-        lower, upper, p0 = lower + [_SIGMA_RANGE_MM[0]], upper + [_SIGMA_RANGE_MM[1]], p0 + [DEFAULT_PSF_SIGMA_MM]
-
-    def model(xx, c, r, amp, b0, slope, sigma=psf_sigma_mm):
-        return b0 + slope * xx + amp * blurred_chord(xx, c, r, sigma)
-
-    try:
-        params, _ = optimize.curve_fit(model, x, a, p0=p0, bounds=(lower, upper), maxfev=3000)
-    except (RuntimeError, ValueError):
-        return None
-    return params, float(np.sqrt(np.mean(np.square(model(x, *params) - a)))), (lower, upper)
 
 
 def fit_profile(x_mm: np.ndarray, absorbance: np.ndarray, psf_sigma_mm: float, guess_radius_mm: float) -> Optional[float]:
@@ -157,6 +114,6 @@ def estimate_psf_sigma_mm(points_mm: np.ndarray, tangents: np.ndarray, frame: np
         if fitted is None:
             continue
         params = fitted[0]
-        if 1.1 * _SIGMA_RANGE_MM[0] < params[5] < 0.99 * _SIGMA_RANGE_MM[1] and params[2] > 0:  # not at a bound
+        if 1.1 * SIGMA_RANGE_MM[0] < params[5] < 0.99 * SIGMA_RANGE_MM[1] and params[2] > 0:  # not at a bound
             sigmas.append(float(params[5]))
     return float(np.median(sigmas)) if len(sigmas) >= MIN_BLUR_PROFILES else None
