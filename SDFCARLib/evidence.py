@@ -35,7 +35,7 @@ from typing import Any, Dict, Sequence
 import numpy as np
 from scipy import ndimage
 
-from .lumen_profile import DEFAULT_PSF_SIGMA_MM, fit_lumen
+from .lumen_profile import DEFAULT_PSF_SIGMA_MM, absorbance, fit_lumen, mean_profile
 from .geometry import CArmView
 
 
@@ -69,20 +69,20 @@ def _widened(mask: np.ndarray, pixels: int) -> np.ndarray:
 def absorbance_above_background(frame: np.ndarray, mask: np.ndarray, pixel_spacing_mm: Sequence[float],
                                 settings: EvidenceSettings = EvidenceSettings()) -> np.ndarray:
     """a − B̂ (steps 1–2 of the module docstring), everywhere in the image."""
-    absorbance = -np.log(np.maximum(np.asarray(frame, np.float64), 1.0))
+    absorbances = absorbance(frame)
     outside = ~_widened(mask, settings.clearance_px)
     if not outside.any():
         raise EvidenceError("the mask covers the whole frame: no background left to subtract")
     sigma_px = [settings.background_scale_mm / s for s in pixel_spacing_mm]
     weight = ndimage.gaussian_filter(outside.astype(np.float64), sigma_px, mode="nearest")
-    total = ndimage.gaussian_filter(np.where(outside, absorbance, 0.0), sigma_px, mode="nearest")
+    total = ndimage.gaussian_filter(np.where(outside, absorbances, 0.0), sigma_px, mode="nearest")
     # Far from any background pixel the weight underflows; the nearest estimate is used there.
     background = total / np.maximum(weight, 1e-12)
     thin = weight < 1e-6
     if thin.any():
         _, (ri, ci) = ndimage.distance_transform_edt(thin, return_indices=True)
         background = background[ri, ci]
-    return absorbance - background
+    return absorbances - background
 
 
 def _skeleton_directions(skeleton: np.ndarray, spacing: np.ndarray, points: np.ndarray, half_window: int = 3) -> np.ndarray:
@@ -112,7 +112,7 @@ def estimate_attenuation_per_mm(frame: np.ndarray, mask: np.ndarray, view: CArmV
     points = np.argwhere(candidates)
     if len(points) > settings.max_profiles:  # evenly over the candidates: deterministic
         points = points[np.linspace(0, len(points) - 1, settings.max_profiles).round().astype(int)]
-    absorbance = -np.log(np.maximum(np.asarray(frame, np.float64), 1.0))
+    absorbances = absorbance(frame)
     tangents = _skeleton_directions(skeleton, spacing, points)
     pixel_mm = float(spacing.min())
     # A pixel averages the image over its width: a box of variance p²/12 on top of the detector blur.
@@ -122,17 +122,10 @@ def estimate_attenuation_per_mm(frame: np.ndarray, mask: np.ndarray, view: CArmV
         guess = float(half_width[r, c])
         half = 2.0 * guess + 4.0 * sigma + 1.0
         x = np.arange(-half, half + pixel_mm / 4, pixel_mm / 2)
-        nr, nc = -tc, tr
-        profiles = []
-        for along in (-1.0, 0.0, 1.0):
-            rr = r + (x * nr + along * pixel_mm * tr) / spacing[0]
-            cc = c + (x * nc + along * pixel_mm * tc) / spacing[1]
-            if rr.min() < 0 or cc.min() < 0 or rr.max() > mask.shape[0] - 1 or cc.max() > mask.shape[1] - 1:
-                break
-            profiles.append(ndimage.map_coordinates(absorbance, [rr, cc], order=1))
-        if len(profiles) < 3:
+        profile = mean_profile(absorbances, r, c, (tr, tc), (-tc, tr), x, spacing)
+        if profile is None:
             continue
-        fitted = fit_lumen(x, np.mean(profiles, axis=0), guess, sigma)
+        fitted = fit_lumen(x, profile, guess, sigma)
         if fitted is None:
             continue
         (_, radius, amplitude, _, _), _, (lower, upper) = fitted

@@ -17,12 +17,33 @@ from __future__ import annotations
 from typing import Optional
 
 import numpy as np
-from scipy import optimize
+from scipy import ndimage, optimize
 
 _QUADRATURE = np.linspace(-4.0, 4.0, 41)  # Gaussian nodes, in units of σ
 _WEIGHTS = np.exp(-0.5 * _QUADRATURE ** 2) / np.exp(-0.5 * _QUADRATURE ** 2).sum()
 DEFAULT_PSF_SIGMA_MM = 0.3  # a flat-panel detector's blur, about 1.5–2 pixels (the simulated angiograms' too)
 SIGMA_RANGE_MM = (0.01, 2.0)  # bounds of a free blur fit
+
+
+def absorbance(frame: np.ndarray) -> np.ndarray:
+    """−log I of a frame's counts (a count below 1 reads as 1): linear in the path through iodine."""
+    return -np.log(np.maximum(np.asarray(frame, np.float64), 1.0))
+
+
+def mean_profile(image: np.ndarray, row: float, col: float, tangent_rc, normal_rc, x_mm: np.ndarray,
+                 spacing_mm: np.ndarray) -> Optional[np.ndarray]:
+    """``image`` sampled (bilinear) across a vessel at pixel (row, col): the mean of three profiles at
+    offsets ``x_mm`` (detector mm) along the unit ``normal_rc``, a pixel apart along ``tangent_rc``
+    (the noise averages, the lumen does not change over a pixel); None if one leaves the image."""
+    pixel_mm = float(np.min(spacing_mm))
+    profiles = []
+    for along in (-1.0, 0.0, 1.0):
+        rr = row + (x_mm * normal_rc[0] + along * pixel_mm * tangent_rc[0]) / spacing_mm[0]
+        cc = col + (x_mm * normal_rc[1] + along * pixel_mm * tangent_rc[1]) / spacing_mm[1]
+        if rr.min() < 0 or cc.min() < 0 or rr.max() > image.shape[0] - 1 or cc.max() > image.shape[1] - 1:
+            return None
+        profiles.append(ndimage.map_coordinates(image, [rr, cc], order=1))
+    return np.mean(profiles, axis=0)
 
 
 def chord_mm(x: np.ndarray, radius: float) -> np.ndarray:

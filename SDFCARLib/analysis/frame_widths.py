@@ -19,10 +19,9 @@ from __future__ import annotations
 from typing import Optional
 
 import numpy as np
-from scipy import ndimage
 
 from ..geometry import CArmView
-from ..lumen_profile import DEFAULT_PSF_SIGMA_MM, SIGMA_RANGE_MM, blurred_chord, fit_lumen
+from ..lumen_profile import DEFAULT_PSF_SIGMA_MM, SIGMA_RANGE_MM, absorbance, blurred_chord, fit_lumen, mean_profile
 from .diameter import project_centreline
 
 # Peak absorbance a lumen must reach to count as measured: a 0.3 mm vessel at a tenth of the iodine of
@@ -52,7 +51,7 @@ def _profiles(points_mm, tangents, frame, view, guess_widths_mm, psf_sigma_mm, m
     image = np.asarray(frame, np.float64)
     if image.shape != tuple(view.detector_shape):
         raise ValueError(f"frame shape {image.shape} differs from the view's detector {tuple(view.detector_shape)}")
-    absorbance = -np.log(np.maximum(image, 1.0))
+    absorbances = absorbance(image)
     projected = project_centreline(points_mm, tangents, view)
     row, col, mag, fore = projected.row, projected.col, projected.magnification, projected.foreshortening
     (tr, tc), (nr, nc) = projected.tangent_rc, projected.normal_rc
@@ -65,15 +64,9 @@ def _profiles(points_mm, tangents, frame, view, guess_widths_mm, psf_sigma_mm, m
             continue
         half = guesses[i] + 4.0 * psf_sigma_mm + 1.0
         x = np.arange(-half, half + step / 2, step)
-        profiles = []
-        for along in (-1.0, 0.0, 1.0):  # three parallel profiles a pixel apart, averaged
-            rr = row[i] + (x * nr[i] + along * pixel_mm * tr[i]) / spacing[0]
-            cc = col[i] + (x * nc[i] + along * pixel_mm * tc[i]) / spacing[1]
-            if rr.min() < 0 or cc.min() < 0 or rr.max() > image.shape[0] - 1 or cc.max() > image.shape[1] - 1:
-                break
-            profiles.append(ndimage.map_coordinates(absorbance, [rr, cc], order=1))
-        if len(profiles) == 3:
-            yield i, x, np.mean(profiles, axis=0), float(mag[i]), guesses[i]
+        profile = mean_profile(absorbances, row[i], col[i], (tr[i], tc[i]), (nr[i], nc[i]), x, spacing)
+        if profile is not None:
+            yield i, x, profile, float(mag[i]), guesses[i]
 
 
 def frame_widths(points_mm: np.ndarray, tangents: np.ndarray, frame: np.ndarray, view: CArmView,
