@@ -61,6 +61,12 @@ class ViewEvidence:
     info: Dict[str, Any]
 
 
+def is_binary_image(image: np.ndarray) -> bool:
+    """Two grey levels or fewer: a mask shown as a frame (the sample case does), not a recorded X-ray
+    frame; there is no intensity profile to read."""
+    return np.unique(np.asarray(image)).size <= 2
+
+
 def _widened(mask: np.ndarray, pixels: int) -> np.ndarray:
     # scipy dilates until nothing changes when iterations < 1
     return ndimage.binary_dilation(mask, iterations=pixels) if pixels > 0 else np.asarray(mask, bool)

@@ -462,8 +462,10 @@ def job_frames(job_dir: PathLike) -> Optional[List[str]]:
     paths = [job_dir / f"frame{n}.npy" for n in range(1, count + 1)]
     if not paths or not all(p.is_file() for p in paths):
         return None
+    from .evidence import is_binary_image
+
     try:
-        if any(np.unique(np.load(p, allow_pickle=False)).size <= 2 for p in paths):
+        if any(is_binary_image(np.load(p, allow_pickle=False)) for p in paths):
             return None
     except (ValueError, OSError):
         return None

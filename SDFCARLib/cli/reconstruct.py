@@ -169,7 +169,6 @@ def cmd_geometry(args: argparse.Namespace) -> int:
 
 def _auto_masks(args: argparse.Namespace, geometry, provenance) -> List[Tuple[Dict[str, Any], np.ndarray, Any]]:
     """--auto-masks: the segment pipeline on the chosen frame of each XA run the geometry was read from."""
-    from ..dicom import load_xa
     from ..masks import segment_angiogram
 
     runs = dicom_runs_from_args(args)
@@ -181,9 +180,9 @@ def _auto_masks(args: argparse.Namespace, geometry, provenance) -> List[Tuple[Di
     if given:
         raise ValueError(f"--auto-masks makes the masks itself; remove {', '.join(given)}")
     auto = []
-    for n, (run, view, info) in enumerate(zip(runs, geometry.views, provenance["views"]), start=1):
+    frames = _dicom_frames(args, provenance, "mask")
+    for n, (frame, view, info) in enumerate(zip(frames, geometry.views, provenance["views"]), start=1):
         frame_info = info["frame"]
-        frame = load_xa(run.path).frames[int(frame_info["index"])]
         auto.append((frame_info, frame, segment_angiogram(frame, view.pixel_spacing_mm, view.sid_mm / view.sod_mm)))
         p = auto[-1][2].parameters
         print(f"view {n}: auto mask of frame {frame_info['index']}: {p['components']} component(s), "
