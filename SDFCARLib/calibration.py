@@ -101,9 +101,10 @@ class Calibration:
     seconds: float = 0.0
     warnings: List[str] = field(default_factory=list)
 
+    method: str = "search of the observable rigid motion, re-fitted field per candidate"
+
     def report(self) -> Dict[str, Any]:
-        return {"method": "search of the observable rigid motion, re-fitted field per candidate",
-                "views": self.views, "seconds": round(self.seconds, 1)}
+        return {"method": self.method, "views": self.views, "seconds": round(self.seconds, 1)}
 
 
 #: what each searched parameter is called in the report and its unit
@@ -203,3 +204,54 @@ def calibrate(geometry: Geometry, targets: Sequence[np.ndarray], settings, targe
             entry.update(shift_mm=entry["shift"]["value"], direction_lps=entry["shift"]["axis_lps"])
         found.append(entry)
     return Calibration(Geometry(geometry.volume, views), found, time.perf_counter() - t0, warnings)
+
+
+#: largest motion the frames' consistency may find; beyond it the pose is left as given (with a warning)
+FRAME_CALIBRATION_LIMITS = {"deg": 4.0, "mm": 6.0}
+
+
+def calibrate_from_frames(geometry: Geometry, line_integrals: Sequence[np.ndarray], progress=None) -> Calibration:
+    """Each view's object motion against view 1 from the epipolar consistency of the frames' vessel
+    line integrals (``line_integral_consistency.py``): the three motions two views observe, in seconds."""
+    from .line_integral_consistency import OBSERVED_MOTIONS, WEAK_MOTIONS, estimate_motion, motion_axes
+    from .optimiser import _report
+
+    t0 = time.perf_counter()
+    views = list(geometry.views)
+    centre = np.asarray(geometry.volume.center_mm, float)
+    found: List[Dict[str, Any]] = []
+    warnings: List[str] = []
+    for k in range(1, len(views)):
+        if epipolar_normal(views[0], views[k]) is None:
+            found.append({"view": k + 1, "skipped": "looks along the same line as view 1"})
+            continue
+        _report(progress, phase="calibrate", step=k, total=len(views) - 1, elapsed_s=time.perf_counter() - t0,
+                eta_s=None, device="cpu", message=f"view {k + 1}: consistency of its frame with view 1's")
+        estimate = estimate_motion(views[0], line_integrals[0], views[k], line_integrals[k], centre,
+                                   FRAME_CALIBRATION_LIMITS["deg"], FRAME_CALIBRATION_LIMITS["mm"])
+        axes = motion_axes(views[0], views[k], centre)
+        entry: Dict[str, Any] = {"view": k + 1, "rotation_centre_mm": [round(float(v), 3) for v in centre]}
+        added = {}
+        for name in OBSERVED_MOTIONS:
+            axis = axes[name]
+            rotation = bool(np.any(axis[:3]))
+            value = float(estimate.added[:3] @ axis[:3] if rotation else estimate.added[3:] @ axis[3:])
+            added[name] = value
+            entry[name] = {"value": round(value, 3), "unit": "deg" if rotation else "mm",
+                           "axis_lps": [round(float(v), 4) for v in (axis[:3] if rotation else axis[3:])]}
+        at_limit = [name for name, value in added.items()
+                    if abs(value) >= 0.99 * FRAME_CALIBRATION_LIMITS[entry[name]["unit"]]]
+        if at_limit:
+            warnings.append(f"view {k + 1}: the pose correction from the frames reached the end of its range "
+                            f"({', '.join(n.replace('_', ' ') for n in at_limit)}); the view was left as given. Check "
+                            "the view's angles and distances and that each frame belongs to its view")
+            entry["left_as_given"] = True
+        else:
+            views[k] = moved(views[k], estimate.added[:3], estimate.added[3:], centre)
+        entry.update(consistency_before=round(estimate.cost_before, 5), consistency_after=round(estimate.cost_after, 5),
+                     not_observed=list(WEAK_MOTIONS) + ["shift_along_baseline"],
+                     object_rotation_deg=[round(float(v), 4) for v in views[k].object_rotation_deg],
+                     object_translation_mm=[round(float(v), 4) for v in views[k].object_translation_mm])
+        found.append(entry)
+    return Calibration(Geometry(geometry.volume, views), found, time.perf_counter() - t0, warnings,
+                       method="epipolar consistency of the frames' vessel line integrals")

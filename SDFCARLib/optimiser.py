@@ -170,11 +170,27 @@ def versions() -> Dict[str, str]:
     }
 
 
+@dataclass
+class FrameEvidence:
+    """The frames' vessel line integrals (evidence.py), read once for the calibration and the loss."""
+
+    images: Optional[List[np.ndarray]]  # per view, mm; None: not read (``record["why"]`` says why)
+    record: Dict[str, Any]  # report.json's ``frame_evidence``
+    warnings: List[str]
+
+
+def read_frame_evidence(frames: Optional[Sequence[np.ndarray]], targets: Sequence[np.ndarray], geometry: Geometry,
+                        settings: Settings, target_kind: str) -> FrameEvidence:
+    """The frames' line integrals where a setting uses them (``frame_evidence``, ``calibrate_from_frames``)."""
+    if not (settings.loss.frame_evidence or settings.calibration.calibrate_from_frames):
+        return FrameEvidence(None, {"used": False, "why": "frame_evidence is off"}, [])
+    masks = vessel_pixels(validate_targets(targets, geometry, target_kind), target_kind)
+    return FrameEvidence(*_frame_evidence(frames, masks, geometry, target_kind))
+
+
 def _frame_evidence(frames: Optional[Sequence[np.ndarray]], masks: Sequence[np.ndarray], geometry: Geometry,
-                    settings: Settings, target_kind: str) -> Tuple[Optional[List[np.ndarray]], Dict[str, Any], List[str]]:
+                    target_kind: str) -> Tuple[Optional[List[np.ndarray]], Dict[str, Any], List[str]]:
     """(per-view line integrals read off the frames or None, the report's record, warnings)."""
-    if not settings.loss.frame_evidence:
-        return None, {"used": False, "why": "frame_evidence is off"}, []
     if frames is None:
         return None, {"used": False, "why": "no frames were given"}, []
     if target_kind != "mask":
@@ -206,12 +222,13 @@ def _frame_evidence(frames: Optional[Sequence[np.ndarray]], masks: Sequence[np.n
 
 def build_problem(geometry: Geometry, targets: Sequence[np.ndarray], settings: Settings, target_kind: str,
                   progress: Progress = None, check_masks: bool = True,
-                  frames: Optional[Sequence[np.ndarray]] = None) -> Problem:
+                  frames: Optional[Sequence[np.ndarray]] = None, evidence: Optional[FrameEvidence] = None) -> Problem:
     """Step 1: check the inputs, choose support and device, build projectors and losses.
 
     ``check_masks=False`` skips the mask and consistency checks (for the calibration's repeated
     short fits of the same masks, which the run itself checks once). ``frames``: the X-ray frames
-    the masks were made from, one per view, for ``frame_evidence``."""
+    the masks were made from, one per view, for ``frame_evidence`` (``evidence``: their line
+    integrals already read, by ``read_frame_evidence``)."""
     t_start = time.perf_counter()
     arrays = validate_targets(targets, geometry, target_kind)
     _report(progress, phase="setup", step=0, total=settings.optimisation.steps, elapsed_s=0.0, eta_s=None,
@@ -232,9 +249,10 @@ def build_problem(geometry: Geometry, targets: Sequence[np.ndarray], settings: S
     if settings.region.support == "hull":
         pixels = despeckled
         warnings += left_out
-    evidence_images, evidence, evidence_warnings = _frame_evidence(frames, vessel_pixels(arrays, target_kind), geometry,
-                                                                   settings, target_kind)
-    warnings += evidence_warnings
+    if evidence is None:
+        evidence = read_frame_evidence(frames, targets, geometry, settings, target_kind)
+    evidence_images = evidence.images if settings.loss.frame_evidence else None
+    warnings += evidence.warnings
     for message in warnings:
         _report(progress, phase="warning", message=message, step=0, total=settings.optimisation.steps,
                 elapsed_s=0.0, eta_s=None, device=settings.run.device)
@@ -270,7 +288,8 @@ def build_problem(geometry: Geometry, targets: Sequence[np.ndarray], settings: S
             DistanceSettings(loss.dt_downsample, loss.dt_threshold, loss.dt_truncation_mm, loss.dt_kernel_size),
         )
     return Problem(geometry, settings, target_kind, arrays, support, voxels, device, device_reason, needed_bytes,
-                   projectors, view_targets, geometric, time.perf_counter() - t_start, warnings, consistency, evidence)
+                   projectors, view_targets, geometric, time.perf_counter() - t_start, warnings, consistency,
+                   evidence.record if settings.loss.frame_evidence else {"used": False, "why": "frame_evidence is off"})
 
 
 def optimise(problem: Problem, model: ImplicitField, progress: Progress = None, cancel: Cancel = None,
@@ -443,21 +462,33 @@ def reconstruct(
         torch.set_num_threads(int(settings.run.threads))
     torch.manual_seed(settings.run.seed)
     np.random.seed(settings.run.seed % (2**32))
-    calibration = None
+    evidence = read_frame_evidence(frames, targets, geometry, settings, target_kind)
+    calibrations = []
+    if settings.calibration.calibrate_from_frames and len(geometry.views) > 1 and evidence.images is not None:
+        from .calibration import calibrate_from_frames
+
+        calibrations.append(calibrate_from_frames(geometry, evidence.images, progress))
+        geometry = calibrations[-1].geometry
     if settings.calibration.calibrate and len(geometry.views) > 1:
         from .calibration import calibrate
 
-        calibration = calibrate(geometry, targets, settings, target_kind, progress=progress, cancel=cancel)
-        geometry = calibration.geometry
+        calibrations.append(calibrate(geometry, targets, settings, target_kind, progress=progress, cancel=cancel))
+        geometry = calibrations[-1].geometry
         torch.manual_seed(settings.run.seed)
-    problem = build_problem(geometry, targets, settings, target_kind, progress, frames=frames)
+    problem = build_problem(geometry, targets, settings, target_kind, progress, evidence=evidence)
     if _is_cancelled(cancel):
         raise ReconstructionCancelled("cancelled before the optimisation started")
     model = ImplicitField(field_config(settings)).to(problem.device)
     history, optimise_s = optimise(problem, model, progress, cancel, progress_interval_s, snapshot, snapshot_every)
     result = finish(problem, model, history, optimise_s, t_start, progress, cancel)
-    if calibration is not None:
-        result.report["calibration"] = calibration.report()
+    if calibrations:
+        result.report["calibration"] = calibrations[-1].report()
+        if len(calibrations) > 1:  # from the frames, then the re-fit search on top
+            result.report["calibration"]["first"] = calibrations[0].report()
+    elif settings.calibration.calibrate_from_frames:
+        result.report["calibration"] = {"method": "none", "why": "no frames to read the motion from" if frames is None
+                                        else f"the frames' line integrals could not be read: {evidence.record.get('why')}"}
+    for calibration in calibrations:
         result.report["warnings"] = calibration.warnings + result.report["warnings"]
         for message in calibration.warnings:
             _report(progress, phase="warning", message=message, step=settings.optimisation.steps,

@@ -137,7 +137,10 @@ CALIBRATION_SCORE_STEPS = 20
 class CalibrationSettings:
     """Search of each view's observable rigid motion before the reconstruction (``calibration.py``)."""
 
-    calibrate: bool = False
+    # where the frames are given: the motion two views observe, from their line integrals' epipolar
+    # consistency (line_integral_consistency.py; seconds, no re-fit)
+    calibrate_from_frames: bool = False
+    calibrate: bool = False  # the search by re-fitting the field per candidate pose (minutes per view)
     calibration_range_mm: float = 4.0  # shift candidates within ± this
     # rotation candidates within ± this; 0 (the default) searches the shift only: on masks segmented from
     # images the re-fitted loss does not locate rotations (bench/RESULTS.md, section 12c)

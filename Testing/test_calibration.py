@@ -201,3 +201,35 @@ def test_calibration_recovers_a_known_shift_on_a_small_reconstruction():
     assert min(losses, key=losses.get) in (2.0, 3.0) and losses[0.0] > 1.5 * min(losses.values())
     np.testing.assert_allclose(result.geometry.views[1].object_translation_mm, entry["shift_mm"] * normal, atol=1e-3)
     assert result.geometry.views[0] == views[0]
+
+
+def test_calibrate_from_frames_corrects_the_motion_two_views_observe_and_says_what_it_cannot():
+    from blob_phantom import VIEW_1, VIEW_2, blob_image
+    from SDFCARLib.calibration import calibrate_from_frames
+
+    grid = VolumeGrid((32, 32, 32), (2.0, 2.0, 2.0), (0.0, 0.0, 0.0))
+    true_rotation, true_translation = np.array([0.7, 0.5, 0.0]), np.array([0.0, 0.0, -1.2])
+    images = [blob_image(VIEW_1), blob_image(VIEW_2.with_object_motion(true_rotation, true_translation))]
+    result = calibrate_from_frames(Geometry(grid, (VIEW_1, VIEW_2)), images)
+    corrected = result.geometry.views[1]
+    np.testing.assert_allclose(corrected.object_rotation_deg[:2], true_rotation[:2], atol=0.1)
+    assert corrected.object_translation_mm[2] == pytest.approx(true_translation[2], abs=0.1)
+    assert result.geometry.views[0] == VIEW_1  # the reference stays
+    entry = result.views[0]
+    assert entry["view"] == 2 and entry["consistency_after"] < 0.1 * entry["consistency_before"]
+    assert entry["shift_across"]["unit"] == "mm" and entry["rotation_about_baseline"]["unit"] == "deg"
+    assert "shift_along_baseline" in entry["not_observed"]
+    assert "consistency" in result.report()["method"] and not result.warnings
+
+
+def test_calibrate_from_frames_leaves_a_pose_beyond_its_range_as_given_and_warns():
+    from blob_phantom import VIEW_1, VIEW_2, blob_image
+    from SDFCARLib.calibration import FRAME_CALIBRATION_LIMITS, calibrate_from_frames
+
+    grid = VolumeGrid((32, 32, 32), (2.0, 2.0, 2.0), (0.0, 0.0, 0.0))
+    far = (0.0, 0.0, 2.0 * FRAME_CALIBRATION_LIMITS["mm"])  # across the epipolar planes, twice the range
+    images = [blob_image(VIEW_1), blob_image(VIEW_2.with_object_motion((0.0, 0.0, 0.0), far))]
+    result = calibrate_from_frames(Geometry(grid, (VIEW_1, VIEW_2)), images)
+    assert result.geometry.views[1] == VIEW_2
+    assert result.views[0]["left_as_given"] is True
+    assert len(result.warnings) == 1 and "end of its range" in result.warnings[0] and "view 2" in result.warnings[0]

@@ -1,0 +1,79 @@
+"""Epipolar consistency of line-integral images, against Gaussian blobs whose projections and plane
+integrals are known in closed form."""
+
+import math
+
+import numpy as np
+import pytest
+
+from blob_phantom import AMPLITUDES, CENTRES, SIGMA_MM, VIEW_1, VIEW_2, blob_image
+from SDFCARLib.calibration import moved
+from SDFCARLib.line_integral_consistency import (EpipolarError, consistency, epipolar_frame, estimate_motion,
+                                                  plane_derivatives, rays_of)
+
+
+def test_plane_derivatives_match_the_blurred_plane_integrals_of_gaussian_blobs():
+    rays = rays_of(blob_image(VIEW_1), VIEW_1)
+    n0, m = epipolar_frame(VIEW_1.source_position, VIEW_2.source_position, np.zeros(3))
+    kappa = np.linspace(-0.04, 0.04, 9)
+    normals = np.cos(kappa)[:, None] * n0 + np.sin(kappa)[:, None] * m
+    blur_mm, centre = 1.0, CENTRES.mean(axis=0)
+    found = plane_derivatives(rays, normals, blur_mm, centre)
+    source = VIEW_1.source_position
+    expected = np.zeros(len(normals))
+    for k, normal in enumerate(normals):
+        for c, a in zip(CENTRES, AMPLITUDES):
+            # R(t) = A 2πσ² exp(−(t − δ)²/2σ²), δ = (c − S)·n; blurred by w: σ → s = √(σ² + w²), height × σ/s
+            w = blur_mm * np.linalg.norm(c - source) / np.linalg.norm(centre - source)
+            s = math.hypot(SIGMA_MM, w)
+            delta = (c - source) @ normal
+            expected[k] += a * 2 * math.pi * SIGMA_MM ** 3 / s * delta / s ** 2 * math.exp(-delta ** 2 / (2 * s ** 2))
+    assert np.abs(expected).max() > 1.0  # the planes cross blobs
+    np.testing.assert_allclose(found, expected, atol=0.01 * np.abs(expected).max())
+
+
+def test_moved_rays_are_the_rays_of_the_moved_view():
+    image = blob_image(VIEW_2)
+    rotation, translation, centre = np.array([1.0, -2.0, 0.5]), np.array([2.0, 1.0, -3.0]), np.array([5.0, -4.0, 2.0])
+    by_rays = rays_of(image, VIEW_2).moved(rotation, translation, centre)
+    by_view = rays_of(image, moved(VIEW_2, rotation, translation, centre))
+    np.testing.assert_allclose(by_rays.source_mm, by_view.source_mm, atol=1e-9)
+    np.testing.assert_allclose(by_rays.directions, by_view.directions, atol=1e-12)
+
+
+def test_consistency_is_zero_for_the_true_pose_and_grows_with_a_shift_across_the_epipolar_planes():
+    rays_1 = rays_of(blob_image(VIEW_1), VIEW_1)
+    n0, _ = epipolar_frame(VIEW_1.source_position, VIEW_2.source_position, np.zeros(3))
+    baseline = VIEW_2.source_position - VIEW_1.source_position
+    baseline /= np.linalg.norm(baseline)
+
+    def cost(translation):
+        seen = blob_image(VIEW_2.with_object_motion((0.0, 0.0, 0.0), translation))
+        return consistency(rays_1, rays_of(seen, VIEW_2), 1.0, np.zeros(3))["cost"]
+
+    at_truth = cost(np.zeros(3))
+    assert at_truth < 1e-3
+    costs = [cost(s * n0) for s in (0.5, 1.0, 2.0)]
+    assert at_truth < costs[0] < costs[1] < costs[2] and costs[1] > 0.05
+    # along the baseline every epipolar plane keeps its integrals: two views cannot see this motion
+    assert cost(2.0 * baseline) < 2 * at_truth + 1e-4
+
+
+def test_estimate_motion_recovers_the_motion_two_views_observe():
+    true_rotation = np.array([0.8, -0.6, 0.0])  # about the baseline (x) and the depth axis (y)
+    true_translation = np.array([0.0, 0.0, 1.5])  # across the epipolar planes
+    seen = blob_image(VIEW_2.with_object_motion(true_rotation, true_translation))
+    estimate = estimate_motion(VIEW_1, blob_image(VIEW_1), VIEW_2, seen, np.zeros(3))
+    assert estimate.cost_after < 0.1 * estimate.cost_before
+    np.testing.assert_allclose(estimate.rotation_deg[:2], true_rotation[:2], atol=0.1)
+    assert abs(estimate.translation_mm[2] - true_translation[2]) < 0.1
+    assert abs(estimate.translation_mm[0]) < 1e-6  # along the baseline: not searched
+    report = estimate.report()
+    assert set(report) >= {"rotation_deg", "translation_mm", "consistency_before", "consistency_after"}
+
+
+def test_images_that_cannot_be_compared_are_refused():
+    with pytest.raises(EpipolarError, match="shape"):
+        rays_of(np.ones((64, 64)), VIEW_1)
+    with pytest.raises(EpipolarError, match="no vessel"):
+        rays_of(np.zeros((128, 128)), VIEW_1)
