@@ -277,6 +277,8 @@ PRESETS: Dict[str, Dict[str, Any]] = {  # the default first: lists offer it firs
         drop_unconfirmed_fragments=True,
         # where the frames come with the masks, fit the path lengths they show (ghosts add path the frame lacks)
         frame_evidence=True,
+        # and correct the motion between the views that two views observe, read off the same frames
+        calibrate_from_frames=True,
     ),
     "paper": {},
 }

@@ -76,7 +76,12 @@ def test_reconstruct_from_dicom_files(dicom_pair, tmp_path, capsys):
             "--mask2", str(masks[1]), "--out", str(out), "--steps", "3", "--no-progress"]
     assert main(args) == 0, capsys.readouterr().err
     report = json.loads((out / "report.json").read_text())
-    assert report["geometry_digest"] == geometry.digest()
+    # fast reads view 2's motion off the frames; the DICOM geometry is used as read otherwise
+    assert "consistency" in report["calibration"]["method"] and report["calibration"]["views"][0]["view"] == 2
+    assert main(args[:-5] + ["--out", str(tmp_path / "as-read"), "--steps", "3", "--no-progress",
+                             "--set", "calibrate_from_frames=false"]) == 0, capsys.readouterr().err
+    as_read = json.loads((tmp_path / "as-read" / "report.json").read_text())
+    assert as_read["geometry_digest"] == geometry.digest() and "calibration" not in as_read
     assert report["inputs"]["dicom"][0].endswith("view1.dcm")
     assert report["inputs"]["geometry_provenance"]["views"][0]["fields"]["pixel_spacing_mm"]["source"] == "user"
     # The chosen frames are the path-length evidence (fast): the runs' iodine is 0.25 per mm.
@@ -134,7 +139,10 @@ def test_reconstruct_from_three_dicom_runs(dicom_three, tmp_path, capsys):
             "--steps", "3", "--no-progress"]
     assert main(args) == 0, capsys.readouterr().err
     report = json.loads((out / "report.json").read_text())
-    assert report["geometry_digest"] == geometry.digest() and len(report["geometry"]["views"]) == 3
+    # the geometry used is the DICOM's, with the views after the first corrected for the motion read off the frames
+    used = Geometry.from_dict(report["geometry"])
+    assert len(used.views) == 3 and used.views[0] == geometry.views[0]
+    assert [v.with_object_motion((0, 0, 0), (0, 0, 0)) for v in used.views] == list(geometry.views)
     assert [Path(p).name for p in report["inputs"]["dicom"]] == ["run1.dcm", "run2.dcm", "run3.dcm"]
     views = report["inputs"]["geometry_provenance"]["views"]
     # Frame choice per run: run 1 automatic (the frame with the most contrast), runs 2 and 3 as given.
