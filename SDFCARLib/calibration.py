@@ -231,20 +231,14 @@ def calibrate_from_frames(geometry: Geometry, line_integrals: Sequence[np.ndarra
                                    FRAME_CALIBRATION_LIMITS["deg"], FRAME_CALIBRATION_LIMITS["mm"])
         axes = motion_axes(views[0], views[k], centre)
         entry: Dict[str, Any] = {"view": k + 1, "rotation_centre_mm": [round(float(v), 3) for v in centre]}
-        added = {}
         for name in OBSERVED_MOTIONS:
-            axis = axes[name]
-            rotation = bool(np.any(axis[:3]))
-            value = float(estimate.added[:3] @ axis[:3] if rotation else estimate.added[3:] @ axis[3:])
-            added[name] = value
-            entry[name] = {"value": round(value, 3), "unit": "deg" if rotation else "mm",
-                           "axis_lps": [round(float(v), 4) for v in (axis[:3] if rotation else axis[3:])]}
-        at_limit = [name for name, value in added.items()
-                    if abs(value) >= 0.99 * FRAME_CALIBRATION_LIMITS[entry[name]["unit"]]]
-        if at_limit:
+            rotation = bool(np.any(axes[name][:3]))
+            entry[name] = {"value": round(estimate.parameters[name], 3), "unit": "deg" if rotation else "mm",
+                           "axis_lps": [round(float(v), 4) for v in (axes[name][:3] if rotation else axes[name][3:])]}
+        if estimate.at_limit:
             warnings.append(f"view {k + 1}: the pose correction from the frames reached the end of its range "
-                            f"({', '.join(n.replace('_', ' ') for n in at_limit)}); the view was left as given. Check "
-                            "the view's angles and distances and that each frame belongs to its view")
+                            f"({', '.join(n.replace('_', ' ') for n in estimate.at_limit)}); the view was left as given. "
+                            "Check the view's angles and distances and that each frame belongs to its view")
             entry["left_as_given"] = True
         else:
             views[k] = moved(views[k], estimate.added[:3], estimate.added[3:], centre)

@@ -18,20 +18,24 @@ Maths
     blurred by a Gaussian of about ``blur_mm`` — the same quantity in both views, smooth enough to
     optimise. On the detector, a pixel of area A seen along ω covers dω = A (ω·d)³ / SID².
     Planes through both sources S₁, S₂ contain the baseline b = S₂ − S₁; their normals
-    n(κ) = cos κ n₀ + sin κ m (n₀, m ⊥ b; n₀ that of the plane through the centre) are sampled over the angles κ the images' vessel pixels span.
+    n(κ) = cos κ n₀ + sin κ m (n₀, m ⊥ b; n₀ that of the plane through the centre) are sampled over
+    the angles κ the images' vessel pixels span. A ray meets only the planes within a few ε of its
+    own κ, so each plane sums only those rays (the rays sorted by κ once per evaluation).
 
 Observable motion
     A translation of one view's object along the baseline leaves every such plane and its integrals
-    unchanged: two views cannot see it, and it is not searched. The other five parameters (three
-    rotations about the region's centre, two translations across the baseline) are.
+    unchanged: two views cannot see it. A rotation about n₀ and a shift along m change them only
+    through the perspective, too little to be found on segmented input (bench/RESULTS.md, section
+    16). Searched are the three that move the images across the planes or turn them: the shift along
+    n₀ and the rotations (about the region's centre) about the baseline and about m.
 """
 
 from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass, field
-from typing import Any, Dict, Optional, Sequence, Tuple
+from dataclasses import dataclass
+from typing import Any, Dict, List, Sequence, Tuple
 
 import numpy as np
 from scipy.optimize import minimize
@@ -87,21 +91,15 @@ def _kernel(y: np.ndarray, epsilon: float) -> np.ndarray:
     return y * np.exp(-0.5 * y * y) / (epsilon ** 2 * math.sqrt(2.0 * math.pi))
 
 
-def plane_derivatives(rays: LineIntegralImage, normals: np.ndarray, blur_mm: float, centre_mm: np.ndarray,
-                      angles: Optional[Tuple[np.ndarray, np.ndarray, np.ndarray]] = None) -> np.ndarray:
-    """R'(0) of the planes through ``rays.source_mm`` with unit ``normals`` (K, 3), blurred by about ``blur_mm``.
-
-    ``angles`` — (each ray's κ, each plane's κ, the baseline's unit vector) for planes of one pencil —
-    lets each plane sum only the rays within the kernel's reach (same result, a fraction of the work)."""
+def plane_derivatives(rays: LineIntegralImage, ray_kappa: np.ndarray, plane_kappa: np.ndarray,
+                      frame: Tuple[np.ndarray, np.ndarray], blur_mm: float, centre_mm: np.ndarray) -> np.ndarray:
+    """R'(0) of the epipolar planes n(``plane_kappa``) (``frame`` = (n₀, m), see ``epipolar_frame``),
+    blurred by about ``blur_mm``, from the rays whose own planes lie at ``ray_kappa`` (``plane_angles``)."""
+    n0, m = frame
+    normals = np.cos(plane_kappa)[:, None] * n0 + np.sin(plane_kappa)[:, None] * m
     epsilon = blur_mm / float(np.linalg.norm(rays.source_mm - np.asarray(centre_mm, float)))
-    if angles is None:
-        out = np.empty(len(normals))
-        for start in range(0, len(normals), 64):  # bounded memory: N rays × 64 planes at a time
-            out[start:start + 64] = rays.weights @ _kernel(rays.directions @ normals[start:start + 64].T / epsilon, epsilon)
-        return out
-    ray_kappa, plane_kappa, baseline = angles
     # |ω·n(κ)| = q |sin(κ − κ_ray)|, q = |ω × b̂|: a ray reaches a plane within asin(reach·ε / q) of it
-    q_min = float(np.min(np.linalg.norm(np.cross(rays.directions, baseline), axis=1)))
+    q_min = float(np.min(np.linalg.norm(np.cross(rays.directions, np.cross(n0, m)), axis=1)))
     reach = math.asin(min(1.0, KERNEL_REACH * epsilon / max(q_min, 1e-6)))
     order = np.argsort(ray_kappa)
     sorted_kappa, directions, weights = ray_kappa[order], rays.directions[order], rays.weights[order]
@@ -145,10 +143,8 @@ def consistency(a: LineIntegralImage, b: LineIntegralImage, blur_mm: float, cent
     high = max(np.percentile(kappa_a, 99.5), np.percentile(kappa_b, 99.5))
     margin = 3.0 * blur_mm / float(np.linalg.norm(a.source_mm - centre))
     kappa = np.linspace(low - margin, high + margin, planes)
-    normals = np.cos(kappa)[:, None] * n0 + np.sin(kappa)[:, None] * m
-    baseline = np.cross(n0, m)
-    rho_a = plane_derivatives(a, normals, blur_mm, centre, (kappa_a, kappa, baseline))
-    rho_b = plane_derivatives(b, normals, blur_mm, centre, (kappa_b, kappa, baseline))
+    rho_a = plane_derivatives(a, kappa_a, kappa, (n0, m), blur_mm, centre)
+    rho_b = plane_derivatives(b, kappa_b, kappa, (n0, m), blur_mm, centre)
     scale = 0.5 * float(np.sum(rho_a ** 2 + rho_b ** 2))
     cost = float(np.sum((rho_a - rho_b) ** 2) / scale) if scale > 0 else float("nan")
     return {"cost": cost, "kappa": kappa, "rho_a": rho_a, "rho_b": rho_b}
@@ -163,13 +159,15 @@ class MotionEstimate:
     centre_mm: np.ndarray
     added: np.ndarray  # (6,) what was found on top of the motion the view carried: rotation (deg) about
     # ``centre_mm``, then translation (mm), as ``calibration.moved`` takes them
+    parameters: Dict[str, float]  # the same as each searched motion's size (deg or mm, ``motion_axes``)
+    at_limit: List[str]  # the searched motions that ended at the end of their range
     cost_before: float
     cost_after: float
     seconds: float
-    history: list = field(default_factory=list)
 
     def report(self) -> Dict[str, Any]:
-        return {"rotation_deg": [round(float(v), 4) for v in self.rotation_deg],
+        return {"parameters": {k: round(v, 4) for k, v in self.parameters.items()},
+                "rotation_deg": [round(float(v), 4) for v in self.rotation_deg],
                 "translation_mm": [round(float(v), 4) for v in self.translation_mm],
                 "rotation_centre_mm": [round(float(v), 3) for v in self.centre_mm],
                 "consistency_before": round(self.cost_before, 5), "consistency_after": round(self.cost_after, 5),
@@ -197,7 +195,7 @@ def estimate_motion(reference: CArmView, reference_image: np.ndarray, view: CArm
                     blurs_mm: Sequence[float] = SEARCH_BLURS_MM,
                     searched: Sequence[str] = OBSERVED_MOTIONS) -> MotionEstimate:
     """The object motion of ``view`` (on top of what it carries) that makes its line integrals consistent
-    with ``reference``'s: five parameters (module docstring), coarse to fine over ``blurs_mm``."""
+    with ``reference``'s: the ``searched`` motions (module docstring), coarse to fine over ``blurs_mm``."""
     from .calibration import moved
 
     t0 = time.perf_counter()
@@ -219,13 +217,12 @@ def estimate_motion(reference: CArmView, reference_image: np.ndarray, view: CArm
 
     params = np.zeros(len(searched))
     before = cost(params, blurs_mm[-1])
-    history = []
     for blur in blurs_mm:
-        result = minimize(cost, params, args=(blur,), method="Powell",
-                          options={"xtol": 0.01, "ftol": 1e-6, "maxfev": 2000})
-        params = result.x
-        history.append({"blur_mm": blur, "cost": float(result.fun), "evaluations": int(result.nfev)})
+        params = minimize(cost, params, args=(blur,), method="Powell",
+                          options={"xtol": 0.01, "ftol": 1e-6, "maxfev": 2000}).x
     motion = params @ basis
     final = moved(view, motion[:3], motion[3:], centre)
+    at_limit = [name for name, value, limit in zip(searched, params, limits) if abs(value) >= 0.99 * limit]
     return MotionEstimate(np.asarray(final.object_rotation_deg), np.asarray(final.object_translation_mm), centre, motion,
-                          before, cost(params, blurs_mm[-1]), time.perf_counter() - t0, history)
+                          {name: float(v) for name, v in zip(searched, params)}, at_limit,
+                          before, cost(params, blurs_mm[-1]), time.perf_counter() - t0)

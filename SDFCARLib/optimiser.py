@@ -170,6 +170,10 @@ def versions() -> Dict[str, str]:
     }
 
 
+#: report.json's ``frame_evidence`` when the setting is off
+FRAME_EVIDENCE_OFF = {"used": False, "why": "frame_evidence is off"}
+
+
 @dataclass
 class FrameEvidence:
     """The frames' vessel line integrals (evidence.py), read once for the calibration and the loss."""
@@ -183,7 +187,7 @@ def read_frame_evidence(frames: Optional[Sequence[np.ndarray]], targets: Sequenc
                         settings: Settings, target_kind: str) -> FrameEvidence:
     """The frames' line integrals where a setting uses them (``frame_evidence``, ``calibrate_from_frames``)."""
     if not (settings.loss.frame_evidence or settings.calibration.calibrate_from_frames):
-        return FrameEvidence(None, {"used": False, "why": "frame_evidence is off"}, [])
+        return FrameEvidence(None, dict(FRAME_EVIDENCE_OFF), [])
     masks = vessel_pixels(validate_targets(targets, geometry, target_kind), target_kind)
     return FrameEvidence(*_frame_evidence(frames, masks, geometry, target_kind))
 
@@ -289,7 +293,7 @@ def build_problem(geometry: Geometry, targets: Sequence[np.ndarray], settings: S
         )
     return Problem(geometry, settings, target_kind, arrays, support, voxels, device, device_reason, needed_bytes,
                    projectors, view_targets, geometric, time.perf_counter() - t_start, warnings, consistency,
-                   evidence.record if settings.loss.frame_evidence else {"used": False, "why": "frame_evidence is off"})
+                   evidence.record if settings.loss.frame_evidence else dict(FRAME_EVIDENCE_OFF))
 
 
 def optimise(problem: Problem, model: ImplicitField, progress: Progress = None, cancel: Cancel = None,

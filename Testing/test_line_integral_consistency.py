@@ -9,7 +9,7 @@ import pytest
 from blob_phantom import AMPLITUDES, CENTRES, SIGMA_MM, VIEW_1, VIEW_2, blob_image
 from SDFCARLib.calibration import moved
 from SDFCARLib.line_integral_consistency import (EpipolarError, consistency, epipolar_frame, estimate_motion,
-                                                  plane_derivatives, rays_of)
+                                                  plane_angles, plane_derivatives, rays_of)
 
 
 def test_plane_derivatives_match_the_blurred_plane_integrals_of_gaussian_blobs():
@@ -18,7 +18,7 @@ def test_plane_derivatives_match_the_blurred_plane_integrals_of_gaussian_blobs()
     kappa = np.linspace(-0.04, 0.04, 9)
     normals = np.cos(kappa)[:, None] * n0 + np.sin(kappa)[:, None] * m
     blur_mm, centre = 1.0, CENTRES.mean(axis=0)
-    found = plane_derivatives(rays, normals, blur_mm, centre)
+    found = plane_derivatives(rays, plane_angles(rays, VIEW_2.source_position, n0, m), kappa, (n0, m), blur_mm, centre)
     source = VIEW_1.source_position
     expected = np.zeros(len(normals))
     for k, normal in enumerate(normals):

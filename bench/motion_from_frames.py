@@ -3,10 +3,10 @@
     .venv/bin/python bench/motion_from_frames.py --suite rca --cases 10 [--reconstruct]
 
 Realistic protocol with motion (``realistic-lao30-rao30``: view 2's object moved up to 3 mm / 2°,
-masks segmented from the simulated angiograms; ``--static``: the same without motion). Per case: the evidence images of both views
-(``evidence.view_evidence``, nominal poses), view 2's motion estimated from them, and its error
-against the simulated motion — rotation (degrees, norm of the difference of the rotation vectors) and
-translation split into the part along the baseline (which two views cannot see) and across it. With
+masks segmented from the simulated angiograms; ``--static``: the same without motion). Per case: the
+evidence images of both views (``evidence.view_evidence``, nominal poses), view 2's motion estimated
+from them, and, against the simulated motion, each component along ``motion_axes`` (about the
+region's centre) and the shift along the baseline, which two views cannot see. With
 ``--reconstruct``, ``fast`` (with the frames) at the nominal pose, at the estimated pose and at the
 true pose (the last with motion only), scored against the truth. Prints the means and the machine.
 """
@@ -24,8 +24,7 @@ import numpy as np  # noqa: E402
 
 from bench.realistic_cases import add_grid_arguments, protocol_setup  # noqa: E402
 from SDFCARLib.evidence import view_evidence  # noqa: E402
-from SDFCARLib.geometry import Geometry  # noqa: E402
-from SDFCARLib.geometry import rotation_matrix  # noqa: E402
+from SDFCARLib.geometry import Geometry, rotation_matrix  # noqa: E402
 from SDFCARLib.line_integral_consistency import estimate_motion, motion_axes  # noqa: E402
 from SDFCARLib.metrics import evaluate  # noqa: E402
 from SDFCARLib.optimiser import reconstruct  # noqa: E402
