@@ -212,40 +212,54 @@ FRAME_CALIBRATION_LIMITS = {"deg": 4.0, "mm": 6.0}
 
 def calibrate_from_frames(geometry: Geometry, line_integrals: Sequence[np.ndarray], progress=None) -> Calibration:
     """Each view's object motion against view 1 from the epipolar consistency of the frames' vessel
-    line integrals (``line_integral_consistency.py``): the three motions two views observe, in seconds."""
-    from .line_integral_consistency import OBSERVED_MOTIONS, WEAK_MOTIONS, estimate_motion, motion_axes
+    line integrals (``line_integral_consistency.py``), in seconds: with two views the three motions
+    that pair observes; with three or more, all six of each view over every pair of views at once."""
+    from .line_integral_consistency import ALL_MOTIONS, OBSERVED_MOTIONS, WEAK_MOTIONS, estimate_motions, motion_axes
     from .optimiser import _report
 
     t0 = time.perf_counter()
     views = list(geometry.views)
     centre = np.asarray(geometry.volume.center_mm, float)
-    found: List[Dict[str, Any]] = []
+    found: List[Dict[str, Any]] = [{"view": k + 1, "skipped": "looks along the same line as view 1"}
+                                   for k in range(1, len(views)) if epipolar_normal(views[0], views[k]) is None]
+    used = [0] + [k for k in range(1, len(views)) if epipolar_normal(views[0], views[k]) is not None]
+    if len(used) < 2:
+        return Calibration(Geometry(geometry.volume, views), found, time.perf_counter() - t0, [],
+                           method="epipolar consistency of the frames' vessel line integrals")
+    # a joint search needs every pair to have epipolar planes; otherwise each view is matched to view 1 alone
+    jointly = all(epipolar_normal(views[i], views[j]) is not None for i in used[1:] for j in used[1:] if i < j)
+    groups = [used] if jointly else [[0, k] for k in used[1:]]
+
+    def told(step: int, total: int, message: str) -> None:
+        _report(progress, phase="calibrate", step=step, total=total, elapsed_s=time.perf_counter() - t0,
+                eta_s=None, device="cpu", message=message)
+
     warnings: List[str] = []
-    for k in range(1, len(views)):
-        if epipolar_normal(views[0], views[k]) is None:
-            found.append({"view": k + 1, "skipped": "looks along the same line as view 1"})
-            continue
-        _report(progress, phase="calibrate", step=k, total=len(views) - 1, elapsed_s=time.perf_counter() - t0,
-                eta_s=None, device="cpu", message=f"view {k + 1}: consistency of its frame with view 1's")
-        estimate = estimate_motion(views[0], line_integrals[0], views[k], line_integrals[k], centre,
-                                   FRAME_CALIBRATION_LIMITS["deg"], FRAME_CALIBRATION_LIMITS["mm"])
-        axes = motion_axes(views[0], views[k], centre)
-        entry: Dict[str, Any] = {"view": k + 1, "rotation_centre_mm": [round(float(v), 3) for v in centre]}
-        for name in OBSERVED_MOTIONS:
-            rotation = bool(np.any(axes[name][:3]))
-            entry[name] = {"value": round(estimate.parameters[name], 3), "unit": "deg" if rotation else "mm",
-                           "axis_lps": [round(float(v), 4) for v in (axes[name][:3] if rotation else axes[name][3:])]}
-        if estimate.at_limit:
-            warnings.append(f"view {k + 1}: the pose correction from the frames reached the end of its range "
-                            f"({', '.join(n.replace('_', ' ') for n in estimate.at_limit)}); the view was left as given. "
-                            "Check the view's angles and distances and that each frame belongs to its view")
-            entry["left_as_given"] = True
-        else:
-            views[k] = moved(views[k], estimate.added[:3], estimate.added[3:], centre)
-        entry.update(consistency_before=round(estimate.cost_before, 5), consistency_after=round(estimate.cost_after, 5),
-                     not_observed=list(WEAK_MOTIONS) + ["shift_along_baseline"],
-                     object_rotation_deg=[round(float(v), 4) for v in views[k].object_rotation_deg],
-                     object_translation_mm=[round(float(v), 4) for v in views[k].object_translation_mm])
-        found.append(entry)
+    for group in groups:
+        estimates = estimate_motions([views[k] for k in group], [line_integrals[k] for k in group], centre,
+                                     FRAME_CALIBRATION_LIMITS["deg"], FRAME_CALIBRATION_LIMITS["mm"], progress=told)
+        searched = ALL_MOTIONS if len(group) > 2 else OBSERVED_MOTIONS
+        for k, estimate in zip(group[1:], estimates):
+            axes = motion_axes(views[0], views[k], centre)
+            entry: Dict[str, Any] = {"view": k + 1, "rotation_centre_mm": [round(float(v), 3) for v in centre],
+                                     "matched_with": [i + 1 for i in group if i != k]}
+            for name in searched:
+                rotation = bool(np.any(axes[name][:3]))
+                entry[name] = {"value": round(estimate.parameters[name], 3), "unit": "deg" if rotation else "mm",
+                               "axis_lps": [round(float(v), 4) for v in (axes[name][:3] if rotation else axes[name][3:])]}
+            if estimate.at_limit:
+                warnings.append(f"view {k + 1}: the pose correction from the frames reached the end of its range "
+                                f"({', '.join(n.replace('_', ' ') for n in estimate.at_limit)}); the view was left as given. "
+                                "Check the view's angles and distances and that each frame belongs to its view")
+                entry["left_as_given"] = True
+            else:
+                views[k] = moved(views[k], estimate.added[:3], estimate.added[3:], centre)
+            entry.update(consistency_before=round(estimate.cost_before, 5), consistency_after=round(estimate.cost_after, 5),
+                         not_observed=(["a shift of every other view together along view 1's axis (kept near zero)"]
+                                       if len(group) > 2 else list(WEAK_MOTIONS) + ["shift_along_baseline"]),
+                         object_rotation_deg=[round(float(v), 4) for v in views[k].object_rotation_deg],
+                         object_translation_mm=[round(float(v), 4) for v in views[k].object_translation_mm])
+            found.append(entry)
+    found.sort(key=lambda entry: entry["view"])
     return Calibration(Geometry(geometry.volume, views), found, time.perf_counter() - t0, warnings,
                        method="epipolar consistency of the frames' vessel line integrals")

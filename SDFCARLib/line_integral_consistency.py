@@ -28,6 +28,16 @@ Observable motion
     through the perspective, too little to be found on segmented input (bench/RESULTS.md, section
     16). Searched are the three that move the images across the planes or turn them: the shift along
     n₀ and the rotations (about the region's centre) about the baseline and about m.
+
+Three views or more
+    Each pair has its own baseline, so what view 1–k cannot see moves view k across the planes of
+    its pair with a third view. ``estimate_motions`` matches each view to view 1 first, then makes
+    every pair consistent at once over all six motions of each view (Gauss–Newton on the plane
+    derivatives' differences, with a weak preference for no motion). Three pairs still observe only
+    nine of the twelve motions strongly: a shift of every other view together along view 1's axis
+    (the whole tree moved in depth for view 1, which sees depth only through its magnification) and
+    two more combinations are held mainly by that preference; every pair is made consistent, but
+    the motion is not recovered exactly (section 17 of the results).
 """
 
 from __future__ import annotations
@@ -35,15 +45,25 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass
-from typing import Any, Dict, List, Sequence, Tuple
+from typing import Any, Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
-from scipy.optimize import minimize
+from scipy.optimize import least_squares, minimize
 
 from .geometry import CArmView, rotation_matrix
 
 #: blurs (mm) of the coarse-to-fine search: the wide one finds the basin, the narrow one the minimum
 SEARCH_BLURS_MM = (4.0, 2.0, 1.0)
+#: blurs of the joint search over all pairs of three or more views (it starts from the pairs' answers)
+JOINT_BLURS_MM = (2.0, 1.0)
+#: the joint search's preference for no motion, per deg² or mm² (pair costs are of order 0.1): what no
+#: pair observes — a common shift of the other views along view 1's axis — then stays near zero
+MOTION_PRIOR_WEIGHT = 1e-3
+#: the joint search's finite-difference step (deg or mm): below ~0.05 the plane derivatives' differences
+#: are rough and the Gauss–Newton steps wander (bench/RESULTS.md §17)
+JOINT_DIFF_STEP = 0.05
+#: residual evaluations per blur of the joint search (each: every pair's plane derivatives once)
+JOINT_MAX_EVALUATIONS = 60
 
 
 class EpipolarError(ValueError):
@@ -67,15 +87,29 @@ class LineIntegralImage:
         return LineIntegralImage(source, self.directions @ inverse.T, self.weights)
 
 
-def rays_of(image: np.ndarray, view: CArmView) -> LineIntegralImage:
-    """The nonzero pixels of ``image`` (line integrals in mm on ``view``'s detector) as weighted rays."""
+#: detector pixels are summed in blocks up to this size before they become rays: finer pixels add rays
+#: (time) but no information at the search's finest blur (1 mm at the object, ~1.5 mm on the detector)
+RAY_PIXEL_MM = 0.8
+
+
+def rays_of(image: np.ndarray, view: CArmView, pool: Optional[int] = None) -> LineIntegralImage:
+    """The nonzero pixels of ``image`` (line integrals in mm on ``view``'s detector) as weighted rays;
+    ``pool`` × ``pool`` pixels summed into one ray through the block's centre (default: blocks of about
+    ``RAY_PIXEL_MM``)."""
     image = np.asarray(image, float)
     if image.shape != tuple(view.detector_shape):
         raise EpipolarError(f"the image has shape {image.shape} but the view's detector {tuple(view.detector_shape)}")
+    if pool is None:
+        pool = max(1, int(round(RAY_PIXEL_MM / float(min(view.pixel_spacing_mm)))))
+    if pool > 1:
+        padded = np.zeros((-(-image.shape[0] // pool) * pool, -(-image.shape[1] // pool) * pool))
+        padded[:image.shape[0], :image.shape[1]] = image
+        image = padded.reshape(padded.shape[0] // pool, pool, padded.shape[1] // pool, pool).sum(axis=(1, 3))
     rows, cols = np.nonzero(image > 0)
     if rows.size == 0:
         raise EpipolarError("the image has no vessel (no positive line integral)")
-    source, directions = view.rays(rows.astype(float), cols.astype(float))
+    centre_offset = (pool - 1) / 2.0
+    source, directions = view.rays(rows * float(pool) + centre_offset, cols * float(pool) + centre_offset)
     cosine = directions @ view.detector_direction
     area = float(view.pixel_spacing_mm[0] * view.pixel_spacing_mm[1])
     solid_angle = area * cosine ** 3 / view.sid_mm ** 2
@@ -130,11 +164,9 @@ def plane_angles(rays: LineIntegralImage, other_source: np.ndarray, n0: np.ndarr
     return (kappa + math.pi / 2) % math.pi - math.pi / 2
 
 
-def consistency(a: LineIntegralImage, b: LineIntegralImage, blur_mm: float, centre_mm: np.ndarray,
-                planes: int = 256) -> Dict[str, Any]:
-    """How far two views' plane derivatives disagree over the epipolar planes through both sources.
-
-    ``cost`` = Σ(ρ_a − ρ_b)² / ½Σ(ρ_a² + ρ_b²): 0 when consistent, 2 when unrelated."""
+def plane_sampling(a: LineIntegralImage, b: LineIntegralImage, blur_mm: float, centre_mm: np.ndarray,
+                   planes: int = 256) -> np.ndarray:
+    """The angles κ of ``planes`` epipolar planes spanning both images' vessel rays (plus a blur's margin)."""
     centre = np.asarray(centre_mm, float)
     n0, m = epipolar_frame(a.source_mm, b.source_mm, centre)
     kappa_a = plane_angles(a, b.source_mm, n0, m)
@@ -142,12 +174,24 @@ def consistency(a: LineIntegralImage, b: LineIntegralImage, blur_mm: float, cent
     low = min(np.percentile(kappa_a, 0.5), np.percentile(kappa_b, 0.5))
     high = max(np.percentile(kappa_a, 99.5), np.percentile(kappa_b, 99.5))
     margin = 3.0 * blur_mm / float(np.linalg.norm(a.source_mm - centre))
-    kappa = np.linspace(low - margin, high + margin, planes)
-    rho_a = plane_derivatives(a, kappa_a, kappa, (n0, m), blur_mm, centre)
-    rho_b = plane_derivatives(b, kappa_b, kappa, (n0, m), blur_mm, centre)
+    return np.linspace(low - margin, high + margin, planes)
+
+
+def consistency(a: LineIntegralImage, b: LineIntegralImage, blur_mm: float, centre_mm: np.ndarray,
+                planes: int = 256, kappa: Optional[np.ndarray] = None) -> Dict[str, Any]:
+    """How far two views' plane derivatives disagree over the epipolar planes through both sources
+    (sampled by ``plane_sampling`` unless ``kappa`` gives the planes' angles).
+
+    ``cost`` = Σ(ρ_a − ρ_b)² / ½Σ(ρ_a² + ρ_b²): 0 when consistent, 2 when unrelated."""
+    centre = np.asarray(centre_mm, float)
+    n0, m = epipolar_frame(a.source_mm, b.source_mm, centre)
+    if kappa is None:
+        kappa = plane_sampling(a, b, blur_mm, centre, planes)
+    rho_a = plane_derivatives(a, plane_angles(a, b.source_mm, n0, m), kappa, (n0, m), blur_mm, centre)
+    rho_b = plane_derivatives(b, plane_angles(b, a.source_mm, n0, m), kappa, (n0, m), blur_mm, centre)
     scale = 0.5 * float(np.sum(rho_a ** 2 + rho_b ** 2))
     cost = float(np.sum((rho_a - rho_b) ** 2) / scale) if scale > 0 else float("nan")
-    return {"cost": cost, "kappa": kappa, "rho_a": rho_a, "rho_b": rho_b}
+    return {"cost": cost, "kappa": kappa, "rho_a": rho_a, "rho_b": rho_b, "scale": scale}
 
 
 @dataclass
@@ -187,7 +231,11 @@ def motion_axes(reference: CArmView, view: CArmView, centre_mm: np.ndarray) -> D
     zero = np.zeros(3)
     return {"shift_across": np.concatenate([zero, n0]), "rotation_about_baseline": np.concatenate([baseline, zero]),
             "rotation_about_depth": np.concatenate([m, zero]), "rotation_about_normal": np.concatenate([n0, zero]),
-            "shift_in_depth": np.concatenate([zero, m])}
+            "shift_in_depth": np.concatenate([zero, m]), "shift_along_baseline": np.concatenate([zero, baseline])}
+
+
+#: every rigid motion of a view's object, named by the axes of its pair with the reference view
+ALL_MOTIONS = OBSERVED_MOTIONS + WEAK_MOTIONS + ("shift_along_baseline",)
 
 
 def estimate_motion(reference: CArmView, reference_image: np.ndarray, view: CArmView, image: np.ndarray,
@@ -226,3 +274,84 @@ def estimate_motion(reference: CArmView, reference_image: np.ndarray, view: CArm
     return MotionEstimate(np.asarray(final.object_rotation_deg), np.asarray(final.object_translation_mm), centre, motion,
                           {name: float(v) for name, v in zip(searched, params)}, at_limit,
                           before, cost(params, blurs_mm[-1]), time.perf_counter() - t0)
+
+
+def _limits(names: Sequence[str], axes: Dict[str, np.ndarray], max_rotation_deg: float, max_translation_mm: float) -> np.ndarray:
+    return np.array([max_rotation_deg if np.any(axes[name][:3]) else max_translation_mm for name in names])
+
+
+def estimate_motions(views: Sequence[CArmView], images: Sequence[np.ndarray], centre_mm: Sequence[float],
+                     max_rotation_deg: float = 4.0, max_translation_mm: float = 6.0,
+                     blurs_mm: Sequence[float] = SEARCH_BLURS_MM, joint_blurs_mm: Sequence[float] = JOINT_BLURS_MM,
+                     prior_weight: float = MOTION_PRIOR_WEIGHT, progress=None,
+                     joint_motions: Sequence[str] = ALL_MOTIONS) -> List[MotionEstimate]:
+    """The object motion of every view after the first (the reference), one estimate each.
+
+    Each view is first matched to view 1 alone (``estimate_motion``: the three motions that pair
+    observes). With three views or more, every pair of views is then made consistent at once over all
+    six motions of each view: the shift along view 1–k's baseline, invisible to that pair, moves view
+    k across the planes of its pair with a third view. ``progress(k, total, message)`` is told each step."""
+    from .calibration import moved
+
+    t0 = time.perf_counter()
+    views, centre = list(views), np.asarray(centre_mm, float)
+    if len(views) != len(images) or len(views) < 2:
+        raise EpipolarError(f"need one image per view and two views at least (got {len(views)} views, {len(images)} images)")
+    total = len(views) - 1 + (len(views) > 2)
+    pairwise = []
+    for k in range(1, len(views)):
+        if progress:
+            progress(k, total, f"view {k + 1}: consistency of its frame with view 1's")
+        pairwise.append(estimate_motion(views[0], images[0], views[k], images[k], centre, max_rotation_deg,
+                                        max_translation_mm, blurs_mm))
+    if len(views) == 2:
+        return pairwise
+    if progress:
+        progress(total, total, "every pair of views at once")
+    rays = [rays_of(image, view) for image, view in zip(images, views)]
+    axes = [motion_axes(views[0], view, centre) for view in views[1:]]
+    bases = [np.stack([a[name] for name in joint_motions]) for a in axes]  # orthonormal: rows are unit, orthogonal
+    limits = np.concatenate([_limits(joint_motions, a, max_rotation_deg, max_translation_mm) for a in axes])
+    pairs = [(i, j) for i in range(len(views)) for j in range(i + 1, len(views))]
+    size = len(joint_motions)
+
+    def motions(params: np.ndarray) -> List[np.ndarray]:
+        return [np.zeros(6)] + [params[size * k:size * (k + 1)] @ basis for k, basis in enumerate(bases)]
+
+    def moved_rays(params: np.ndarray) -> List[LineIntegralImage]:
+        return [r.moved(m[:3], m[3:], centre) if k else r for k, (r, m) in enumerate(zip(rays, motions(params)))]
+
+    def pair_cost(params: np.ndarray, blur: float) -> float:
+        current = moved_rays(params)
+        return sum(consistency(current[i], current[j], blur, centre)["cost"] for i, j in pairs)
+
+    def residuals(params: np.ndarray, blur: float, planes: List[np.ndarray], scales: List[float]) -> np.ndarray:
+        current = moved_rays(params)
+        parts = []
+        for (i, j), kappa, scale in zip(pairs, planes, scales):
+            found = consistency(current[i], current[j], blur, centre, kappa=kappa)
+            parts.append((found["rho_a"] - found["rho_b"]) / math.sqrt(scale))
+        return np.concatenate(parts + [math.sqrt(prior_weight) * params])
+
+    params = np.clip(np.concatenate([basis @ estimate.added for basis, estimate in zip(bases, pairwise)]),
+                     -0.98 * limits, 0.98 * limits)
+    before = pair_cost(np.zeros_like(params), joint_blurs_mm[-1])
+    for blur in joint_blurs_mm:
+        # Gauss–Newton on the plane derivatives' differences, the planes and scales held for the stage
+        current = moved_rays(params)
+        planes = [plane_sampling(current[i], current[j], blur, centre) for i, j in pairs]
+        scales = [consistency(current[i], current[j], blur, centre, kappa=k)["scale"] for (i, j), k in zip(pairs, planes)]
+        params = least_squares(residuals, params, args=(blur, planes, scales), bounds=(-limits, limits),
+                               diff_step=JOINT_DIFF_STEP, x_scale=1.0, max_nfev=JOINT_MAX_EVALUATIONS).x
+    after = pair_cost(params, joint_blurs_mm[-1])
+    seconds = time.perf_counter() - t0
+    out = []
+    for k, (motion, view) in enumerate(zip(motions(params)[1:], views[1:])):
+        own = params[size * k:size * (k + 1)]
+        final = moved(view, motion[:3], motion[3:], centre)
+        at_limit = [name for name, value, limit in zip(joint_motions, own, limits[size * k:size * (k + 1)])
+                    if abs(value) >= 0.99 * limit]
+        out.append(MotionEstimate(np.asarray(final.object_rotation_deg), np.asarray(final.object_translation_mm), centre,
+                                  motion, {name: float(v) for name, v in zip(joint_motions, own)}, at_limit,
+                                  before, after, seconds))
+    return out

@@ -12,6 +12,7 @@ CENTRES = _RNG.uniform(-20.0, 20.0, (6, 3))
 AMPLITUDES = _RNG.uniform(0.5, 1.5, 6)
 VIEW_1 = CArmView(30.0, 0.0, 1000.0, 757.0, (0.8, 0.8), (128, 128))
 VIEW_2 = CArmView(-30.0, 0.0, 1000.0, 757.0, (0.8, 0.8), (128, 128))
+VIEW_3 = CArmView(0.0, 30.0, 1000.0, 757.0, (0.8, 0.8), (128, 128))  # AP cranial: baselines off the first pair's
 
 
 def blob_image(view: CArmView) -> np.ndarray:

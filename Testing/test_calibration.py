@@ -222,6 +222,27 @@ def test_calibrate_from_frames_corrects_the_motion_two_views_observe_and_says_wh
     assert "consistency" in result.report()["method"] and not result.warnings
 
 
+def test_calibrate_from_frames_with_three_views_matches_every_pair_and_reports_all_six_motions():
+    from blob_phantom import VIEW_1, VIEW_2, VIEW_3, blob_image
+    from SDFCARLib.calibration import calibrate_from_frames
+
+    grid = VolumeGrid((32, 32, 32), (2.0, 2.0, 2.0), (0.0, 0.0, 0.0))
+    views = (VIEW_1, VIEW_2, VIEW_3)
+    images = [blob_image(VIEW_1), blob_image(VIEW_2.with_object_motion((0.0, 0.0, 0.0), (1.5, 0.0, 0.0))),
+              blob_image(VIEW_3.with_object_motion((0.0, 0.0, 0.0), (0.0, 0.0, 0.8)))]
+    result = calibrate_from_frames(Geometry(grid, views), images)
+    assert result.geometry.views[0] == VIEW_1 and not result.warnings
+    assert [entry["view"] for entry in result.views] == [2, 3]
+    for entry, others, view in zip(result.views, ([1, 3], [1, 2]), result.geometry.views[1:]):
+        assert entry["matched_with"] == others
+        assert {"shift_along_baseline", "rotation_about_normal", "shift_in_depth", "shift_across"} <= set(entry)
+        assert entry["consistency_after"] < 0.01 * entry["consistency_before"]
+        assert "view 1's axis" in entry["not_observed"][0]
+        np.testing.assert_allclose(view.object_translation_mm, entry["object_translation_mm"], atol=1e-4)
+    # view 3 moved across both of its pairs' planes: found to a fraction of a millimetre
+    assert result.geometry.views[2].object_translation_mm[2] == pytest.approx(0.8, abs=0.25)
+
+
 def test_calibrate_from_frames_leaves_a_pose_beyond_its_range_as_given_and_warns():
     from blob_phantom import VIEW_1, VIEW_2, blob_image
     from SDFCARLib.calibration import FRAME_CALIBRATION_LIMITS, calibrate_from_frames

@@ -1,19 +1,27 @@
 """Epipolar consistency of line-integral images, against Gaussian blobs whose projections and plane
 integrals are known in closed form."""
 
+import dataclasses
 import math
 
 import numpy as np
 import pytest
 
-from blob_phantom import AMPLITUDES, CENTRES, SIGMA_MM, VIEW_1, VIEW_2, blob_image
+from blob_phantom import AMPLITUDES, CENTRES, SIGMA_MM, VIEW_1, VIEW_2, VIEW_3, blob_image
 from SDFCARLib.calibration import moved
+from SDFCARLib.geometry import rotation_matrix
 from SDFCARLib.line_integral_consistency import (EpipolarError, consistency, epipolar_frame, estimate_motion,
-                                                  plane_angles, plane_derivatives, rays_of)
+                                                  estimate_motions, plane_angles, plane_derivatives, rays_of)
+
+#: VIEW_1 with pixels a third the size: its rays are pooled 3 × 3 (``RAY_PIXEL_MM``)
+FINE_VIEW_1 = dataclasses.replace(VIEW_1, pixel_spacing_mm=(0.8 / 3, 0.8 / 3), detector_shape=(384, 384))
 
 
-def test_plane_derivatives_match_the_blurred_plane_integrals_of_gaussian_blobs():
-    rays = rays_of(blob_image(VIEW_1), VIEW_1)
+@pytest.mark.parametrize("view", [VIEW_1, FINE_VIEW_1], ids=["0.8 mm pixels", "0.27 mm pixels, pooled"])
+def test_plane_derivatives_match_the_blurred_plane_integrals_of_gaussian_blobs(view):
+    rays = rays_of(blob_image(view), view)
+    if view is FINE_VIEW_1:  # one ray per 3 × 3 block of pixels
+        assert len(rays.weights) <= np.count_nonzero(blob_image(view)) / 9 + 4 * 128
     n0, m = epipolar_frame(VIEW_1.source_position, VIEW_2.source_position, np.zeros(3))
     kappa = np.linspace(-0.04, 0.04, 9)
     normals = np.cos(kappa)[:, None] * n0 + np.sin(kappa)[:, None] * m
@@ -77,3 +85,46 @@ def test_images_that_cannot_be_compared_are_refused():
         rays_of(np.ones((64, 64)), VIEW_1)
     with pytest.raises(EpipolarError, match="no vessel"):
         rays_of(np.zeros((128, 128)), VIEW_1)
+
+
+def _moved_images(views, motions_about_centre, centre):
+    return [blob_image(views[0])] + [blob_image(v.with_object_motion(r, t - rotation_matrix(r) @ centre + centre))
+                                     for v, (r, t) in zip(views[1:], motions_about_centre)]
+
+
+def _pair_costs(views, images, estimates, centre):
+    posed = [views[0]] + [v.with_object_motion(e.rotation_deg, e.translation_mm) for v, e in zip(views[1:], estimates)]
+    rays = [rays_of(image, view) for image, view in zip(images, posed)]
+    return {(i + 1, j + 1): consistency(rays[i], rays[j], 1.0, centre)["cost"]
+            for i in range(len(rays)) for j in range(i + 1, len(rays))}
+
+
+def test_three_views_are_made_consistent_in_every_pair_where_matching_each_to_view_1_is_not():
+    centre = CENTRES.mean(axis=0)
+    baseline = VIEW_2.source_position - VIEW_1.source_position
+    baseline /= np.linalg.norm(baseline)
+    # view 2 moved mostly along its baseline with view 1 (invisible to that pair), view 3 across
+    motions = [(np.array([0.0, 0.3, 0.5]), 1.5 * baseline), (np.array([0.4, 0.0, 0.0]), np.array([0.0, 0.8, 0.0]))]
+    views = [VIEW_1, VIEW_2, VIEW_3]
+    images = _moved_images(views, motions, centre)
+    alone = [estimate_motion(VIEW_1, images[0], v, image, centre) for v, image in zip(views[1:], images[1:])]
+    each_to_view_1 = _pair_costs(views, images, alone, centre)
+    assert each_to_view_1[(1, 2)] < 1e-3 and each_to_view_1[(1, 3)] < 1e-3 and each_to_view_1[(2, 3)] > 0.1
+    estimates = estimate_motions(views, images, centre)
+    assert len(estimates) == 2 and set(estimates[0].parameters) == {
+        "shift_across", "rotation_about_baseline", "rotation_about_depth", "rotation_about_normal",
+        "shift_in_depth", "shift_along_baseline"}
+    jointly = _pair_costs(views, images, estimates, centre)
+    assert max(jointly.values()) < 1e-3, jointly
+    assert estimates[0].cost_after < 0.01 * estimates[0].cost_before
+    # the shift along view 1–2's baseline moved toward the truth (three views see it, if weakly)
+    assert estimates[0].parameters["shift_along_baseline"] > 0.3
+
+
+def test_estimate_motions_with_two_views_is_estimate_motion_and_refuses_a_missing_image():
+    images = [blob_image(VIEW_1), blob_image(VIEW_2.with_object_motion((0.0, 0.0, 0.0), (0.0, 0.0, 1.0)))]
+    (joint,) = estimate_motions([VIEW_1, VIEW_2], images, np.zeros(3))
+    alone = estimate_motion(VIEW_1, images[0], VIEW_2, images[1], np.zeros(3))
+    np.testing.assert_allclose(joint.translation_mm, alone.translation_mm)
+    with pytest.raises(EpipolarError, match="one image per view"):
+        estimate_motions([VIEW_1, VIEW_2, VIEW_3], images, np.zeros(3))

@@ -9,6 +9,11 @@ from them, and, against the simulated motion, each component along ``motion_axes
 region's centre) and the shift along the baseline, which two views cannot see. With
 ``--reconstruct``, ``fast`` (with the frames) at the nominal pose, at the estimated pose and at the
 true pose (the last with motion only), scored against the truth. Prints the means and the machine.
+
+``--views 3`` (``realistic-lao30-rao30-cra30``, views 2 and 3 moved): each view's motion matched to
+view 1 alone (``pairwise``, what ``estimate_motion`` finds) and over every pair at once (``joint``,
+``estimate_motions``); per view the error of the whole motion about the region's centre, and its part
+along view 1's axis (a common shift there is what three views barely see).
 """
 
 from __future__ import annotations
@@ -25,7 +30,7 @@ import numpy as np  # noqa: E402
 from bench.realistic_cases import add_grid_arguments, protocol_setup  # noqa: E402
 from SDFCARLib.evidence import view_evidence  # noqa: E402
 from SDFCARLib.geometry import Geometry, rotation_matrix  # noqa: E402
-from SDFCARLib.line_integral_consistency import estimate_motion, motion_axes  # noqa: E402
+from SDFCARLib.line_integral_consistency import estimate_motion, estimate_motions, motion_axes  # noqa: E402
 from SDFCARLib.metrics import evaluate  # noqa: E402
 from SDFCARLib.optimiser import reconstruct  # noqa: E402
 from SDFCARLib.phantoms import lad_tree, rca_tree, voxelize  # noqa: E402
@@ -34,6 +39,7 @@ from SDFCARLib.settings import REALISTIC_PROTOCOLS, make_settings, parse_setting
 
 PROTOCOL = "realistic-lao30-rao30"
 STATIC = "realistic-static-lao30-rao30"  # the same without motion: the estimate should be nil and change nothing
+THREE_VIEWS = {False: "realistic-lao30-rao30-cra30", True: "realistic-static-lao30-rao30-cra30"}
 
 
 def components(rotation_deg, translation_mm, centre, axes):
@@ -58,8 +64,12 @@ def main() -> int:
     parser.add_argument("--static", action="store_true", help=f"protocol {STATIC}: no motion")
     parser.add_argument("--blurs", type=float, nargs="+", default=None)
     parser.add_argument("--searched", nargs="+", default=None, help="motions searched (default: the three two views observe)")
+    parser.add_argument("--views", type=int, choices=(2, 3), default=2)
+    parser.add_argument("--prior", type=float, nargs="+", default=None, help="joint searches with these prior weights")
     add_grid_arguments(parser)
     args = parser.parse_args()
+    if args.views == 3:
+        return three_views(args)
     motion_options = {k: v for k, v in (("searched", args.searched), ("blurs_mm", args.blurs)) if v is not None}
     protocol = STATIC if args.static else PROTOCOL
     geometry = protocol_setup(args, protocol, f"{args.first}..{args.first + args.cases - 1}")
@@ -98,6 +108,77 @@ def main() -> int:
         rows.append(row)
     print("# means: " + "  ".join(f"{k} {np.mean([r[k] for r in rows]):.3f}" for k in rows[0]))
     return 0
+
+
+def about_centre(rotation_deg, translation_mm, centre):
+    rotation = np.asarray(rotation_deg, float)
+    return np.concatenate([rotation, np.asarray(translation_mm, float) + rotation_matrix(rotation) @ centre - centre])
+
+
+def three_views(args) -> int:
+    protocol = THREE_VIEWS[args.static]
+    geometry = protocol_setup(args, protocol, f"{args.first}..{args.first + args.cases - 1}")
+    overrides = {"calibrate_from_frames": False, **parse_setting_overrides(args.set)}  # the poses are given
+    centre = np.asarray(geometry.volume.center_mm, float)
+    views = geometry.views
+    axis = views[0].detector_direction
+    priors = args.prior or [None]
+    rows = []
+    for seed in range(args.first, args.first + args.cases):
+        name = f"{args.suite.upper()}-{seed}"
+        label = voxelize((rca_tree if args.suite == "rca" else lad_tree)(seed), geometry.volume)
+        realistic = realistic_input(label, geometry, seed, RealisticOptions(**REALISTIC_PROTOCOLS[protocol]))
+        evidence = [view_evidence(f, m, v).line_integral_mm for f, m, v in zip(realistic.frames, realistic.masks, views)]
+        truth = [about_centre(v.object_rotation_deg, v.object_translation_mm, centre) for v in realistic.true_views[1:]]
+        t0 = time.perf_counter()
+        pairwise = [estimate_motion(views[0], evidence[0], views[k], evidence[k], centre) for k in range(1, len(views))]
+        found = {"nominal": ([np.zeros(6)] * len(truth), 0.0),
+                 "pairwise": ([about_centre(e.rotation_deg, e.translation_mm, centre) for e in pairwise],
+                              time.perf_counter() - t0)}
+        for prior in priors:
+            options = {} if prior is None else {"prior_weight": prior}
+            estimates = estimate_motions(views, evidence, centre, **options)
+            found["joint" if prior is None else f"joint{prior:g}"] = (
+                [about_centre(e.rotation_deg, e.translation_mm, centre) for e in estimates], estimates[0].seconds)
+        row = {}
+        for method, (motions, seconds) in found.items():
+            errors = [m - t for m, t in zip(motions, truth)]
+            rotation = max(float(np.linalg.norm(e[:3])) for e in errors)
+            translation = max(float(np.linalg.norm(e[3:])) for e in errors)
+            along = [float(e[3:] @ axis) for e in errors]
+            across = max(float(np.linalg.norm(e[3:] - (e[3:] @ axis) * axis)) for e in errors)
+            row.update({f"rot_{method}": rotation, f"mm_{method}": translation, f"across_{method}": across})
+            print(f"{name} {method:9s} worst view: rotation error {rotation:.2f}°, translation {translation:.2f} mm "
+                  f"({across:.2f} mm across view 1's axis; along it " + " ".join(f"{a:+.2f}" for a in along)
+                  + f") {seconds:.1f} s", flush=True)
+        if args.reconstruct:
+            settings = make_settings("fast", seed=seed, **overrides)
+            for method, (motions, _) in found.items():
+                if method == "nominal" and args.static:
+                    continue
+                moved = tuple([views[0]] + [v.with_object_motion(*found_pose(m, centre)) for v, m in zip(views[1:], motions)])
+                t0 = time.perf_counter()
+                g = Geometry(geometry.volume, moved)
+                result = reconstruct(g, realistic.masks, settings, "mask", frames=realistic.frames)
+                m = evaluate(result.segmentation, label, geometry.volume, g.views, realistic.masks)
+                row[f"cldice_{method}"], row[f"pieces_{method}"] = m["cldice"], m["components"]
+                print(f"{name} {method:9s} clDice {m['cldice']:.3f} Dice {m['dice']:.3f} Chamfer {m['chamfer_l2_mm']:.2f} "
+                      f"pieces {m['components']}/{m.get('components_label')} {time.perf_counter() - t0:.0f} s", flush=True)
+            if not args.static:
+                g = Geometry(geometry.volume, tuple(realistic.true_views))
+                result = reconstruct(g, realistic.masks, settings, "mask", frames=realistic.frames)
+                m = evaluate(result.segmentation, label, geometry.volume, g.views, realistic.masks)
+                row["cldice_true"], row["pieces_true"] = m["cldice"], m["components"]
+                print(f"{name} {'true':9s} clDice {m['cldice']:.3f} Dice {m['dice']:.3f} pieces {m['components']}", flush=True)
+        rows.append(row)
+    print("# means: " + "  ".join(f"{k} {np.mean([r[k] for r in rows]):.3f}" for k in rows[0]))
+    return 0
+
+
+def found_pose(motion_about_centre, centre):
+    """(rotation, translation about the origin), as ``CArmView.with_object_motion`` takes them."""
+    rotation = np.asarray(motion_about_centre[:3], float)
+    return rotation, np.asarray(motion_about_centre[3:], float) - rotation_matrix(rotation) @ centre + centre
 
 
 if __name__ == "__main__":
