@@ -255,7 +255,7 @@ def estimate_motion(reference: CArmView, reference_image: np.ndarray, view: CArm
     if unknown or not searched:
         raise EpipolarError(f"unknown motion(s) {unknown or searched}; choose among {', '.join(axes)}")
     basis = np.stack([axes[name] for name in searched])
-    limits = np.array([max_rotation_deg if np.any(axes[name][:3]) else max_translation_mm for name in searched])
+    limits = _limits(searched, axes, max_rotation_deg, max_translation_mm)
 
     def cost(params: np.ndarray, blur: float) -> float:
         if np.any(np.abs(params) > limits):
@@ -283,8 +283,7 @@ def _limits(names: Sequence[str], axes: Dict[str, np.ndarray], max_rotation_deg:
 def estimate_motions(views: Sequence[CArmView], images: Sequence[np.ndarray], centre_mm: Sequence[float],
                      max_rotation_deg: float = 4.0, max_translation_mm: float = 6.0,
                      blurs_mm: Sequence[float] = SEARCH_BLURS_MM, joint_blurs_mm: Sequence[float] = JOINT_BLURS_MM,
-                     prior_weight: float = MOTION_PRIOR_WEIGHT, progress=None,
-                     joint_motions: Sequence[str] = ALL_MOTIONS) -> List[MotionEstimate]:
+                     prior_weight: float = MOTION_PRIOR_WEIGHT, progress=None) -> List[MotionEstimate]:
     """The object motion of every view after the first (the reference), one estimate each.
 
     Each view is first matched to view 1 alone (``estimate_motion``: the three motions that pair
@@ -310,10 +309,10 @@ def estimate_motions(views: Sequence[CArmView], images: Sequence[np.ndarray], ce
         progress(total, total, "every pair of views at once")
     rays = [rays_of(image, view) for image, view in zip(images, views)]
     axes = [motion_axes(views[0], view, centre) for view in views[1:]]
-    bases = [np.stack([a[name] for name in joint_motions]) for a in axes]  # orthonormal: rows are unit, orthogonal
-    limits = np.concatenate([_limits(joint_motions, a, max_rotation_deg, max_translation_mm) for a in axes])
+    bases = [np.stack([a[name] for name in ALL_MOTIONS]) for a in axes]  # orthonormal: rows are unit, orthogonal
+    limits = np.concatenate([_limits(ALL_MOTIONS, a, max_rotation_deg, max_translation_mm) for a in axes])
     pairs = [(i, j) for i in range(len(views)) for j in range(i + 1, len(views))]
-    size = len(joint_motions)
+    size = len(ALL_MOTIONS)
 
     def motions(params: np.ndarray) -> List[np.ndarray]:
         return [np.zeros(6)] + [params[size * k:size * (k + 1)] @ basis for k, basis in enumerate(bases)]
@@ -349,9 +348,9 @@ def estimate_motions(views: Sequence[CArmView], images: Sequence[np.ndarray], ce
     for k, (motion, view) in enumerate(zip(motions(params)[1:], views[1:])):
         own = params[size * k:size * (k + 1)]
         final = moved(view, motion[:3], motion[3:], centre)
-        at_limit = [name for name, value, limit in zip(joint_motions, own, limits[size * k:size * (k + 1)])
+        at_limit = [name for name, value, limit in zip(ALL_MOTIONS, own, limits[size * k:size * (k + 1)])
                     if abs(value) >= 0.99 * limit]
         out.append(MotionEstimate(np.asarray(final.object_rotation_deg), np.asarray(final.object_translation_mm), centre,
-                                  motion, {name: float(v) for name, v in zip(joint_motions, own)}, at_limit,
+                                  motion, {name: float(v) for name, v in zip(ALL_MOTIONS, own)}, at_limit,
                                   before, after, seconds))
     return out
