@@ -220,15 +220,16 @@ def calibrate_from_frames(geometry: Geometry, line_integrals: Sequence[np.ndarra
     t0 = time.perf_counter()
     views = list(geometry.views)
     centre = np.asarray(geometry.volume.center_mm, float)
-    found: List[Dict[str, Any]] = [{"view": k + 1, "skipped": "looks along the same line as view 1"}
-                                   for k in range(1, len(views)) if epipolar_normal(views[0], views[k]) is None]
-    used = [0] + [k for k in range(1, len(views)) if epipolar_normal(views[0], views[k]) is not None]
-    if len(used) < 2:
-        return Calibration(Geometry(geometry.volume, views), found, time.perf_counter() - t0, [],
-                           method="epipolar consistency of the frames' vessel line integrals")
+    found: List[Dict[str, Any]] = []
+    used = [0]
+    for k in range(1, len(views)):
+        if epipolar_normal(views[0], views[k]) is None:
+            found.append({"view": k + 1, "skipped": "looks along the same line as view 1"})
+        else:
+            used.append(k)
     # a joint search needs every pair to have epipolar planes; otherwise each view is matched to view 1 alone
     jointly = all(epipolar_normal(views[i], views[j]) is not None for i in used[1:] for j in used[1:] if i < j)
-    groups = [used] if jointly else [[0, k] for k in used[1:]]
+    groups = [used] if jointly and len(used) > 1 else [[0, k] for k in used[1:]]  # none when no view can be matched
 
     def told(step: int, total: int, message: str) -> None:
         _report(progress, phase="calibrate", step=step, total=total, elapsed_s=time.perf_counter() - t0,

@@ -137,8 +137,8 @@ CALIBRATION_SCORE_STEPS = 20
 class CalibrationSettings:
     """Search of each view's observable rigid motion before the reconstruction (``calibration.py``)."""
 
-    # where the frames are given: the motion two views observe, from their line integrals' epipolar
-    # consistency (line_integral_consistency.py; seconds, no re-fit)
+    # where the frames are given: the motion between the views that their line integrals' epipolar
+    # consistency observes (line_integral_consistency.py; every pair at once with 3+ views; seconds, no re-fit)
     calibrate_from_frames: bool = False
     calibrate: bool = False  # the search by re-fitting the field per candidate pose (minutes per view)
     calibration_range_mm: float = 4.0  # shift candidates within ± this

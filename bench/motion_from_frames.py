@@ -73,7 +73,7 @@ def main() -> int:
     motion_options = {k: v for k, v in (("searched", args.searched), ("blurs_mm", args.blurs)) if v is not None}
     protocol = STATIC if args.static else PROTOCOL
     geometry = protocol_setup(args, protocol, f"{args.first}..{args.first + args.cases - 1}")
-    overrides = parse_setting_overrides(args.set)
+    overrides = {"calibrate_from_frames": False, **parse_setting_overrides(args.set)}  # the poses are given
     rows = []
     for seed in range(args.first, args.first + args.cases):
         name = f"{args.suite.upper()}-{seed}"
@@ -153,23 +153,18 @@ def three_views(args) -> int:
                   + f") {seconds:.1f} s", flush=True)
         if args.reconstruct:
             settings = make_settings("fast", seed=seed, **overrides)
-            for method, (motions, _) in found.items():
-                if method == "nominal" and args.static:
-                    continue
-                moved = tuple([views[0]] + [v.with_object_motion(*found_pose(m, centre)) for v, m in zip(views[1:], motions)])
+            poses = {method: Geometry(geometry.volume, tuple([views[0]] + [v.with_object_motion(*found_pose(m, centre))
+                                                                           for v, m in zip(views[1:], motions)]))
+                     for method, (motions, _) in found.items() if not (method == "nominal" and args.static)}
+            if not args.static:
+                poses["true"] = Geometry(geometry.volume, tuple(realistic.true_views))
+            for method, g in poses.items():
                 t0 = time.perf_counter()
-                g = Geometry(geometry.volume, moved)
                 result = reconstruct(g, realistic.masks, settings, "mask", frames=realistic.frames)
                 m = evaluate(result.segmentation, label, geometry.volume, g.views, realistic.masks)
                 row[f"cldice_{method}"], row[f"pieces_{method}"] = m["cldice"], m["components"]
                 print(f"{name} {method:9s} clDice {m['cldice']:.3f} Dice {m['dice']:.3f} Chamfer {m['chamfer_l2_mm']:.2f} "
                       f"pieces {m['components']}/{m.get('components_label')} {time.perf_counter() - t0:.0f} s", flush=True)
-            if not args.static:
-                g = Geometry(geometry.volume, tuple(realistic.true_views))
-                result = reconstruct(g, realistic.masks, settings, "mask", frames=realistic.frames)
-                m = evaluate(result.segmentation, label, geometry.volume, g.views, realistic.masks)
-                row["cldice_true"], row["pieces_true"] = m["cldice"], m["components"]
-                print(f"{name} {'true':9s} clDice {m['cldice']:.3f} Dice {m['dice']:.3f} pieces {m['components']}", flush=True)
         rows.append(row)
     print("# means: " + "  ".join(f"{k} {np.mean([r[k] for r in rows]):.3f}" for k in rows[0]))
     return 0
