@@ -97,17 +97,23 @@ def main() -> int:
             poses = {"nominal": geometry, "found": Geometry(geometry.volume, (views[0], found_view))}
             if not args.static:
                 poses["true"] = Geometry(geometry.volume, tuple(realistic.true_views))
-            for pose, g in poses.items():
-                t0 = time.perf_counter()
-                result = reconstruct(g, realistic.masks, settings, "mask", frames=realistic.frames)
-                m = evaluate(result.segmentation, label, geometry.volume, g.views, realistic.masks)
-                row[f"cldice_{pose}"], row[f"dice_{pose}"] = m["cldice"], m["dice"]
-                row[f"pieces_{pose}"] = m["components"]
-                print(f"{name} {pose:7s} clDice {m['cldice']:.3f} Dice {m['dice']:.3f} Chamfer {m['chamfer_l2_mm']:.2f} "
-                      f"pieces {m['components']}/{m.get('components_label')} {time.perf_counter() - t0:.0f} s", flush=True)
+            row.update(reconstruct_at(poses, realistic, label, geometry.volume, settings, name))
         rows.append(row)
     print("# means: " + "  ".join(f"{k} {np.mean([r[k] for r in rows]):.3f}" for k in rows[0]))
     return 0
+
+
+def reconstruct_at(poses, realistic, label, volume, settings, name):
+    """``settings`` reconstructions of the case at each named pose, scored against the truth (printed)."""
+    row = {}
+    for pose, g in poses.items():
+        t0 = time.perf_counter()
+        result = reconstruct(g, realistic.masks, settings, "mask", frames=realistic.frames)
+        m = evaluate(result.segmentation, label, volume, g.views, realistic.masks)
+        row.update({f"cldice_{pose}": m["cldice"], f"dice_{pose}": m["dice"], f"pieces_{pose}": m["components"]})
+        print(f"{name} {pose:9s} clDice {m['cldice']:.3f} Dice {m['dice']:.3f} Chamfer {m['chamfer_l2_mm']:.2f} "
+              f"pieces {m['components']}/{m.get('components_label')} {time.perf_counter() - t0:.0f} s", flush=True)
+    return row
 
 
 def about_centre(rotation_deg, translation_mm, centre):
@@ -158,13 +164,7 @@ def three_views(args) -> int:
                      for method, (motions, _) in found.items() if not (method == "nominal" and args.static)}
             if not args.static:
                 poses["true"] = Geometry(geometry.volume, tuple(realistic.true_views))
-            for method, g in poses.items():
-                t0 = time.perf_counter()
-                result = reconstruct(g, realistic.masks, settings, "mask", frames=realistic.frames)
-                m = evaluate(result.segmentation, label, geometry.volume, g.views, realistic.masks)
-                row[f"cldice_{method}"], row[f"pieces_{method}"] = m["cldice"], m["components"]
-                print(f"{name} {method:9s} clDice {m['cldice']:.3f} Dice {m['dice']:.3f} Chamfer {m['chamfer_l2_mm']:.2f} "
-                      f"pieces {m['components']}/{m.get('components_label')} {time.perf_counter() - t0:.0f} s", flush=True)
+            row.update(reconstruct_at(poses, realistic, label, geometry.volume, settings, name))
         rows.append(row)
     print("# means: " + "  ".join(f"{k} {np.mean([r[k] for r in rows]):.3f}" for k in rows[0]))
     return 0
