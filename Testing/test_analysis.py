@@ -8,7 +8,7 @@ import math
 import numpy as np
 import pytest
 
-from SDFCARLib.analysis.centreline import bifurcation_angles, extract_centrelines
+from SDFCARLib.analysis.centreline import bifurcation_angles, extract_centrelines, trim_free_end
 from SDFCARLib.analysis.diameter import branch_cross_sections, junction_zones, mask_diameters
 from SDFCARLib.analysis.lesion import ReferenceFit, find_lesions, reference_fit
 from SDFCARLib.analysis.phantoms import (grid_around, helix, render_mask, stenosed_tube, straight_tube,
@@ -43,6 +43,25 @@ def test_helix_length_within_2_percent():
     assert np.abs(sections.equivalent_diameter_mm[~ends] - 2.0).mean() <= 0.15
 
 
+def test_a_free_end_that_fans_to_the_rim_is_cut_back_before_it_turns():
+    # A skeleton along L whose last 1.2 mm turns 1.5 mm sideways towards the rim of a 2 mm vessel
+    # (the inscribed radius falls there): 1.5 radii (3 mm) are cut, so the end keeps to the axis.
+    axis = np.stack([np.arange(0.0, 20.01, 0.4), np.zeros(51), np.zeros(51)], axis=1)
+    turn = np.array([[20.4, 0.5, 0.0], [20.8, 1.0, 0.0], [21.2, 1.5, 0.0]])
+    points = np.vstack([axis, turn])
+    radius = np.r_[np.full(51, 2.0), [1.2, 0.8, 0.4]]
+    kept, vessel_radius = trim_free_end(points, radius)
+    assert vessel_radius == 2.0
+    assert np.all(kept[:, 1] == 0.0)
+    arc = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(points, axis=0), axis=1))]
+    assert arc[len(kept) - 1] <= arc[-1] - 1.5 * 2.0 < arc[len(kept)]
+    # The proximal end is cut the same way; a path shorter than three radii keeps its first half.
+    start, _ = trim_free_end(points[::-1], radius[::-1], at_start=True)
+    np.testing.assert_array_equal(start, points[::-1][-len(kept):])
+    short, _ = trim_free_end(axis[:6], np.full(6, 2.0))
+    np.testing.assert_array_equal(short, axis[:3])
+
+
 @pytest.mark.parametrize("eccentric", [False, True])
 def test_fifty_percent_stenosis(eccentric):
     phantom = stenosed_tube(length_mm=30.0, diameter_mm=3.0, stenosis_pct=50.0, lesion_length_mm=10.0,
@@ -71,6 +90,18 @@ def test_reference_fit_ignores_the_lesion_and_keeps_the_taper():
     assert fit.slope_mm_per_mm == pytest.approx(-0.02, abs=0.003)
     assert fit.intercept_mm == pytest.approx(3.5, abs=0.05)
     assert not fit.kept[(s > 22) & (s < 33)].any()
+
+
+def test_a_section_missing_inside_a_lesion_does_not_split_it():
+    s = np.arange(0.0, 30.0, 0.25)
+    d = np.where((s >= 10) & (s <= 20), 1.5, 3.0)  # 50 % over 10 mm, flat
+    d[s == 14.0] = np.nan  # one cross-section failed
+    lesions = find_lesions(s, d, ReferenceFit(3.0, 0.0, np.ones(len(s), bool)), smoothing_mm=0.0)
+    assert len(lesions) == 1
+    assert lesions[0].diameter_stenosis_pct == pytest.approx(50.0)
+    # each edge is one 0.25 mm step; the flank line through its 75 % and 25 % points reaches 0 a step out
+    assert (lesions[0].start_mm, lesions[0].end_mm) == pytest.approx((9.75, 20.25))
+    assert lesions[0].mld_position_mm != 14.0
 
 
 def test_no_lesion_on_a_healthy_profile():
@@ -132,6 +163,24 @@ def test_overlap_of_crossing_vessels():
     crossed = view_map(segment, 1.0, other, 1.0, step_deg=5.0).best()
     assert crossed["overlap"] == 0.0 and crossed["foreshortening"] < 1e-9
     assert crossed["primary_deg"] == 0.0 and abs(crossed["secondary_deg"]) >= 30.0
+
+
+def test_rendered_mask_of_a_tube_across_the_view_has_its_flat_ends_and_width():
+    # AP: a tube along L (the columns) through the isocentre, radius r, length L. Its far end's
+    # nearest edge (depth SOD − r) projects farthest: |col − c0| · ps ≤ (L/2) · SID / (SOD − r)
+    # on the central row. Across it, the tangent rays from the source: half-width SID · r / √(SOD² − r²).
+    # A union of spheres would reach a radius beyond each end.
+    view = CArmView(0.0, 0.0, 1000.0, 750.0, (0.2, 0.2), (200, 400), principal_point_px=(100.0, 200.0))
+    length, radius = 40.0, 2.0
+    tube = straight_tube(length, 2 * radius, direction=(1.0, 0.0, 0.0))
+    mask = render_mask(tube.tree, view)
+    r0, c0 = view.principal_point
+    cols = np.arange(400) - c0
+    rows = np.arange(200) - r0
+    along = np.abs(cols) * 0.2 <= (length / 2) * view.sid_mm / (view.sod_mm - radius)
+    across = np.abs(rows) * 0.2 <= view.sid_mm * radius / math.sqrt(view.sod_mm ** 2 - radius ** 2)
+    np.testing.assert_array_equal(mask[int(r0)], along)
+    np.testing.assert_array_equal(mask[:, int(c0)], across)
 
 
 def test_mask_widths_of_a_tube_in_two_views():

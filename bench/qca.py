@@ -148,20 +148,21 @@ def tube_cases(seed: int = 0):
         direction = rng.normal(size=3)
         ph = stenosed_tube(length_mm=40.0, diameter_mm=diameter, stenosis_pct=sev, lesion_length_mm=length,
                            eccentric=ecc, direction=direction, curvature_radius_mm=40.0 if ecc else None)
-        yield f"{sev}%/{length}mm/{diameter}mm/{'ecc' if ecc else 'con'}", ph
+        yield (f"{sev}%/{length}mm/{diameter}mm/{'ecc' if ecc else 'con'}", ph,
+               {"axis_foreshortening_pct": [round(v, 1) for v in axis_foreshortening_pct(direction)]})
 
 
 def tree_cases():
     for maker, branch, seed, sev in ((lad_tree, "LM-LAD", 0, 50), (lad_tree, "LM-LAD", 1, 70),
                                      (rca_tree, "RCA", 0, 50), (rca_tree, "RCA", 1, 70)):
-        yield f"{maker.__name__}({seed}) {branch} {sev}%", stenosed_tree(maker(seed), branch, sev, 10.0)
+        yield f"{maker.__name__}({seed}) {branch} {sev}%", stenosed_tree(maker(seed), branch, sev, 10.0), {}
 
 
 def run_truth(cases, spacing, view_step_deg, mask_source="clean"):
     from SDFCARLib.masks import MaskError
 
     rows = []
-    for n, (name, ph) in enumerate(cases):
+    for n, (name, ph, extra) in enumerate(cases):
         grid = grid_around(ph.tree, spacing)
         label = voxelize_exact(ph.tree, grid)
         frames = None
@@ -176,8 +177,8 @@ def run_truth(cases, spacing, view_step_deg, mask_source="clean"):
             masks = [render_mask(ph.tree, v) for v in VIEWS]
         ostium = ph.truth.get("ostium_mm") or ph.tree.branches[0].points[0]
         row = score(ph, label.astype(np.float32), grid, 0.5, masks, ostium, view_step_deg, frames)
-        rows.append(dict(case=name, **row))
-        print(f"{name}: " + ", ".join(f"{k}={v:.3g}" if isinstance(v, float) else f"{k}={v}" for k, v in row.items()),
+        rows.append(dict(case=name, **extra, **row))
+        print(f"{name}: " + ", ".join(f"{k}={v:.3g}" if isinstance(v, float) else f"{k}={v}" for k, v in rows[-1].items()),
               flush=True)
     return rows
 

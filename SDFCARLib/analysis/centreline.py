@@ -18,8 +18,9 @@ Method (chosen after measuring the options, see bench/RESULTS.md "3D-QCA")
        vessels; the radius term scales the cut with the parent).
     6. Each branch's voxel path is resampled by arc length, smoothed with a Gaussian of
        ``smoothing_mm`` (removes the voxel staircase, which lengthens paths by up to ~8 %), and
-       resampled at ``step_mm``. Free ends are then extended along their end tangent to the
-       lumen surface (the thinned skeleton stops about one radius short of a vessel's end).
+       resampled at ``step_mm``. Free ends are first cut back by 1.5 vessel radii (near an end
+       the skeleton fans out towards the rim instead of following the axis) and, after smoothing,
+       extended along their end tangent to the lumen surface.
        A side branch starts at the point of its parent nearest its junction.
 
 Conventions
@@ -42,6 +43,7 @@ from skimage.morphology import skeletonize
 from ..geometry import VolumeGrid
 
 ROOT_RADIUS_REACH_MM = 3.0  # how far along the skeleton an end point's "thickness" is looked for
+END_TRIM_RADII = 1.5  # a free end's skeleton is cut back by this many vessel radii before its extension
 
 
 class CentrelineError(ValueError):
@@ -198,6 +200,23 @@ def sample_volume(volume: np.ndarray, grid: VolumeGrid, points_mm: np.ndarray, o
     return values.reshape(np.asarray(points_mm).shape[:-1])
 
 
+def trim_free_end(points: np.ndarray, radius: np.ndarray, at_start: bool = False):
+    """(points, vessel radius) with a free end's last ``END_TRIM_RADII`` vessel radii of skeleton cut off.
+
+    Within about a radius of a vessel's end the thinned skeleton no longer follows the axis: on a
+    blunt or uneven end it fans out towards the rim, and the longest path runs into a corner, which
+    adds up to a radius of length and bends the end tangent. The vessel radius is the largest
+    inscribed radius within ``ROOT_RADIUS_REACH_MM`` of the end; at least half the path is kept.
+    """
+    pts, rad = (points[::-1], radius[::-1]) if at_start else (points, radius)
+    s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(pts, axis=0), axis=1))])
+    vessel_radius = float(rad[s >= s[-1] - ROOT_RADIUS_REACH_MM].max())
+    keep = s <= max(s[-1] - END_TRIM_RADII * vessel_radius, s[-1] / 2)
+    keep[:2] = True
+    pts = pts[keep]
+    return (pts[::-1] if at_start else pts), vessel_radius
+
+
 def extend_to_surface(points: np.ndarray, volume: np.ndarray, grid: VolumeGrid, level: float,
                       reach_mm: float, step_mm: float, at_start: bool = False) -> np.ndarray:
     """Extend a polyline's end along its end tangent up to where the volume falls below ``level``."""
@@ -280,6 +299,11 @@ def extract_centrelines(volume: np.ndarray, grid: VolumeGrid, level: float = 0.5
         first_id = len(tree.branches)
         for k, (path, parent, _junction) in enumerate(raw):
             pts = world[members[np.asarray(path)]]
+            rad = radius[members[np.asarray(path)]]
+            if extend_ends:
+                pts, end_radius = trim_free_end(pts, rad)
+                if parent is None:
+                    pts, start_radius = trim_free_end(pts, rad[:len(pts)], at_start=True)
             smooth = smooth_polyline(pts, smoothing_mm, step_mm)
             parent_id = parent_index = None
             if parent is not None:
@@ -287,11 +311,11 @@ def extract_centrelines(volume: np.ndarray, grid: VolumeGrid, level: float = 0.5
                 parent_id = parent_branch.branch_id
                 parent_index = int(np.argmin(np.linalg.norm(parent_branch.points_mm - pts[0], axis=1)))
                 smooth[0] = parent_branch.points_mm[parent_index]
-            if extend_ends:
-                reach = 2.0 * float(radius[members[path[-1]]]) + 2.0 * float(spacing.max())
+            if extend_ends:  # the surface lies about a radius beyond the thinned end, plus what was trimmed
+                reach = (END_TRIM_RADII + 2.0) * end_radius + 2.0 * float(spacing.max())
                 smooth = extend_to_surface(smooth, fvol, grid, level, reach, step_mm)
                 if parent is None:
-                    reach = 2.0 * float(radius[members[path[0]]]) + 2.0 * float(spacing.max())
+                    reach = (END_TRIM_RADII + 2.0) * start_radius + 2.0 * float(spacing.max())
                     smooth = extend_to_surface(smooth, fvol, grid, level, reach, step_mm, at_start=True)
             r = sample_volume(edt, grid, smooth)
             tree.branches.append(CentrelineBranch(first_id + k, smooth, r, parent_id, parent_index, tree_id))

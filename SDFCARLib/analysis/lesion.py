@@ -143,8 +143,13 @@ def find_lesions(s_mm: np.ndarray, diameter_mm: np.ndarray, reference: Reference
     if area_mm2 is not None:
         area_mm2 = smooth_profile(s, area_mm2, smoothing_mm)
     ref = reference(s)
+    measured = np.isfinite(d)
+    # A section that could not be measured inside a lesion must not end it there: the flanks are
+    # walked on the profile bridged across such gaps; the MLD is taken at measured sections only.
+    bridged = np.interp(s, s[measured], d[measured]) if measured.sum() >= 2 else d
     with np.errstate(invalid="ignore", divide="ignore"):
-        n = np.where(np.isfinite(d) & (ref > 0), 1.0 - d / ref, 0.0)
+        walk = np.where(np.isfinite(bridged) & (ref > 0), 1.0 - bridged / ref, 0.0)
+    n = np.where(measured, walk, 0.0)
     open_ = np.ones(len(s), bool) if searchable is None else np.asarray(searchable, bool).copy()
     lesions: List[Lesion] = []
     for _ in range(max_lesions):
@@ -153,7 +158,7 @@ def find_lesions(s_mm: np.ndarray, diameter_mm: np.ndarray, reference: Reference
         if not np.isfinite(candidates[i]) or 100 * n[i] < min_stenosis_pct:
             break
         # Flanks are read on the whole profile (a lesion may run into a junction zone).
-        start, end = _edge(s, n, i, -1), _edge(s, n, i, +1)
+        start, end = _edge(s, walk, i, -1), _edge(s, walk, i, +1)
         mld, r = float(d[i]), float(ref[i])
         a_ref = np.pi * r * r / 4
         a_min = float(area_mm2[i]) if area_mm2 is not None else np.pi * mld * mld / 4
