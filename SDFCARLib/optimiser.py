@@ -291,9 +291,11 @@ def build_problem(geometry: Geometry, targets: Sequence[np.ndarray], settings: S
             [None if support is None else p.pixels for p in projectors],
             DistanceSettings(loss.dt_downsample, loss.dt_threshold, loss.dt_truncation_mm, loss.dt_kernel_size),
         )
+    record = dict(evidence.record) if settings.loss.frame_evidence else dict(FRAME_EVIDENCE_OFF)
+    if evidence_images is not None:
+        record["lambda_occ"] = settings.loss.lambda_occ_frames  # the weight L_occ has on the frames' path lengths
     return Problem(geometry, settings, target_kind, arrays, support, voxels, device, device_reason, needed_bytes,
-                   projectors, view_targets, geometric, time.perf_counter() - t_start, warnings, consistency,
-                   evidence.record if settings.loss.frame_evidence else dict(FRAME_EVIDENCE_OFF))
+                   projectors, view_targets, geometric, time.perf_counter() - t_start, warnings, consistency, record)
 
 
 def optimise(problem: Problem, model: ImplicitField, progress: Progress = None, cancel: Cancel = None,
@@ -311,6 +313,7 @@ def optimise(problem: Problem, model: ImplicitField, progress: Progress = None, 
     scheduler = torch.optim.lr_scheduler.LambdaLR(
         optimiser, lambda n: min(1.0, (n + 1) / o.warmup_steps) if o.warmup_steps > 0 else 1.0)
     history: List[Dict[str, float]] = []
+    lambda_occ = problem.evidence.get("lambda_occ", settings.loss.lambda_occ)
     t_loop = time.perf_counter()
     last_report = -math.inf
     for step in range(1, o.steps + 1):
@@ -321,7 +324,7 @@ def optimise(problem: Problem, model: ImplicitField, progress: Progress = None, 
         line_integrals = [projector.render(occupancy) for projector in problem.projectors]
         l_occ = sum(occupancy_loss(t.rendered(li), t.image)
                     for li, t in zip(line_integrals, problem.view_targets)) / len(problem.projectors)
-        loss = settings.loss.lambda_occ * l_occ
+        loss = lambda_occ * l_occ
         l_geo = torch.zeros((), device=device)
         if problem.geometric is not None:
             l_geo = problem.geometric([t.silhouette_of(li) for li, t in zip(line_integrals, problem.view_targets)])

@@ -110,6 +110,9 @@ class LossSettings:
     # where the frames are given with the masks: L_occ on the rays' path lengths read off the frames
     # (evidence.py) instead of the masks, so a ghost in the shadow of a real vessel costs what it adds
     frame_evidence: bool = False
+    # λ2 when L_occ fits the frames' path lengths (they say how much vessel a ray crossed, which a mask
+    # does not); 0.5 was better on static realistic cases but worse on moving LAD ones (RESULTS §18b)
+    lambda_occ_frames: float = 0.25
 
 
 @dataclass
@@ -228,6 +231,10 @@ class Settings:
                             ("silhouette_length_mm", l.silhouette_length_mm)):
             if not value > 0:
                 raise ReconstructionError(f"{name} must be positive, got {value}")
+        for name, value in (("lambda_geo", l.lambda_geo), ("lambda_occ", l.lambda_occ),
+                            ("lambda_occ_frames", l.lambda_occ_frames)):
+            if not value >= 0:
+                raise ReconstructionError(f"{name} is a loss weight and must not be negative, got {value}")
         if o.table_learning_rate is not None and not o.table_learning_rate > 0:
             raise ReconstructionError(f"table_learning_rate must be positive or none, got {o.table_learning_rate}")
         if l.dt_downsample < 1:

@@ -129,10 +129,14 @@ def angiogram_case():
 
 def test_reconstruction_fits_the_frames_when_asked(angiogram_case):
     geometry, label, frames, masks = angiogram_case
-    settings = make_settings("fast", steps=150, frame_evidence=True)
+    settings = make_settings("fast", steps=150, frame_evidence=True, lambda_occ_frames=0.5)
     result = reconstruct(geometry, masks, settings, "mask", frames=frames)
     evidence = result.report["frame_evidence"]
     assert evidence["used"] is True
+    # L_occ on the path lengths weighs λ_occ_frames, not the masks' λ_occ (0.25)
+    assert evidence["lambda_occ"] == 0.5 != settings.loss.lambda_occ
+    last = result.history[-1]
+    assert last["loss"] == pytest.approx(0.5 * last["l_occ"] + settings.loss.lambda_geo * last["l_geo"], rel=1e-5)
     for view in evidence["views"]:  # the simulator's iodine
         assert view["attenuation_per_mm"] == pytest.approx(0.25, rel=0.2)
     overlap = np.sum(result.segmentation & label) / np.sum(label)

@@ -84,6 +84,7 @@ def test_overrides_and_none_values():
     (dict(dt_downsample=0), "dt_downsample"),
     (dict(threshold=1.0), "threshold"),
     (dict(threads=0), "threads"),
+    (dict(lambda_occ_frames=-0.5), "lambda_occ_frames is a loss weight"),
 ])
 def test_bad_settings(kwargs, fragment):
     kwargs = dict(kwargs)

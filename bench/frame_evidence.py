@@ -42,7 +42,7 @@ def main() -> int:
     parser.add_argument("--variant", action="append", default=[], metavar="KEY=VALUE[,KEY=VALUE]",
                         help="one more variant with the frames and these settings (threshold 0.5), e.g. support_margin_mm=1.5")
     parser.add_argument("--no-masks-only", action="store_true", help="skip the masks-only variant")
-    parser.add_argument("--motion", action="store_true", help=f"protocol {MOVING} (no calibration)")
+    parser.add_argument("--motion", action="store_true", help=f"protocol {MOVING} (the preset's calibrate_from_frames corrects what the frames show)")
     add_grid_arguments(parser)
     args = parser.parse_args()
     protocol = MOVING if args.motion else PROTOCOL
