@@ -92,19 +92,20 @@ def main() -> int:
         print(f"{name} " + "  ".join(f"{k} {true_parts[k]:+.2f}→{found_parts[k]:+.2f}" for k in true_parts)
               + f" | consistency {estimate.cost_before:.4f} → {estimate.cost_after:.4f} | {estimate.seconds:.1f} s", flush=True)
         if args.reconstruct:
-            settings = make_settings("fast", seed=seed, **overrides)
             found_view = views[1].with_object_motion(estimate.rotation_deg, estimate.translation_mm)
             poses = {"nominal": geometry, "found": Geometry(geometry.volume, (views[0], found_view))}
-            if not args.static:
-                poses["true"] = Geometry(geometry.volume, tuple(realistic.true_views))
-            row.update(reconstruct_at(poses, realistic, label, geometry.volume, settings, name))
+            row.update(reconstruct_at(poses, realistic, label, geometry, args, seed, overrides, name))
         rows.append(row)
-    print("# means: " + "  ".join(f"{k} {np.mean([r[k] for r in rows]):.3f}" for k in rows[0]))
-    return 0
+    return print_means(rows)
 
 
-def reconstruct_at(poses, realistic, label, volume, settings, name):
-    """``settings`` reconstructions of the case at each named pose, scored against the truth (printed)."""
+def reconstruct_at(poses, realistic, label, geometry, args, seed, overrides, name):
+    """``fast`` reconstructions of the case at each named pose (and, with motion, at the true one), scored
+    against the truth (printed)."""
+    settings = make_settings("fast", seed=seed, **overrides)
+    volume = geometry.volume
+    if not args.static:
+        poses = dict(poses, true=Geometry(volume, tuple(realistic.true_views)))
     row = {}
     for pose, g in poses.items():
         t0 = time.perf_counter()
@@ -114,6 +115,11 @@ def reconstruct_at(poses, realistic, label, volume, settings, name):
         print(f"{name} {pose:9s} clDice {m['cldice']:.3f} Dice {m['dice']:.3f} Chamfer {m['chamfer_l2_mm']:.2f} "
               f"pieces {m['components']}/{m.get('components_label')} {time.perf_counter() - t0:.0f} s", flush=True)
     return row
+
+
+def print_means(rows) -> int:
+    print("# means: " + "  ".join(f"{k} {np.mean([r[k] for r in rows]):.3f}" for k in rows[0]))
+    return 0
 
 
 def about_centre(rotation_deg, translation_mm, centre):
@@ -158,16 +164,12 @@ def three_views(args) -> int:
                   f"({across:.2f} mm across view 1's axis; along it " + " ".join(f"{a:+.2f}" for a in along)
                   + f") {seconds:.1f} s", flush=True)
         if args.reconstruct:
-            settings = make_settings("fast", seed=seed, **overrides)
             poses = {method: Geometry(geometry.volume, tuple([views[0]] + [v.with_object_motion(*found_pose(m, centre))
                                                                            for v, m in zip(views[1:], motions)]))
                      for method, (motions, _) in found.items() if not (method == "nominal" and args.static)}
-            if not args.static:
-                poses["true"] = Geometry(geometry.volume, tuple(realistic.true_views))
-            row.update(reconstruct_at(poses, realistic, label, geometry.volume, settings, name))
+            row.update(reconstruct_at(poses, realistic, label, geometry, args, seed, overrides, name))
         rows.append(row)
-    print("# means: " + "  ".join(f"{k} {np.mean([r[k] for r in rows]):.3f}" for k in rows[0]))
-    return 0
+    return print_means(rows)
 
 
 def found_pose(motion_about_centre, centre):
