@@ -369,29 +369,14 @@ def finish(problem: Problem, model: ImplicitField, history: List[Dict[str, float
         occupancy_volume[zone] = 0.0
         field_volume[zone] = float(field_volume.max()) if settings.mode.field_kind == "sdf" else float(field_volume.min())
         segmentation = occupancy_volume >= threshold
-    reconnection: Optional[Dict[str, Any]] = None
-    if settings.region.reconnect and segmentation.any():
-        if _is_cancelled(cancel):
-            raise ReconstructionCancelled("cancelled before reconnecting fragments")
-        segmentation, occupancy_volume, changed, reconnection = reconnect_fragments(
-            segmentation, occupancy_volume, geometry.volume.spacing_mm, problem.support,
-            ReconnectSettings(settings.region.reconnect_max_gap_mm, settings.region.reconnect_min_occupancy, threshold))
-        field_volume[changed] = field_values(occupancy_volume[changed], settings.mode.field_kind, settings.field.alpha)
-        for bridge in reconnection["bridges"]:  # where the vessel was broken, in LPS mm for the 3D-QCA
-            ijk = np.asarray(bridge.pop("voxels_ijk"), dtype=np.float64).reshape(-1, 3)
-            bridge["points_mm"] = np.round(geometry.volume.index_to_world(ijk), 3).tolist()
     unconfirmed: Optional[Dict[str, Any]] = None
-    if settings.region.drop_unconfirmed_fragments and segmentation.any():
+    reconnection: Optional[Dict[str, Any]] = None
+    if (settings.region.drop_unconfirmed_fragments or settings.region.reconnect) and segmentation.any():
         if _is_cancelled(cancel):
-            raise ReconstructionCancelled("cancelled before checking the fragments")
-        removed, unconfirmed = unconfirmed_fragments(
-            segmentation, vessel_pixels(problem.targets, problem.target_kind), geometry,
-            projectors=problem.projectors if problem.support is not None else None)
-        if removed.any():
-            zone = removal_zone(segmentation, segmentation & ~removed, geometry.volume.spacing_mm)
-            occupancy_volume[zone] = 0.0
-            field_volume[zone] = float(field_volume.max()) if settings.mode.field_kind == "sdf" else float(field_volume.min())
-            segmentation = occupancy_volume >= threshold
+            raise ReconstructionCancelled("cancelled before checking and joining the fragments")
+        segmentation, unconfirmed, reconnection = drop_then_join_fragments(
+            segmentation, occupancy_volume, field_volume, vessel_pixels(problem.targets, problem.target_kind), geometry,
+            problem.support, settings, projectors=problem.projectors if problem.support is not None else None)
     projected = reprojected_masks(segmentation, geometry)
     references = vessel_pixels(problem.targets, problem.target_kind)
     qa = [reprojection_qa(p, m, v) for p, m, v in zip(projected, references, geometry.views)]
@@ -429,6 +414,46 @@ def finish(problem: Problem, model: ImplicitField, history: List[Dict[str, float
     }
     return Reconstruction(geometry, settings, occupancy_volume, field_volume, segmentation, problem.support, report, history,
                           list(zip(projected, references)))
+
+
+def drop_then_join_fragments(
+    segmentation: np.ndarray,
+    occupancy_volume: np.ndarray,
+    field_volume: np.ndarray,
+    masks: Sequence[np.ndarray],
+    geometry: Geometry,
+    support: Optional[np.ndarray],
+    settings: Settings,
+    projectors: Optional[Sequence[ConeBeamProjector]] = None,
+) -> Tuple[np.ndarray, Optional[Dict[str, Any]], Optional[Dict[str, Any]]]:
+    """The detached fragments that some view does not confirm removed, then the rest joined to the tree.
+
+    Each step as ``settings.region`` asks (``drop_unconfirmed_fragments``, ``reconnect``). Ghosts go
+    first: joined to the tree first, a ghost would be part of the largest component, which the
+    confirmation step never judges (RESULTS §19). ``occupancy_volume`` and ``field_volume`` are updated
+    in place (removed voxels emptied, bridges filled); returns the new segmentation and the two steps'
+    reports (None for a step that is off). Bridges carry their gap's points in LPS mm.
+    """
+    region, threshold = settings.region, settings.region.threshold
+    unconfirmed: Optional[Dict[str, Any]] = None
+    if region.drop_unconfirmed_fragments and segmentation.any():
+        removed, unconfirmed = unconfirmed_fragments(segmentation, masks, geometry, projectors=projectors)
+        if removed.any():
+            zone = removal_zone(segmentation, segmentation & ~removed, geometry.volume.spacing_mm)
+            occupancy_volume[zone] = 0.0
+            field_volume[zone] = float(field_volume.max()) if settings.mode.field_kind == "sdf" else float(field_volume.min())
+            segmentation = occupancy_volume >= threshold
+    reconnection: Optional[Dict[str, Any]] = None
+    if region.reconnect and segmentation.any():
+        segmentation, joined_occupancy, changed, reconnection = reconnect_fragments(
+            segmentation, occupancy_volume, geometry.volume.spacing_mm, support,
+            ReconnectSettings(region.reconnect_max_gap_mm, region.reconnect_min_occupancy, threshold))
+        occupancy_volume[changed] = joined_occupancy[changed]
+        field_volume[changed] = field_values(joined_occupancy[changed], settings.mode.field_kind, settings.field.alpha)
+        for bridge in reconnection["bridges"]:  # where the vessel was broken, in LPS mm for the 3D-QCA
+            ijk = np.asarray(bridge.pop("voxels_ijk"), dtype=np.float64).reshape(-1, 3)
+            bridge["points_mm"] = np.round(geometry.volume.index_to_world(ijk), 3).tolist()
+    return segmentation, unconfirmed, reconnection
 
 
 def fitted_loss(geometry: Geometry, targets: Sequence[np.ndarray], settings: Settings, target_kind: str,

@@ -15,9 +15,9 @@ Settings
     The defaults are the published recipe (the ``paper`` preset). ``fast`` is written as the
     difference from it: the field only on the masks' visual hull, a smaller network and table, a
     higher learning rate for the hash table, fewer steps, L_geo on 2× max-pooled images, the
-    skeleton pieces no mask pixel needs pruned afterwards (``pruning.py``), fragments joined to
-    the tree where the field bridges them (``connectivity.py``), the detached fragments that
-    not every view confirms removed (``pruning.unconfirmed_fragments``), and, where the X-ray frames
+    skeleton pieces no mask pixel needs pruned afterwards (``pruning.py``), the detached fragments
+    that not every view confirms removed (``pruning.unconfirmed_fragments``), the rest joined to the
+    tree where both views show vessel across the gap (``connectivity.py``), and, where the X-ray frames
     are given with the masks, the occupancy fitted to the path lengths they show (``evidence.py``). Why each differs is
     said next to it; what it measured is in ``bench/RESULTS.md``.
 
@@ -125,11 +125,14 @@ class RegionSettings:
     prune: bool = False  # remove the skeleton pieces no mask pixel needs (pruning.py)
     prune_piece_mm: float = 6.0
     prune_tolerance: float = 0.02
-    reconnect: bool = False  # join fragments to the tree along bright, short paths of the field (connectivity.py)
-    reconnect_max_gap_mm: float = 4.0  # longest gap a bridge may cross
-    reconnect_min_occupancy: float = 0.1  # lowest geometric-mean occupancy along the gap
-    # then remove the detached fragments that some view does not need (pruning.unconfirmed_fragments)
+    # remove the detached fragments that some view does not need (pruning.unconfirmed_fragments) ...
     drop_unconfirmed_fragments: bool = False
+    # ... then join the remaining fragments to the tree along short paths of the field (connectivity.py)
+    reconnect: bool = False
+    reconnect_max_gap_mm: float = 8.0  # longest gap a bridge may cross (inside the support)
+    # lowest geometric-mean occupancy along the gap; 0: none asked, the support (both views show vessel
+    # there) and the gap's length decide (σ(−α·s) is nearly binary, so a gap's occupancy tells little: RESULTS §19)
+    reconnect_min_occupancy: float = 0.0
 
 
 #: a calibration candidate's score is its mean loss over this many last steps (Adam's steps are noisy)
@@ -244,11 +247,12 @@ class Settings:
         if not r.prune_piece_mm > 0 or not 0 <= r.prune_tolerance < 1:
             raise ReconstructionError("prune_piece_mm must be positive and prune_tolerance in [0, 1)")
         if not r.reconnect_max_gap_mm > 0:
-            raise ReconstructionError(f"reconnect_max_gap_mm must be a positive length in mm (default 4), got "
+            raise ReconstructionError(f"reconnect_max_gap_mm must be a positive length in mm (default 8), got "
                                       f"{r.reconnect_max_gap_mm}; or turn reconnection off with reconnect=false")
-        if not 0 < r.reconnect_min_occupancy < 1:
+        if not 0 <= r.reconnect_min_occupancy < 1:
             raise ReconstructionError(
-                f"reconnect_min_occupancy must be an occupancy between 0 and 1 (default 0.1), got {r.reconnect_min_occupancy}")
+                f"reconnect_min_occupancy must be an occupancy in [0, 1) (default 0: the support and the gap's length "
+                f"decide), got {r.reconnect_min_occupancy}")
         if not 0 < r.threshold < 1:
             raise ReconstructionError(f"threshold must be between 0 and 1, got {r.threshold}")
         if run.device not in DEVICES and not str(run.device).startswith("cuda:"):
@@ -278,10 +282,10 @@ PRESETS: Dict[str, Dict[str, Any]] = {  # the default first: lists offer it firs
         dt_downsample=2,
         # two views cannot rule out ghost branches: drop the pieces no mask pixel needs
         prune=True,
-        # then join fragments across short gaps where the field still shows a ridge of vessel
-        reconnect=True,
-        # and drop the detached fragments that not every view confirms (ghosts of pixels one view cannot place)
+        # then drop the detached fragments that not every view confirms (ghosts of pixels one view cannot place)
         drop_unconfirmed_fragments=True,
+        # and join the rest to the tree across short gaps inside the support (both views show vessel there)
+        reconnect=True,
         # where the frames come with the masks, fit the path lengths they show (ghosts add path the frame lacks)
         frame_evidence=True,
         # and correct the motion between the views that two views observe, read off the same frames

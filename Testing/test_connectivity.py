@@ -86,17 +86,24 @@ def test_unsupported_bridges_are_not_made(describe, factor, gap_voxels):
     assert np.array_equal(joined, segmentation) and np.array_equal(new_occupancy, occupancy) and not changed.any()
 
 
-def test_a_far_blob_behind_low_occupancy_stays_apart_and_nothing_is_dropped():
+def test_a_far_blob_behind_low_occupancy_stays_apart_unless_the_support_joins_it():
     occupancy = _tube()
     occupancy[:, :, :16] = 0.0
     i, j, k = np.meshgrid(*[np.arange(48)] * 3, indexing="ij")
     blob = np.hypot(np.hypot((i - 24) * H, (j - 24) * H), (k - 6) * H) <= 2.0  # 7.5 mm from the tube's wall
     occupancy[blob] = 0.9
-    occupancy[(k > 8) & (k < 21) & (np.abs(j - 24) < 2) & (np.abs(i - 24) < 2)] = 0.05  # a faint haze between
+    haze = (k > 8) & (k < 21) & (np.abs(j - 24) < 2) & (np.abs(i - 24) < 2)
+    occupancy[haze] = 0.05  # a faint haze between
     segmentation = occupancy >= 0.5
-    joined, _, _, info = reconnect_fragments(segmentation, occupancy, (H, H, H))
+    joined, _, _, info = reconnect_fragments(segmentation, occupancy, (H, H, H), settings=ReconnectSettings(4.0, 0.1))
     assert info["components_before"] == 2 and info["joined"] == 0
     assert np.array_equal(joined, segmentation)
+    # the defaults ask no occupancy, only a gap of at most 8 mm inside the support
+    support = (occupancy > 0.0) & ~haze
+    joined, _, _, info = reconnect_fragments(segmentation, occupancy, (H, H, H), support)
+    assert info["joined"] == 0 and np.array_equal(joined, segmentation)  # the haze is outside the support
+    joined, _, _, info = reconnect_fragments(segmentation, occupancy, (H, H, H), support | haze)
+    assert info["joined"] == 1 and 5.5 <= info["gap_mm"][0] <= 8.0  # wall to wall 5.5 mm, in voxel steps
 
 
 def test_a_chain_of_fragments_is_joined_link_by_link():
@@ -116,9 +123,9 @@ def test_field_values_invert_the_occupancy():
 
 
 @pytest.mark.parametrize("values, fragment", [
-    ({"reconnect_max_gap_mm": 0.0}, "reconnect_max_gap_mm must be a positive length in mm (default 4), got 0.0"),
-    ({"reconnect_min_occupancy": 1.5}, "reconnect_min_occupancy must be an occupancy between 0 and 1"),
-    ({"reconnect_min_occupancy": 0.0}, "reconnect_min_occupancy must be an occupancy between 0 and 1"),
+    ({"reconnect_max_gap_mm": 0.0}, "reconnect_max_gap_mm must be a positive length in mm (default 8), got 0.0"),
+    ({"reconnect_min_occupancy": 1.5}, "reconnect_min_occupancy must be an occupancy in [0, 1)"),
+    ({"reconnect_min_occupancy": -0.1}, "reconnect_min_occupancy must be an occupancy in [0, 1)"),
 ])
 def test_reconnect_settings_are_validated(values, fragment):
     with pytest.raises(ReconstructionError) as info:

@@ -224,3 +224,54 @@ def test_unconfirmed_fragments_reads_the_reconstructions_own_projectors(missed_v
     removed, _ = unconfirmed_fragments(segmentation, masks, geometry,
                                        projectors=[ConeBeamProjector(v, GRID, voxels=too_few) for v in VIEWS])
     np.testing.assert_array_equal(removed, ghost)
+
+
+def _post_process(segmentation, masks, geometry, support=None, **overrides):
+    """finish's fragment steps on a constructed result: occupancy 1 inside, 0.2 (dim field) outside."""
+    from SDFCARLib.optimiser import drop_then_join_fragments
+
+    settings = make_settings("fast", **overrides)
+    occupancy = np.where(segmentation, 1.0, 0.2).astype(np.float32)
+    field = np.where(segmentation, -0.05, 0.05).astype(np.float32)
+    result, unconfirmed, reconnection = drop_then_join_fragments(segmentation, occupancy, field, masks, geometry,
+                                                                 support, settings)
+    np.testing.assert_array_equal(result, occupancy >= settings.region.threshold)  # the volumes follow the result
+    np.testing.assert_array_equal(field[result] < 0, True)
+    return result, unconfirmed, reconnection
+
+
+def test_a_ghost_is_dropped_before_joining_could_attach_it(missed_vessel_case):
+    """The ghost rod lies about 9 mm from vessel A: a 12 mm bridge would make it part of the tree, which
+    the confirmation step never judges. Dropped first, nothing is left to join."""
+    geometry, vessel_a, _, ghost, masks = missed_vessel_case
+    result, unconfirmed, reconnection = _post_process(vessel_a | ghost, masks, geometry, reconnect_max_gap_mm=12.0)
+    np.testing.assert_array_equal(result, vessel_a)
+    assert unconfirmed["removed_fragments"] == 1 and reconnection["joined"] == 0
+    # the other order, by hand: joined first, the ghost is on the tree and the confirmation keeps it
+    from SDFCARLib.connectivity import ReconnectSettings, reconnect_fragments
+
+    joined, _, _, info = reconnect_fragments(vessel_a | ghost, np.where(vessel_a | ghost, 1.0, 0.2), GRID.spacing_mm,
+                                             None, ReconnectSettings(12.0, 0.1, 0.5))
+    assert info["joined"] == 1 and not unconfirmed_fragments(joined, masks, geometry)[0].any()
+
+
+def test_a_confirmed_piece_of_a_broken_vessel_is_joined_through_the_support():
+    """A vertical vessel broken at z in (0, 4) mm: both views see the upper piece alone, so it is kept and
+    bridged inside the support (the masks' hull, where both views show the vessel across the gap)."""
+    vessel = _segment([0.0, 0.0, -15.0], [0.0, 0.0, 15.0], 1.5)
+    _, masks = simulate_views(vessel, GRID, VIEWS)
+    z = GRID.index_to_world(np.argwhere(vessel))[:, 2]
+    broken = vessel.copy()
+    broken[tuple(np.argwhere(vessel)[(z > 0.0) & (z < 4.0)].T)] = False
+    assert np.unique(ndimage.label(broken, np.ones((3, 3, 3)))[0]).size == 3  # two pieces and the background
+    support = visual_hull(masks, VIEWS, GRID)
+    result, unconfirmed, reconnection = _post_process(broken, masks, Geometry(GRID, VIEWS), support,
+                                                      reconnect_max_gap_mm=8.0)
+    assert unconfirmed["removed_fragments"] == 0 and reconnection["joined"] == 1
+    assert reconnection["components_after"] == 1 and (result & ~support).sum() == 0
+    assert 3.0 <= reconnection["gap_mm"][0] <= 6.0
+    # a support with the gap cut out of it (one view's mask misses the vessel there): nothing crosses
+    cut = support & ~((np.abs(GRID.index_to_world(np.indices(GRID.shape).reshape(3, -1).T)[:, 2]) < 5.0)
+                      .reshape(GRID.shape) & ~broken)
+    _, _, reconnection = _post_process(broken, masks, Geometry(GRID, VIEWS), cut, reconnect_max_gap_mm=8.0)
+    assert reconnection["joined"] == 0 and reconnection["components_after"] == 2

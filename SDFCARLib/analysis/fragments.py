@@ -20,8 +20,10 @@ Reasons a lesion is flagged "unreliable: the reconstruction is broken here"
     fragment  it lies on a piece that is not connected to the main tree.
     gap       another piece comes within ``GAP_MM`` of the vessel's wall (its reference radius
               around the centreline) along the lesion: the vessel breaks there, or the break's
-              debris lies beside it. ``GAP_MM`` is the longest gap reconnection bridges (4 mm),
-              i.e. the breaks a reconstruction is known to leave in a vessel.
+              debris lies beside it. ``GAP_MM`` (4 mm) is the breaks a reconstruction is known
+              to leave in a vessel at a throat: a voxel or three of a coarse grid (RESULTS §5's
+              accepted gaps were 2.6–3.6 mm). Reconnection reaches further (8 mm, inside the
+              support), but a piece it could not join that far off is no sign of a broken throat.
     bridge    the lesion meets a tube that reconnection laid across a gap (report.json lists
               them): the vessel was broken there and the tube is as thin as the thinner end,
               less half a voxel.
@@ -35,13 +37,12 @@ from typing import Any, Dict, List, Optional, Sequence
 import numpy as np
 from scipy import ndimage
 
-from ..connectivity import ReconnectSettings
 from ..geometry import VolumeGrid
 from ..metrics import component_labels
 from .centreline import CentrelineBranch
 
 MIN_COMPONENT_SHARE = 0.10  # of the main tree's voxels (module docstring)
-GAP_MM = ReconnectSettings().max_gap_mm
+GAP_MM = 4.0  # mm from the vessel wall (module docstring)
 UNRELIABLE = "unreliable: the reconstruction is broken here"
 
 
