@@ -36,7 +36,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from .geometry import CArmView, Geometry, rotation_matrix
-from .settings import CALIBRATION_SCORE_STEPS
+from .settings import CALIBRATION_SCORE_STEPS, CalibrationSettings
 
 
 def epipolar_normal(reference: CArmView, view: CArmView) -> Optional[np.ndarray]:
@@ -210,10 +210,14 @@ def calibrate(geometry: Geometry, targets: Sequence[np.ndarray], settings, targe
 FRAME_CALIBRATION_LIMITS = {"deg": 4.0, "mm": 6.0}
 
 
-def calibrate_from_frames(geometry: Geometry, line_integrals: Sequence[np.ndarray], progress=None) -> Calibration:
+def calibrate_from_frames(geometry: Geometry, line_integrals: Sequence[np.ndarray], progress=None,
+                          min_consistency_gain: float = CalibrationSettings.calibration_min_consistency_gain) -> Calibration:
     """Each view's object motion against view 1 from the epipolar consistency of the frames' vessel
     line integrals (``line_integral_consistency.py``), in seconds: with two views the three motions
-    that pair observes; with three or more, all six of each view over every pair of views at once."""
+    that pair observes; with three or more, all six of each view over every pair of views at once.
+
+    A motion is applied only where it divides the inconsistency by ``min_consistency_gain`` or more;
+    a smaller gain is what noise in the frames and masks alone allows the search (no motion to find)."""
     from .line_integral_consistency import ALL_MOTIONS, OBSERVED_MOTIONS, WEAK_MOTIONS, estimate_motions, motion_axes
     from .optimiser import _report
 
@@ -248,14 +252,20 @@ def calibrate_from_frames(geometry: Geometry, line_integrals: Sequence[np.ndarra
                 rotation = bool(np.any(axes[name][:3]))
                 entry[name] = {"value": round(estimate.parameters[name], 3), "unit": "deg" if rotation else "mm",
                                "axis_lps": [round(float(v), 4) for v in (axes[name][:3] if rotation else axes[name][3:])]}
+            gain = estimate.cost_before / max(estimate.cost_after, 1e-12)
             if estimate.at_limit:
                 warnings.append(f"view {k + 1}: the pose correction from the frames reached the end of its range "
                                 f"({', '.join(n.replace('_', ' ') for n in estimate.at_limit)}); the view was left as given. "
                                 "Check the view's angles and distances and that each frame belongs to its view")
-                entry["left_as_given"] = True
+                entry.update(left_as_given=True, why_left_as_given="the motion found reached the end of its range")
+            elif gain < min_consistency_gain:
+                entry.update(left_as_given=True, why_left_as_given=(
+                    f"the motion found made the views only {gain:.2f}× more consistent (at least {min_consistency_gain:g}× "
+                    "asked): no more than noise in the frames and masks allows without any motion"))
             else:
                 views[k] = moved(views[k], estimate.added[:3], estimate.added[3:], centre)
             entry.update(consistency_before=round(estimate.cost_before, 5), consistency_after=round(estimate.cost_after, 5),
+                         consistency_gain=round(gain, 2),
                          not_observed=(["a shift of every other view together along view 1's axis (kept near zero)"]
                                        if len(group) > 2 else list(WEAK_MOTIONS) + ["shift_along_baseline"]),
                          object_rotation_deg=[round(float(v), 4) for v in views[k].object_rotation_deg],

@@ -499,7 +499,8 @@ def reconstruct(
     if settings.calibration.calibrate_from_frames and len(geometry.views) > 1 and evidence.images is not None:
         from .calibration import calibrate_from_frames
 
-        calibrations.append(calibrate_from_frames(geometry, evidence.images, progress))
+        calibrations.append(calibrate_from_frames(geometry, evidence.images, progress,
+                                                  settings.calibration.calibration_min_consistency_gain))
         geometry = calibrations[-1].geometry
     if settings.calibration.calibrate and len(geometry.views) > 1:
         from .calibration import calibrate

@@ -217,9 +217,30 @@ def test_calibrate_from_frames_corrects_the_motion_two_views_observe_and_says_wh
     assert result.geometry.views[0] == VIEW_1  # the reference stays
     entry = result.views[0]
     assert entry["view"] == 2 and entry["consistency_after"] < 0.1 * entry["consistency_before"]
+    assert entry["consistency_gain"] > 10 and "left_as_given" not in entry
     assert entry["shift_across"]["unit"] == "mm" and entry["rotation_about_baseline"]["unit"] == "deg"
     assert "shift_along_baseline" in entry["not_observed"]
     assert "consistency" in result.report()["method"] and not result.warnings
+
+
+def test_calibrate_from_frames_leaves_the_views_as_given_when_the_motion_found_explains_only_noise():
+    from blob_phantom import VIEW_1, VIEW_2, blob_image
+    from SDFCARLib.calibration import calibrate_from_frames
+
+    grid = VolumeGrid((32, 32, 32), (2.0, 2.0, 2.0), (0.0, 0.0, 0.0))
+    rng = np.random.default_rng(0)
+    # no motion; noise lets the search lower the inconsistency a little with a spurious turn
+    images = [np.clip(blob_image(view) + 0.05 * rng.standard_normal(view.detector_shape), 0.0, None) for view in (VIEW_1, VIEW_2)]
+    geometry = Geometry(grid, (VIEW_1, VIEW_2))
+    kept = calibrate_from_frames(geometry, images)
+    (entry,) = kept.views
+    assert 1.0 < entry["consistency_gain"] < 2.0
+    assert kept.geometry.views == (VIEW_1, VIEW_2) and entry["left_as_given"] is True
+    assert "more consistent" in entry["why_left_as_given"] and not kept.warnings  # the normal outcome without motion
+    applied = calibrate_from_frames(geometry, images, min_consistency_gain=1.0)
+    assert applied.geometry.views[1] != VIEW_2 and "left_as_given" not in applied.views[0]
+    with pytest.raises(ReconstructionError, match="calibration_min_consistency_gain must be at least 1"):
+        make_settings("fast", calibration_min_consistency_gain=0.5)
 
 
 def test_calibrate_from_frames_with_three_views_matches_every_pair_and_reports_all_six_motions():
