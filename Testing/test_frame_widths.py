@@ -105,7 +105,8 @@ def test_analyse_command_fits_the_frames(tmp_path, tube_frames, capsys):
     assert branch["diameter_frames"]["mean_mm"] == pytest.approx(2.0, abs=0.15)
     assert abs(branch["diameter_masks"]["mean_mm"] - 2.0) > abs(branch["diameter_frames"]["mean_mm"] - 2.0)
     header = (folder / "analysis" / "profile_branch00.csv").read_text().splitlines()[0].split(",")
-    assert {"diameter_frames_mm", "frame_width_view1_mm", "frame_width_view2_mm"} <= set(header)
+    assert {"diameter_frames_mm", "frame_width_view1_mm", "frame_width_view2_mm", "diameter_frames_density_mm"} <= set(header)
+    assert branch["diameter_frames_density"]["mean_mm"] == pytest.approx(2.0, abs=0.15)
     capsys.readouterr()
     assert main(["analyse", str(folder), "--frames", frames[0], "--out", str(tmp_path / "a2")]) == 2
     assert "1 frames for 2 views" in capsys.readouterr().err
@@ -148,3 +149,23 @@ def test_the_blur_is_estimated_from_the_frames(tmp_path, tube_frames, capsys):
     capsys.readouterr()
     assert main(["analyse", str(folder), "--frames", *frames, "--psf-sigma-mm", "wide", "--out", str(tmp_path / "a4")]) == 2
     assert "'auto'" in capsys.readouterr().err
+
+
+def test_the_frame_diameters_reach_the_slicer_profile_table(tmp_path, tube_frames):
+    pytest.importorskip("slicer", reason="needs the slicer-core package (pip install slicer-core)")
+    from SDFCARLib.analysis.mrml_nodes import add_analysis_nodes
+    from SDFCARLib.analysis.outputs import analyse_result_dir
+    from SDFCARLib.mrml import new_scene
+
+    folder, masks, frames = _tube_result_folder(tmp_path, tube_frames[0])
+    analyse_result_dir(folder, masks=masks, frames=frames, view_step_deg=20.0)
+    scene = new_scene()
+    table = add_analysis_nodes(scene, folder / "analysis")["series"][0].GetTableNode().GetTable()
+    for column in ("diameter_frames_mm", "diameter_frames_density_mm"):
+        array = table.GetColumnByName(column)
+        values = np.array([array.GetValue(i) for i in range(array.GetNumberOfTuples())])
+        assert np.nanmedian(values) == pytest.approx(2.0, abs=0.15), column
+    without = analyse_result_dir(folder, masks=masks, out_dir=tmp_path / "no-frames", view_step_deg=20.0)
+    plain_scene = new_scene()
+    plain = add_analysis_nodes(plain_scene, tmp_path / "no-frames")["series"][0].GetTableNode().GetTable()
+    assert plain.GetColumnByName("diameter_frames_mm") is None and without

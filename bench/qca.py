@@ -78,7 +78,7 @@ def score(phantom, volume, grid, level, masks, ostium, view_step_deg, frames=Non
     kd = cKDTree(tp)
     truth = phantom.truth
     row: Dict[str, float] = {"seconds": elapsed, "branches": len(r.tree.branches)}
-    err3, err2, errf = [], [], []
+    err3, err2, errf, errd = [], [], [], []
     best = None  # (distance to the true lesion centre, lesion, profile, which)
     centre = tp[np.argmax(tw)] if tw.max() > 0 else None
     for p in r.profiles:
@@ -90,6 +90,8 @@ def score(phantom, volume, grid, level, masks, ostium, view_step_deg, frames=Non
             err2.append(np.abs(p.mask_diameter_mm - td[k])[healthy])
         if p.frame_diameter_mm is not None:
             errf.append(np.abs(p.frame_diameter_mm - td[k])[healthy])
+        if p.frame_density_diameter_mm is not None:
+            errd.append(np.abs(p.frame_density_diameter_mm - td[k])[healthy])
         for lesion in p.lesions:
             pos = b.points_mm[np.argmin(np.abs(b.arc_length_mm - lesion.mld_position_mm))]
             d = np.linalg.norm(pos - centre)
@@ -99,6 +101,8 @@ def score(phantom, volume, grid, level, masks, ostium, view_step_deg, frames=Non
     row.update({"healthy_mae_3d_mm": float(np.nanmean(e3)), "healthy_mae_masks_mm": float(np.nanmean(e2))})
     if errf:
         row["healthy_mae_frames_mm"] = float(np.nanmean(np.concatenate(errf)))
+    if errd:
+        row["healthy_mae_density_mm"] = float(np.nanmean(np.concatenate(errd)))
     if best is None or best[0] > truth["lesion_length_mm"]:
         row.update({"found": 0})
         return row
@@ -108,7 +112,8 @@ def score(phantom, volume, grid, level, masks, ostium, view_step_deg, frames=Non
                 "mld_err_3d_mm": lesion.mld_mm - truth["mld_mm"],
                 "len_err_3d_mm": lesion.length_mm - truth["lesion_length_mm"]})
     # The same lesion on the two-view mask (and frame) profiles (same centreline, same reference method).
-    for source, profile in (("masks", p.mask_diameter_mm), ("frames", p.frame_diameter_mm)):
+    for source, profile in (("masks", p.mask_diameter_mm), ("frames", p.frame_diameter_mm),
+                            ("density", p.frame_density_diameter_mm)):
         if profile is None:
             continue
         s = p.branch.arc_length_mm
@@ -283,8 +288,8 @@ def summarise(rows: List[Dict]) -> str:
     found = [r for r in rows if r.get("found")]
     sig = [r for r in found if r.get("ds_true", 0) >= 50]
     frames = bool(col("healthy_mae_frames_mm").size)
-    lines = ["| measure | 3D sections | two-view masks |" + (" two-view frames |" if frames else "") + " target |",
-             "|---|---|---|" + ("---|" if frames else "") + "---|"]
+    lines = ["| measure | 3D sections | two-view masks |" + (" two-view frames (edges) | frames (density) |" if frames else "")
+             + " target |", "|---|---|---|" + ("---|---|" if frames else "") + "---|"]
 
     def ms(v):
         return "n/a" if v.size == 0 else f"{v.mean():+.2f} ± {v.std():.2f} (max |·| {np.abs(v).max():.2f})"
@@ -294,11 +299,11 @@ def summarise(rows: List[Dict]) -> str:
         return "n/a" if v.size == 0 else f"{v.mean():.3f} (worst {v.max():.3f})"
 
     def extra(key, subset):
-        return f" {ms(col(key, subset))} |" if frames else ""
+        return f" {ms(col(key, subset))} | {ms(col(key.replace('frames', 'density'), subset))} |" if frames else ""
 
     mild = [r for r in found if r["ds_true"] < 50]
     lines.append(f"| healthy diameter MAE (mm), mean of cases | {mae('healthy_mae_3d_mm')} | {mae('healthy_mae_masks_mm')} |"
-                 + (f" {mae('healthy_mae_frames_mm')} |" if frames else "") + " ≤ 0.15 |")
+                 + (f" {mae('healthy_mae_frames_mm')} | {mae('healthy_mae_density_mm')} |" if frames else "") + " ≤ 0.15 |")
     lines.append(f"| %DS error, 50–70 % lesions (points) | {ms(col('ds_err_3d', sig))} | {ms(col('ds_err_masks', sig))} |"
                  + extra("ds_err_frames", sig) + " within 8 |")
     lines.append(f"| %DS error, 30 % lesions (points) | {ms(col('ds_err_3d', mild))} | {ms(col('ds_err_masks', mild))} |"
@@ -307,10 +312,10 @@ def summarise(rows: List[Dict]) -> str:
                  + extra("mld_err_frames_mm", found) + " (CAAS 0.01 ± 0.13) |")
     lines.append(f"| lesion length error (mm) | {ms(col('len_err_3d_mm', found))} | {ms(col('len_err_masks_mm', found))} |"
                  + extra("len_err_frames_mm", found) + " within 2 |")
-    lines.append(f"| 3D length error (%) | {ms(col('length_err_pct', found))} | — |{' — |' if frames else ''} within 2 % |")
-    lines.append(f"| foreshortening error, acquisition views (points, worst view) | {ms(col('fs_err_pts', found))} | — |{' — |' if frames else ''} within 1 |")
-    lines.append(f"| truth foreshortening in the suggested view (%) | {ms(col('best_fs_truth_pct', found))} | — |{' — |' if frames else ''} ≤ 5 |")
-    lines.append(f"| least truth foreshortening over the range (%) | {ms(col('least_fs_truth_pct', found))} | — |{' — |' if frames else ''} (the bound) |")
+    lines.append(f"| 3D length error (%) | {ms(col('length_err_pct', found))} | — |{' — | — |' if frames else ''} within 2 % |")
+    lines.append(f"| foreshortening error, acquisition views (points, worst view) | {ms(col('fs_err_pts', found))} | — |{' — | — |' if frames else ''} within 1 |")
+    lines.append(f"| truth foreshortening in the suggested view (%) | {ms(col('best_fs_truth_pct', found))} | — |{' — | — |' if frames else ''} ≤ 5 |")
+    lines.append(f"| least truth foreshortening over the range (%) | {ms(col('least_fs_truth_pct', found))} | — |{' — | — |' if frames else ''} (the bound) |")
     lines.append(f"\nlesions found: {len(found)} of {len(rows)} cases; |%DS err| ≤ 8 in {int(np.sum(np.abs(col('ds_err_3d', sig)) <= 8))} of {len(sig)} "
                  f"50–70 % cases (3D), |length err| ≤ 2 mm in {int(np.sum(np.abs(col('len_err_3d_mm', found)) <= 2))} of {len(found)}; "
                  f"suggested view ≤ 5 % in {int(np.sum(col('best_fs_truth_pct', found) <= 5))} of {len(col('best_fs_truth_pct', found))}"

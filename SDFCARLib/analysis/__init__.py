@@ -4,6 +4,7 @@ Modules (one idea each)
     centreline  skeleton → branches ordered from the ostium, smoothed, with junctions
     diameter    diameters along a branch: 3D cross-sections of the field, 2D widths in the masks
     frame_widths  2D widths fitted to the frames' intensity profiles (a blurred circular lumen)
+    frame_density  lumen area from the frames' absorbance integrated across the vessel (densitometry)
     lesion      robust reference diameter, MLD, % diameter/area stenosis, lesion extent
     fragments   is the reconstruction intact there? pieces analysed, lesions on breaks flagged
     views       foreshortening of a segment in a view, bifurcation angles, best-view map

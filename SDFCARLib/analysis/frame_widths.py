@@ -46,8 +46,10 @@ def fit_profile(x_mm: np.ndarray, absorbance: np.ndarray, psf_sigma_mm: float, g
     return float(radius)
 
 
-def _profiles(points_mm, tangents, frame, view, guess_widths_mm, psf_sigma_mm, max_foreshortening):
-    """(index, offsets in detector mm, mean absorbance profile, magnification) of each measurable point."""
+def frame_profiles(points_mm, tangents, frame, view, guess_widths_mm, psf_sigma_mm, max_foreshortening):
+    """(index, offsets in detector mm, mean absorbance profile, magnification, guessed width in detector mm,
+    foreshortening) of each measurable point: the window reaches the guessed width + 4σ + 1 mm to each
+    side of the projected centreline point."""
     image = np.asarray(frame, np.float64)
     if image.shape != tuple(view.detector_shape):
         raise ValueError(f"frame shape {image.shape} differs from the view's detector {tuple(view.detector_shape)}")
@@ -66,7 +68,7 @@ def _profiles(points_mm, tangents, frame, view, guess_widths_mm, psf_sigma_mm, m
         x = np.arange(-half, half + step / 2, step)
         profile = mean_profile(absorbances, row[i], col[i], (tr[i], tc[i]), (nr[i], nc[i]), x, spacing)
         if profile is not None:
-            yield i, x, profile, float(mag[i]), guesses[i]
+            yield i, x, profile, float(mag[i]), guesses[i], float(fore[i])
 
 
 def frame_widths(points_mm: np.ndarray, tangents: np.ndarray, frame: np.ndarray, view: CArmView,
@@ -82,8 +84,8 @@ def frame_widths(points_mm: np.ndarray, tangents: np.ndarray, frame: np.ndarray,
     if not psf_sigma_mm >= 0:
         raise ValueError(f"psf_sigma_mm must not be negative, got {psf_sigma_mm}")
     widths = np.full(len(np.asarray(points_mm)), np.nan)
-    for i, x, profile, mag, guess in _profiles(points_mm, tangents, frame, view, guess_widths_mm, psf_sigma_mm,
-                                               max_foreshortening):
+    for i, x, profile, mag, guess, _ in frame_profiles(points_mm, tangents, frame, view, guess_widths_mm, psf_sigma_mm,
+                                                       max_foreshortening):
         radius = fit_profile(x, profile, psf_sigma_mm, guess / 2)
         if radius is not None:
             widths[i] = 2.0 * radius / mag
@@ -101,8 +103,8 @@ def estimate_psf_sigma_mm(points_mm: np.ndarray, tangents: np.ndarray, frame: np
     successful fits. Thick vessels tell it best: their two edges are the blur's own profile."""
     sigmas = []
     # The window is sized for a blur up to _SIGMA_WINDOW_MM, as σ is not known yet.
-    for _, x, a, _, guess in _profiles(points_mm, tangents, frame, view, guess_widths_mm, _SIGMA_WINDOW_MM,
-                                       max_foreshortening):
+    for _, x, a, _, guess, _ in frame_profiles(points_mm, tangents, frame, view, guess_widths_mm, _SIGMA_WINDOW_MM,
+                                               max_foreshortening):
         fitted = fit_lumen(x, a, guess / 2, None)
         if fitted is None:
             continue

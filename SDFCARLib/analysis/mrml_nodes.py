@@ -8,7 +8,8 @@ per-branch CSV profiles) and adds
                                       "Diameter" (3D equivalent diameter, mm) and "Radius" per
                                       control point; attributes SDFCAR.branchId / parentId
     a table node "… QCA"              one row per branch: length, mean/min diameter, worst lesion
-    a table node per branch profile   arc length and diameters, feeding
+    a table node per branch profile   arc length and diameters (3D, masks, and the frames' edges and
+                                      density where analyse was given the frames), feeding
     a plot chart "… diameters"        one line per branch, diameter against arc length
     a scalar volume "… view map"      the foreshortening + overlap score (%) over (primary,
                                       secondary) in degrees as a one-slice image; attributes
@@ -49,6 +50,10 @@ def _slicer_module():
     return slicer
 
 
+#: profile columns measured on the frames (edges, density), in the branch profile tables when present
+FRAME_COLUMNS = ("diameter_frames_mm", "diameter_frames_density_mm")
+
+
 def _read_profile(path: Path) -> Dict[str, np.ndarray]:
     with open(path, newline="", encoding="utf-8") as f:
         rows = list(csv.DictReader(f))
@@ -58,7 +63,10 @@ def _read_profile(path: Path) -> Dict[str, np.ndarray]:
     def col(name):
         return np.array([float(r[name]) if r.get(name) not in (None, "") else np.nan for r in rows])
 
-    return {k: col(k) for k in ("arc_mm", "diameter_3d_mm", "diameter_masks_mm", "reference_mm", "x_mm", "y_mm", "z_mm")}
+    # The frame columns exist only where analyse was given the frames.
+    keys = ["arc_mm", "diameter_3d_mm", "diameter_masks_mm", "reference_mm", "x_mm", "y_mm", "z_mm"]
+    keys += [k for k in FRAME_COLUMNS if k in rows[0]]
+    return {k: col(k) for k in keys}
 
 
 def _double_array(name: str, values: Sequence[float]):
@@ -140,9 +148,8 @@ def add_analysis_nodes(scene, analysis_dir: PathLike, name: str = "SDFCAR", poin
         attrs = {"SDFCAR.branchId": str(bid), "SDFCAR.parentId": "" if b["parent_id"] is None else str(b["parent_id"]),
                  "SDFCAR.coordinateSystem": "RAS (from LPS files)"}
         curves.append(_add_curve(scene, f"{name} branch {bid}", prof, point_step_mm, attrs))
-        table = _add_table(scene, f"{name} branch {bid} profile",
-                           {"arc_mm": list(prof["arc_mm"]), "diameter_3d_mm": list(prof["diameter_3d_mm"]),
-                            "diameter_masks_mm": list(prof["diameter_masks_mm"]), "reference_mm": list(prof["reference_mm"])})
+        columns = ["arc_mm", "diameter_3d_mm", "diameter_masks_mm"] + [k for k in FRAME_COLUMNS if k in prof] + ["reference_mm"]
+        table = _add_table(scene, f"{name} branch {bid} profile", {k: list(prof[k]) for k in columns})
         ps = scene.AddNewNodeByClass("vtkMRMLPlotSeriesNode", f"{name} branch {bid}")
         ps.SetAndObserveTableNodeID(table.GetID())
         ps.SetXColumnName("arc_mm")

@@ -77,7 +77,8 @@ def profile_csv_text(result: QCAResult, branch_id: int) -> str:
     n_frames = 0 if p.frame_view_widths_mm is None else len(p.frame_view_widths_mm)
     header = ["arc_mm", "diameter_3d_mm", "area_mm2", "min_diameter_mm", "max_diameter_mm", "diameter_masks_mm"]
     header += [f"width_view{v + 1}_mm" for v in range(n_views)]
-    header += (["diameter_frames_mm"] + [f"frame_width_view{v + 1}_mm" for v in range(n_frames)]) if n_frames else []
+    header += (["diameter_frames_mm"] + [f"frame_width_view{v + 1}_mm" for v in range(n_frames)]
+               + ["diameter_frames_density_mm"]) if n_frames else []
     header += ["reference_mm", "excluded", "x_mm", "y_mm", "z_mm"]
     ref = p.reference(b.arc_length_mm) if p.reference is not None else np.full(len(b.points_mm), np.nan)
     out = _io.StringIO()
@@ -93,6 +94,7 @@ def profile_csv_text(result: QCAResult, branch_id: int) -> str:
         row += [f(p.view_widths_mm[v, i]) for v in range(n_views)]
         if n_frames:
             row += [f(p.frame_diameter_mm[i])] + [f(p.frame_view_widths_mm[v, i]) for v in range(n_frames)]
+            row += [f(None if p.frame_density_diameter_mm is None else p.frame_density_diameter_mm[i])]
         row += [f(ref[i]), int(p.excluded[i])] + [f(c) for c in b.points_mm[i]]
         w.writerow(row)
     return out.getvalue()
@@ -123,7 +125,9 @@ def plot_profiles(path: PathLike, result: QCAResult, max_branches: int = 6) -> b
         if p.mask_diameter_mm is not None:
             ax.plot(s, p.mask_diameter_mm, color="C2", lw=1, alpha=0.8, label="two-view masks (ellipse)")
         if p.frame_diameter_mm is not None:
-            ax.plot(s, p.frame_diameter_mm, color="C3", lw=1, alpha=0.8, label="two-view frames (fitted profiles)")
+            ax.plot(s, p.frame_diameter_mm, color="C3", lw=1, alpha=0.8, label="two-view frames (fitted edges)")
+        if p.frame_density_diameter_mm is not None:
+            ax.plot(s, p.frame_density_diameter_mm, color="C4", lw=1, alpha=0.8, label="two-view frames (density: area)")
         if p.reference is not None:
             ax.plot(s, p.reference(s), color="k", ls="--", lw=1, label="reference")
         ex = np.where(p.excluded, p.diameter_mm, np.nan)
@@ -268,7 +272,8 @@ def analyse_result_dir(result_dir: PathLike, out_dir: Optional[PathLike] = None,
     """Analyse a reconstruction's result folder and write the QCA files (module docstring); return their paths.
 
     ``frames``: the views' intensity images (vessels dark), one per view: the widths are then also
-    fitted to their profiles (``frame_widths.py``; needs the masks, which give the first guess);
+    fitted to their profiles (``frame_widths.py``; needs the masks, which give the first guess) and the
+    lumen area read from their absorbance (``frame_density.py``);
     ``psf_sigma_mm`` None estimates the detector blur from the frames."""
     result_dir = Path(result_dir)
     if not result_dir.is_dir():

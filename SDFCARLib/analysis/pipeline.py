@@ -32,6 +32,7 @@ import numpy as np
 from ..geometry import CArmView, VolumeGrid
 from .centreline import CentrelineBranch, CentrelineTree, bifurcation_angles, extract_centrelines
 from .diameter import CrossSections, branch_cross_sections, ellipse_diameter, junction_zones, mask_diameters
+from .frame_density import attenuation_per_mm, densities, density_diameter
 from .frame_widths import DEFAULT_PSF_SIGMA_MM, estimate_psf_sigma_mm, frame_widths
 from .fragments import MIN_COMPONENT_SHARE, UNRELIABLE, Fragments, find_fragments, lesion_reasons
 from .lesion import Lesion, ReferenceFit, find_lesions, minimal_lumen, reference_fit
@@ -60,6 +61,7 @@ class BranchProfile:
     view_widths_mm: Optional[np.ndarray] = None  # (views, N)
     frame_diameter_mm: Optional[np.ndarray] = None  # from the frames' intensity profiles (frame_widths.py)
     frame_view_widths_mm: Optional[np.ndarray] = None  # (views, N)
+    frame_density_diameter_mm: Optional[np.ndarray] = None  # lumen area from the frames' absorbance (frame_density.py)
     reference: Optional[ReferenceFit] = None
     lesions: List[Lesion] = field(default_factory=list)  # reliable: measured on an intact vessel
     unreliable: List[UnreliableLesion] = field(default_factory=list)
@@ -208,11 +210,21 @@ def _fit_frame_widths(profiles: List[BranchProfile], frames: Sequence[np.ndarray
                                           np.concatenate([p.view_widths_mm[n] for p in profiles]))
         estimated.append(psf_sigma_mm is None and sigma is not None)
         sigmas.append(float(DEFAULT_PSF_SIGMA_MM if sigma is None else sigma))
+    per_profile = []
     for p in profiles:
         fitted = np.stack([frame_widths(p.branch.points_mm, p.branch.tangents(), f, v, w, sigma)
                            for f, v, w, sigma in zip(frames, views, p.view_widths_mm, sigmas)])
         p.frame_view_widths_mm, p.frame_diameter_mm = fitted, ellipse_diameter(fitted)
-    return {"psf_sigma_mm": sigmas, "psf_sigma_estimated": estimated}
+        per_profile.append(np.stack([densities(p.branch.points_mm, p.branch.tangents(), f, v, w, sigma)
+                                     for f, v, w, sigma in zip(frames, views, p.view_widths_mm, sigmas)]))
+    # Each view's iodine attenuation from all branches' healthy points, where the vessel is round.
+    healthy = np.concatenate([~p.excluded for p in profiles])
+    attenuations = [attenuation_per_mm(np.concatenate([d[n] for d in per_profile]),
+                                       np.concatenate([p.frame_view_widths_mm[n] for p in profiles]), healthy)
+                    for n in range(len(views))]
+    for p, d in zip(profiles, per_profile):
+        p.frame_density_diameter_mm = density_diameter(d, attenuations)
+    return {"psf_sigma_mm": sigmas, "psf_sigma_estimated": estimated, "attenuation_per_mm": attenuations}
 
 
 def _end_caps(branch: CentrelineBranch) -> np.ndarray:
@@ -274,6 +286,7 @@ def summary(result: QCAResult) -> Dict[str, Any]:
             "diameter_3d": _stats(p.diameter_mm, healthy),
             "diameter_masks": _stats(p.mask_diameter_mm, healthy),
             "diameter_frames": _stats(p.frame_diameter_mm, healthy),
+            "diameter_frames_density": _stats(p.frame_density_diameter_mm, healthy),
             "reference": None if p.reference is None else {"intercept_mm": p.reference.intercept_mm,
                                                            "slope_mm_per_mm": p.reference.slope_mm_per_mm},
             "minimal_lumen": mld,
