@@ -65,3 +65,19 @@ def mask_files(tmp_path, tiny_case):
     from SDFCARLib.io import write_mask_png
 
     return [write_mask_png(tmp_path / f"view{n}_mask.png", m) for n, m in enumerate(tiny_case.masks, start=1)]
+
+
+@pytest.fixture(scope="session")
+def tube_frames():
+    """A 2 mm tube both views of LAO 30 / RAO 30 see almost side-on, its simulated angiograms and the masks
+    segmented from them (``realistic.RealisticInput``), and centreline points and tangents clear of its ends."""
+    from SDFCARLib.analysis.phantoms import grid_around, straight_tube, voxelize_exact
+    from SDFCARLib.realistic import RealisticOptions, realistic_input
+
+    tube = straight_tube(30.0, 2.0, (0.2, 0.25, 1.0))
+    grid = grid_around(tube.tree, 0.2)
+    realistic = realistic_input(voxelize_exact(tube.tree, grid), Geometry(grid, standard_geometry("lao30-rao30").views), 3,
+                                RealisticOptions(max_shift_mm=0.0, max_rotation_deg=0.0))
+    direction = np.asarray(tube.truth["direction"])
+    s = np.linspace(-11.0, 11.0, 23)  # clear of the flat ends
+    return realistic, s[:, None] * direction[None, :], np.repeat(direction[None], len(s), axis=0)

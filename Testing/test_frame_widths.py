@@ -11,7 +11,6 @@ from SDFCARLib.lumen_profile import blurred_chord, chord_mm
 from SDFCARLib.analysis.phantoms import grid_around, straight_tube, voxelize_exact
 from SDFCARLib.angiogram import AngiogramSettings
 from SDFCARLib.geometry import Geometry, standard_geometry
-from SDFCARLib.realistic import RealisticOptions, realistic_input
 
 VIEWS = standard_geometry("lao30-rao30").views
 
@@ -36,18 +35,6 @@ def test_fit_profile_refuses_profiles_without_a_vessel():
     x = np.arange(-4.0, 4.0, 0.1)
     assert fit_profile(x, np.full(x.shape, 2.0) + 0.01 * x, 0.3, 1.0) is None  # no contrast
     assert fit_profile(x[:5], np.zeros(5), 0.3, 1.0) is None  # too short to fit
-
-
-@pytest.fixture(scope="module")
-def tube_frames():
-    """A 2 mm tube both views see almost side-on, its simulated angiograms and the masks segmented from them."""
-    tube = straight_tube(30.0, 2.0, (0.2, 0.25, 1.0))
-    grid = grid_around(tube.tree, 0.2)
-    realistic = realistic_input(voxelize_exact(tube.tree, grid), Geometry(grid, VIEWS), 3,
-                                RealisticOptions(max_shift_mm=0.0, max_rotation_deg=0.0))
-    direction = np.asarray(tube.truth["direction"])
-    s = np.linspace(-11.0, 11.0, 23)  # clear of the flat ends
-    return realistic, s[:, None] * direction[None, :], np.repeat(direction[None], len(s), axis=0)
 
 
 def test_frame_widths_measure_the_tube_where_the_segmented_masks_are_off(tube_frames):
