@@ -67,3 +67,44 @@ def test_calibration_and_diameter_without_enough_points():
     assert attenuation_per_mm(d, np.ones(4), np.ones(4, bool)) is None  # 3 usable points
     out = density_diameter(np.array([[1.0, np.nan], [np.nan, np.nan]]), [0.5, None])
     assert out[0] == pytest.approx(np.sqrt(4 * 2.0 / np.pi)) and np.isnan(out[1])
+
+
+def test_same_lesion_on_another_profile_is_the_one_inside_the_lesions_extent():
+    from SDFCARLib.analysis.lesion import Lesion, same_lesion_on
+
+    s = np.arange(0.0, 80.0, 0.25)
+    diameter = 3.0 - 1.5 * np.exp(-0.5 * ((s - 20.0) / 2.0) ** 2) - 0.9 * np.exp(-0.5 * ((s - 60.0) / 2.0) ** 2)
+    usable = np.ones(s.shape, bool)
+    at_20 = Lesion(1.6, 21.0, 3.0, 47.0, 72.0, 17.0, 24.0, 7.0)
+    same = same_lesion_on(s, diameter, usable, at_20)
+    assert same is not None and same.mld_position_mm == pytest.approx(20.0, abs=0.3)
+    assert same.diameter_stenosis_pct == pytest.approx(50.0, abs=2.0)  # find_lesions smooths by 0.5 mm: 48.3
+    at_40 = Lesion(2.0, 40.0, 3.0, 33.0, 55.0, 37.0, 43.0, 6.0)
+    assert same_lesion_on(s, diameter, usable, at_40) is None  # the frames see no narrowing there
+    assert same_lesion_on(s[:2], diameter[:2], usable[:2], at_20) is None  # too few points for a reference
+
+
+def test_analysis_reports_each_lesion_as_the_frames_measure_it():
+    from SDFCARLib.analysis.phantoms import grid_around, stenosed_tube, voxelize_exact
+    from SDFCARLib.analysis.pipeline import analyse_volume, summary
+    from SDFCARLib.geometry import Geometry
+    from SDFCARLib.realistic import RealisticOptions, realistic_input
+
+    tube = stenosed_tube(length_mm=30.0, diameter_mm=3.0, stenosis_pct=50.0, lesion_length_mm=8.0, direction=(0.2, 0.25, 1.0))
+    fine = grid_around(tube.tree, 0.2)
+    realistic = realistic_input(voxelize_exact(tube.tree, fine), Geometry(fine, VIEWS), 4,
+                                RealisticOptions(max_shift_mm=0.0, max_rotation_deg=0.0))
+    grid = grid_around(tube.tree, 0.3)
+    result = analyse_volume(voxelize_exact(tube.tree, grid).astype(np.float32), grid, views=VIEWS, masks=realistic.masks,
+                            frames=realistic.frames, ostium_mm=tube.truth["ostium_mm"], best_view=False,
+                            psf_sigma_mm=AngiogramSettings().psf_sigma_mm)
+    lesions = summary(result)["lesions"]
+    assert len(lesions) == 1
+    on_frames = lesions[0]["frames"]
+    assert set(on_frames) == {"edges", "density"}
+    for source in ("edges", "density"):
+        assert on_frames[source]["diameter_stenosis_pct"] == pytest.approx(50.0, abs=8.0), source
+        assert on_frames[source]["mld_mm"] == pytest.approx(1.5, abs=0.3), source
+    without = summary(analyse_volume(voxelize_exact(tube.tree, grid).astype(np.float32), grid, views=VIEWS,
+                                     masks=realistic.masks, best_view=False))["lesions"]
+    assert without[0]["frames"] is None

@@ -22,6 +22,11 @@ Lesion (``find_lesions``)
     threshold on n, and for a cosine ramp of length R it lies R/6 inside the true edge.
     After a lesion is found its extent is masked and the next worst point is examined, up to
     ``max_lesions`` with %DS >= ``min_stenosis_pct``.
+
+The same lesion on another profile (``same_lesion_on``)
+    The 3D sections find a lesion; the frames' diameters of the same centreline are searched the
+    same way, and the worst of their lesions whose MLD lies in the 3D lesion's extent (widened by
+    half its length each side) is that lesion as the frames measure it.
 """
 
 from __future__ import annotations
@@ -174,3 +179,18 @@ def minimal_lumen(s_mm: np.ndarray, diameter_mm: np.ndarray, searchable: Optiona
         d = np.where(searchable, d, np.inf)
     i = int(np.argmin(d))
     return {"mld_mm": float(d[i]) if np.isfinite(d[i]) else float("nan"), "position_mm": float(np.asarray(s_mm)[i])}
+
+
+def same_lesion_on(s_mm: np.ndarray, diameter_mm: np.ndarray, usable: np.ndarray, lesion: Lesion,
+                   min_stenosis_pct: float = 20.0) -> Optional[Lesion]:
+    """The lesion of another diameter profile of the same centreline (e.g. the frames') that is ``lesion``:
+    its own reference and lesions (as above), the worst whose MLD lies within ``lesion``'s extent widened by
+    half its length on each side; None if there is none or the profile has too few usable points."""
+    try:
+        reference = reference_fit(s_mm, diameter_mm, usable)
+        found = find_lesions(s_mm, diameter_mm, reference, usable, min_stenosis_pct=min_stenosis_pct)
+    except ValueError:
+        return None
+    pad = 0.5 * lesion.length_mm
+    near = [x for x in found if lesion.start_mm - pad <= x.mld_position_mm <= lesion.end_mm + pad]
+    return max(near, key=lambda x: x.diameter_stenosis_pct) if near else None

@@ -248,9 +248,15 @@ def analysis_summary_lines(data: Dict[str, Any]) -> List[str]:
     lines = [f"3D-QCA: {tree.get('branches', 0)} branches, {float(tree.get('total_length_mm', 0.0)):.1f} mm of centreline"]
 
     def lesion_line(lesion: Dict[str, Any]) -> str:
-        return (f"  branch {lesion['branch_id']}: MLD {lesion['mld_mm']:.2f} mm, reference "
+        line = (f"  branch {lesion['branch_id']}: MLD {lesion['mld_mm']:.2f} mm, reference "
                 f"{lesion['reference_diameter_mm']:.2f} mm, DS {lesion['diameter_stenosis_pct']:.0f}%, "
                 f"AS {lesion['area_stenosis_pct']:.0f}%, length {lesion['length_mm']:.1f} mm")
+        frames = lesion.get("frames")
+        if frames:  # the same lesion measured on the frames (analyse --frames)
+            seen = [f"{name} DS {m['diameter_stenosis_pct']:.0f}%, MLD {m['mld_mm']:.2f} mm, length {m['length_mm']:.1f} mm"
+                    for name, m in (("density", frames.get("density")), ("edges", frames.get("edges"))) if m]
+            line += "; on the frames: " + ("; ".join(seen) if seen else "no narrowing there")
+        return line
 
     lines += [lesion_line(lesion) for lesion in data.get("lesions") or []]
     unreliable = data.get("unreliable_lesions") or []

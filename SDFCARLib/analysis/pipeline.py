@@ -35,7 +35,7 @@ from .diameter import CrossSections, branch_cross_sections, ellipse_diameter, ju
 from .frame_density import attenuation_per_mm, densities, density_diameter
 from .frame_widths import DEFAULT_PSF_SIGMA_MM, estimate_psf_sigma_mm, frame_widths
 from .fragments import MIN_COMPONENT_SHARE, UNRELIABLE, Fragments, find_fragments, lesion_reasons
-from .lesion import Lesion, ReferenceFit, find_lesions, minimal_lumen, reference_fit
+from .lesion import Lesion, ReferenceFit, find_lesions, minimal_lumen, reference_fit, same_lesion_on
 from .views import ViewMap, foreshortening, overlap_fraction, view_label, view_map
 
 TARGET_PAD_MM = 2.5
@@ -269,9 +269,23 @@ def _stats(values: Optional[np.ndarray], use: np.ndarray) -> Optional[Dict[str, 
     return {"mean_mm": float(v.mean()), "min_mm": float(v.min()), "max_mm": float(v.max())}
 
 
+def _on_frames(p: BranchProfile, lesion: Lesion, min_stenosis_pct: float) -> Optional[Dict[str, Any]]:
+    """The lesion as the frames measure it, by their edges and by their density (None each where they find
+    no lesion there); None without frames."""
+    if p.frame_diameter_mm is None:
+        return None
+    s, out = p.branch.arc_length_mm, {}
+    for source, values in (("edges", p.frame_diameter_mm), ("density", p.frame_density_diameter_mm)):
+        same = None if values is None else same_lesion_on(s, values, ~p.excluded & np.isfinite(values), lesion,
+                                                          min_stenosis_pct)
+        out[source] = None if same is None else same.to_dict()
+    return out
+
+
 def summary(result: QCAResult) -> Dict[str, Any]:
     """JSON-ready description of a QCA result (lengths mm, angles degrees, stenoses %)."""
     branches = []
+    min_stenosis = float(result.settings.get("min_stenosis_pct", 20.0))
     all_lesions: List[Dict[str, Any]] = []
     unreliable: List[Dict[str, Any]] = []
     for p in result.profiles:
@@ -291,9 +305,11 @@ def summary(result: QCAResult) -> Dict[str, Any]:
                                                            "slope_mm_per_mm": p.reference.slope_mm_per_mm},
             "minimal_lumen": mld,
             "component": None if result.fragments is None else result.fragments.branch_record(b),
-            "lesions": [dict(lesion.to_dict(), branch_id=b.branch_id, reliable=True) for lesion in p.lesions],
+            "lesions": [dict(lesion.to_dict(), branch_id=b.branch_id, reliable=True,
+                             frames=_on_frames(p, lesion, min_stenosis)) for lesion in p.lesions],
             "unreliable_lesions": [dict(u.lesion.to_dict(), branch_id=b.branch_id, reliable=False, flag=UNRELIABLE,
-                                        reasons=list(u.reasons)) for u in p.unreliable],
+                                        reasons=list(u.reasons), frames=_on_frames(p, u.lesion, min_stenosis))
+                                   for u in p.unreliable],
             "narrowings_below_resolution": p.unresolved,
             "foreshortening_per_view": result.view_foreshortening.get(b.branch_id, []),
             "warning": p.warning or None,
