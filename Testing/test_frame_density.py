@@ -108,3 +108,26 @@ def test_analysis_reports_each_lesion_as_the_frames_measure_it():
     without = summary(analyse_volume(voxelize_exact(tube.tree, grid).astype(np.float32), grid, views=VIEWS,
                                      masks=realistic.masks, best_view=False))["lesions"]
     assert without[0]["frames"] is None
+
+
+def test_a_lesion_on_the_frames_keeps_its_reference_where_side_strands_exclude_the_sections():
+    # A rough reconstruction's side strands mark most of a branch as junction zones; the 3D sections must
+    # leave those out, but the frames' profile keeps them, else its reference runs through the lesion.
+    from SDFCARLib.analysis.centreline import CentrelineBranch
+    from SDFCARLib.analysis.lesion import Lesion, same_lesion_on
+    from SDFCARLib.analysis.pipeline import BranchProfile, lesion_on_2d_profile
+
+    s = np.arange(0.0, 40.0, 0.25)
+    points = np.stack([s, np.zeros_like(s), np.zeros_like(s)], axis=1)
+    branch = CentrelineBranch(branch_id=0, points_mm=points, inscribed_radius_mm=np.full(len(s), 1.5))
+    frames = 3.0 - 2.1 * np.exp(-0.5 * ((s - 20.0) / 2.5) ** 2)  # a 70 % lesion at 20 mm
+    excluded = (s > 24.0) | ((s > 10.0) & (s < 15.0))  # junction zones of side strands
+    profile = BranchProfile(branch, sections=None, excluded=excluded)
+    lesion = Lesion(0.9, 20.0, 3.0, 70.0, 91.0, 15.0, 25.0, 10.0)
+    same = lesion_on_2d_profile(profile, frames, lesion)
+    assert same is not None and same.reference_diameter_mm == pytest.approx(3.0, abs=0.1)
+    assert same.diameter_stenosis_pct == pytest.approx(70.0, abs=3.0)
+    assert lesion_on_2d_profile(profile, None, lesion) is None
+    # Left out like the 3D sections, the reference would be fitted to the stretch before 10 mm and the throat.
+    old = same_lesion_on(s, frames, ~excluded, lesion)
+    assert old is None or old.diameter_stenosis_pct < 60.0

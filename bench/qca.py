@@ -40,10 +40,9 @@ from scipy.spatial import cKDTree
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from SDFCARLib.analysis.centreline import CentrelineError  # noqa: E402
-from SDFCARLib.analysis.lesion import find_lesions, reference_fit  # noqa: E402
 from SDFCARLib.analysis.phantoms import (branch_arc_length_mm, grid_around, lesion_weight, render_mask,  # noqa: E402
                                          stenosed_tree, stenosed_tube, voxelize_exact)
-from SDFCARLib.analysis.pipeline import analyse_volume  # noqa: E402
+from SDFCARLib.analysis.pipeline import analyse_volume, lesion_on_2d_profile  # noqa: E402
 from SDFCARLib.analysis.views import foreshortening, foreshortening_map  # noqa: E402
 from SDFCARLib.angiogram import AngiogramSettings  # noqa: E402
 from SDFCARLib.geometry import Geometry, VolumeGrid, standard_geometry  # noqa: E402
@@ -111,22 +110,14 @@ def score(phantom, volume, grid, level, masks, ostium, view_step_deg, frames=Non
                 "ds_err_3d": lesion.diameter_stenosis_pct - truth["diameter_stenosis_pct"],
                 "mld_err_3d_mm": lesion.mld_mm - truth["mld_mm"],
                 "len_err_3d_mm": lesion.length_mm - truth["lesion_length_mm"]})
-    # The same lesion on the two-view mask (and frame) profiles (same centreline, same reference method).
+    # The same lesion on the two-view mask and frame profiles, as analyse reports it for the frames.
     for source, profile in (("masks", p.mask_diameter_mm), ("frames", p.frame_diameter_mm),
                             ("density", p.frame_density_diameter_mm)):
-        if profile is None:
-            continue
-        s = p.branch.arc_length_mm
-        usable = ~p.excluded & np.isfinite(profile)
-        try:
-            ref2 = reference_fit(s, profile, usable)
-            les2 = [x for x in find_lesions(s, profile, ref2, usable) if abs(x.mld_position_mm - lesion.mld_position_mm) < truth["lesion_length_mm"]]
-        except ValueError:
-            les2 = []
-        if les2:
-            row.update({f"ds_err_{source}": les2[0].diameter_stenosis_pct - truth["diameter_stenosis_pct"],
-                        f"mld_err_{source}_mm": les2[0].mld_mm - truth["mld_mm"],
-                        f"len_err_{source}_mm": les2[0].length_mm - truth["lesion_length_mm"]})
+        same = lesion_on_2d_profile(p, profile, lesion)
+        if same is not None:
+            row.update({f"ds_err_{source}": same.diameter_stenosis_pct - truth["diameter_stenosis_pct"],
+                        f"mld_err_{source}_mm": same.mld_mm - truth["mld_mm"],
+                        f"len_err_{source}_mm": same.length_mm - truth["lesion_length_mm"]})
     b = p.branch
     if "length_mm" in truth:  # a tube: its centreline against the main branch from the ostium (the longest path),
         # not the lesion's branch, which on a rough surface can be a parallel side strand (RESULTS §20)

@@ -269,15 +269,26 @@ def _stats(values: Optional[np.ndarray], use: np.ndarray) -> Optional[Dict[str, 
     return {"mean_mm": float(v.mean()), "min_mm": float(v.min()), "max_mm": float(v.max())}
 
 
+def lesion_on_2d_profile(p: BranchProfile, values: Optional[np.ndarray], lesion: Lesion,
+                         min_stenosis_pct: float = 20.0) -> Optional[Lesion]:
+    """``lesion`` (found on the 3D sections of ``p``) as a two-view profile of the same centreline measures
+    it (``lesion.same_lesion_on``). Only the free-end caps are left out, not the junction zones: those
+    keep side-branch mouths out of 3D sections, but on a rough reconstruction its side strands cover
+    most of a branch, and a reference fitted to what is left runs through the lesion (RESULTS §21c)."""
+    if values is None:
+        return None
+    return same_lesion_on(p.branch.arc_length_mm, values, np.isfinite(values) & ~_end_caps(p.branch), lesion,
+                          min_stenosis_pct)
+
+
 def _on_frames(p: BranchProfile, lesion: Lesion, min_stenosis_pct: float) -> Optional[Dict[str, Any]]:
     """The lesion as the frames measure it, by their edges and by their density (None each where they find
     no lesion there); None without frames."""
     if p.frame_diameter_mm is None:
         return None
-    s, out = p.branch.arc_length_mm, {}
+    out = {}
     for source, values in (("edges", p.frame_diameter_mm), ("density", p.frame_density_diameter_mm)):
-        same = None if values is None else same_lesion_on(s, values, ~p.excluded & np.isfinite(values), lesion,
-                                                          min_stenosis_pct)
+        same = lesion_on_2d_profile(p, values, lesion, min_stenosis_pct)
         out[source] = None if same is None else same.to_dict()
     return out
 
