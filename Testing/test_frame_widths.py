@@ -152,7 +152,7 @@ def test_the_frame_diameters_reach_the_slicer_profile_table(tmp_path, tube_frame
         array = table.GetColumnByName(column)
         values = np.array([array.GetValue(i) for i in range(array.GetNumberOfTuples())])
         assert np.nanmedian(values) == pytest.approx(2.0, abs=0.15), column
-    without = analyse_result_dir(folder, masks=masks, out_dir=tmp_path / "no-frames", view_step_deg=20.0)
+    analyse_result_dir(folder, masks=masks, out_dir=tmp_path / "no-frames", view_step_deg=20.0)
     plain_scene = new_scene()
     plain = add_analysis_nodes(plain_scene, tmp_path / "no-frames")["series"][0].GetTableNode().GetTable()
-    assert plain.GetColumnByName("diameter_frames_mm") is None and without
+    assert plain.GetColumnByName("diameter_frames_mm") is None

@@ -327,7 +327,8 @@ def main(argv=None) -> int:
                     help="recon suite: draw each tube's axis until no view foreshortens it more (default: the first draw)")
     ap.add_argument("--masks", choices=("clean", "segmented", "segmented-moving"), default="clean",
                     help="clean masks rendered from the tubes, or masks segmented from their simulated angiograms (then the "
-                         "two-view widths are also fitted to those angiograms: the 'two-view frames' column)")
+                         "two-view widths and areas are also read from those angiograms: the 'frames' columns); "
+                         "segmented-moving (recon suite): the same with the object moved up to 3 mm / 2° between the views")
     ap.add_argument("--view-step-deg", type=float, default=2.0)
     ap.add_argument("--csv", help="write the case rows here")
     args = ap.parse_args(argv)
