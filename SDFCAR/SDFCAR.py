@@ -1095,9 +1095,15 @@ class SDFCARLogic(ScriptedLoadableModuleLogic):
             return "Not analysed yet: press Analyse."
         analysis = Path(folder) / "analysis.json"
         try:
-            return "\n".join(analysis_summary_lines(json.loads(analysis.read_text(encoding="utf-8"))))
+            data = json.loads(analysis.read_text(encoding="utf-8"))
         except (OSError, ValueError) as exc:
             return f"The analysis in {folder} cannot be read ({exc}); press Analyse to run it again."
+        lines = analysis_summary_lines(data)
+        # What the command line prints as warnings (a broken reconstruction, lesions the frames do not show).
+        warnings = [str(w) for w in data.get("warnings") or []]
+        if warnings:
+            lines += ["", f"{len(warnings)} warning(s):"] + [f"• {w}" for w in warnings]
+        return "\n".join(lines)
 
     def showQAOverlay(self, resultNode, viewNumber):
         """Show the QA overlay of a view in the slice views (loaded from the result folder when the scene lacks it)."""

@@ -84,30 +84,58 @@ def test_same_lesion_on_another_profile_is_the_one_inside_the_lesions_extent():
     assert same_lesion_on(s[:2], diameter[:2], usable[:2], at_20) is None  # too few points for a reference
 
 
-def test_analysis_reports_each_lesion_as_the_frames_measure_it():
-    from SDFCARLib.analysis.phantoms import grid_around, stenosed_tube, voxelize_exact
-    from SDFCARLib.analysis.pipeline import analyse_volume, summary
+def _tube_frames(stenosis_pct: float, seed: int = 4):
+    """A 3 mm tube (50 % lesion over 8 mm, or healthy), its simulated angiograms and segmented masks."""
+    from SDFCARLib.analysis.phantoms import grid_around, stenosed_tube, straight_tube, voxelize_exact
     from SDFCARLib.geometry import Geometry
     from SDFCARLib.realistic import RealisticOptions, realistic_input
 
-    tube = stenosed_tube(length_mm=30.0, diameter_mm=3.0, stenosis_pct=50.0, lesion_length_mm=8.0, direction=(0.2, 0.25, 1.0))
+    direction = (0.2, 0.25, 1.0)
+    tube = (stenosed_tube(length_mm=30.0, diameter_mm=3.0, stenosis_pct=stenosis_pct, lesion_length_mm=8.0,
+                          direction=direction) if stenosis_pct else straight_tube(30.0, 3.0, direction))
     fine = grid_around(tube.tree, 0.2)
-    realistic = realistic_input(voxelize_exact(tube.tree, fine), Geometry(fine, VIEWS), 4,
-                                RealisticOptions(max_shift_mm=0.0, max_rotation_deg=0.0))
+    return tube, realistic_input(voxelize_exact(tube.tree, fine), Geometry(fine, VIEWS), seed,
+                                 RealisticOptions(max_shift_mm=0.0, max_rotation_deg=0.0))
+
+
+@pytest.fixture(scope="module")
+def stenosed_tube_frames():
+    return _tube_frames(50.0)
+
+
+def _analyse(tube, realistic, frames=True):
+    from SDFCARLib.analysis.phantoms import grid_around, voxelize_exact
+    from SDFCARLib.analysis.pipeline import analyse_volume
+
     grid = grid_around(tube.tree, 0.3)
-    result = analyse_volume(voxelize_exact(tube.tree, grid).astype(np.float32), grid, views=VIEWS, masks=realistic.masks,
-                            frames=realistic.frames, ostium_mm=tube.truth["ostium_mm"], best_view=False,
-                            psf_sigma_mm=AngiogramSettings().psf_sigma_mm)
-    lesions = summary(result)["lesions"]
+    return analyse_volume(voxelize_exact(tube.tree, grid).astype(np.float32), grid, views=VIEWS, masks=realistic.masks,
+                          frames=realistic.frames if frames else None, ostium_mm=tube.truth["ostium_mm"], best_view=False,
+                          psf_sigma_mm=AngiogramSettings().psf_sigma_mm)
+
+
+def test_analysis_reports_each_lesion_as_the_frames_measure_it_and_grades_it_on_their_density(stenosed_tube_frames):
+    from SDFCARLib.analysis.outputs import analysis_summary_lines
+    from SDFCARLib.analysis.pipeline import summary
+
+    tube, realistic = stenosed_tube_frames
+    data = summary(_analyse(tube, realistic))
+    lesions = data["lesions"]
     assert len(lesions) == 1
     on_frames = lesions[0]["frames"]
     assert set(on_frames) == {"edges", "density"}
     for source in ("edges", "density"):
         assert on_frames[source]["diameter_stenosis_pct"] == pytest.approx(50.0, abs=8.0), source
         assert on_frames[source]["mld_mm"] == pytest.approx(1.5, abs=0.3), source
-    without = summary(analyse_volume(voxelize_exact(tube.tree, grid).astype(np.float32), grid, views=VIEWS,
-                                     masks=realistic.masks, best_view=False))["lesions"]
-    assert without[0]["frames"] is None
+    assert lesions[0]["grade"] == dict(on_frames["density"], source="frames (density)")
+    assert lesions[0]["seen_on_frames"] is True and data["warnings"] == []
+    line = analysis_summary_lines(data)[1]
+    assert f"DS {on_frames['density']['diameter_stenosis_pct']:.0f}%" in line and "graded on the frames (density)" in line
+    assert f"3D sections DS {lesions[0]['diameter_stenosis_pct']:.0f}%" in line  # the other measures beside it
+    without = summary(_analyse(tube, realistic, frames=False))["lesions"]
+    assert without[0]["frames"] is None and without[0]["seen_on_frames"] is None
+    graded = without[0]["grade"]
+    assert graded.pop("source") == "3D sections"
+    assert graded == {k: without[0][k] for k in graded}  # the 3D sections' own measures
 
 
 def test_a_lesion_on_the_frames_keeps_its_reference_where_side_strands_exclude_the_sections():
@@ -131,3 +159,79 @@ def test_a_lesion_on_the_frames_keeps_its_reference_where_side_strands_exclude_t
     # Left out like the 3D sections, the reference would be fitted to the stretch before 10 mm and the throat.
     old = same_lesion_on(s, frames, ~excluded, lesion)
     assert old is None or old.diameter_stenosis_pct < 60.0
+
+
+def test_a_lesion_is_graded_on_the_density_else_the_edges_else_the_3d_sections():
+    from SDFCARLib.analysis.centreline import CentrelineBranch
+    from SDFCARLib.analysis.lesion import Lesion
+    from SDFCARLib.analysis.pipeline import BranchProfile, lesion_grade
+
+    s = np.arange(0.0, 40.0, 0.25)
+    branch = CentrelineBranch(branch_id=0, points_mm=np.stack([s, 0 * s, 0 * s], axis=1),
+                              inscribed_radius_mm=np.full(len(s), 1.5))
+    narrowed = 3.0 - 1.8 * np.exp(-0.5 * ((s - 20.0) / 2.5) ** 2)  # 60 % at 20 mm
+    healthy = np.full(len(s), 3.0)
+    lesion = Lesion(1.2, 20.0, 3.0, 60.0, 84.0, 15.0, 25.0, 10.0)  # as the 3D sections found it
+    profile = BranchProfile(branch, sections=None, excluded=np.zeros(len(s), bool))
+    assert (lesion_grade(profile, lesion).source, lesion_grade(profile, lesion).seen_on_frames) == ("3D sections", None)
+    profile.frame_diameter_mm, profile.frame_density_diameter_mm = 1.1 * narrowed, narrowed
+    grade = lesion_grade(profile, lesion)
+    assert grade.source == "frames (density)" and grade.measure.diameter_stenosis_pct == pytest.approx(60.0, abs=3.0)
+    profile.frame_density_diameter_mm = healthy  # the density sees nothing there: the edges grade it
+    assert lesion_grade(profile, lesion).source == "frames (edges)"
+    profile.frame_diameter_mm = healthy
+    grade = lesion_grade(profile, lesion)
+    assert grade.source == "3D sections" and grade.measure is lesion and grade.seen_on_frames is False
+
+
+def _qca_table(folder, result, data):
+    """The Slicer "… QCA" table of an analysis written to ``folder``."""
+    import json
+
+    from SDFCARLib.analysis.mrml_nodes import add_analysis_nodes
+    from SDFCARLib.analysis.outputs import profile_csv_text
+    from SDFCARLib.mrml import new_scene
+
+    folder.mkdir()
+    (folder / "analysis.json").write_text(json.dumps(data), encoding="utf-8")
+    for p in result.profiles:
+        (folder / f"profile_branch{p.branch.branch_id:02d}.csv").write_text(profile_csv_text(result, p.branch.branch_id))
+    return add_analysis_nodes(new_scene(), folder)["table"].GetTable()
+
+
+def test_the_slicer_qca_table_carries_the_grade_and_the_3d_measure(tmp_path, stenosed_tube_frames):
+    pytest.importorskip("slicer", reason="needs the slicer-core package (pip install slicer-core)")
+    from SDFCARLib.analysis.mrml_nodes import QCA_TABLE_COLUMNS
+    from SDFCARLib.analysis.pipeline import summary
+
+    result = _analyse(*stenosed_tube_frames)
+    data = summary(result)
+    table = _qca_table(tmp_path / "graded", result, data)
+    assert [table.GetColumnName(i) for i in range(table.GetNumberOfColumns())] == list(QCA_TABLE_COLUMNS)
+    lesion = data["lesions"][0]
+    assert table.GetColumnByName("graded_on").GetValue(0) == "frames (density)"
+    assert table.GetColumnByName("seen_on_frames").GetValue(0) == "yes"
+    assert table.GetColumnByName("diameter_stenosis_pct").GetValue(0) == pytest.approx(lesion["grade"]["diameter_stenosis_pct"])
+    assert table.GetColumnByName("mld_mm").GetValue(0) == pytest.approx(lesion["grade"]["mld_mm"])
+    assert table.GetColumnByName("diameter_stenosis_3d_pct").GetValue(0) == pytest.approx(lesion["diameter_stenosis_pct"])
+
+
+def test_a_narrowing_of_the_reconstruction_that_the_frames_do_not_show_is_warned_about(tmp_path):
+    pytest.importorskip("slicer", reason="needs the slicer-core package (pip install slicer-core)")
+    from SDFCARLib.analysis.outputs import analysis_summary_lines
+    from SDFCARLib.analysis.pipeline import summary
+
+    # A 3D volume with a 50 % lesion, the frames and masks of the same tube without one (a rough reconstruction).
+    tube, _ = _tube_frames(50.0, seed=5)
+    _, healthy = _tube_frames(0.0, seed=5)
+    result = _analyse(tube, healthy)
+    data = summary(result)
+    lesion = data["lesions"][0]
+    assert lesion["diameter_stenosis_pct"] == pytest.approx(50.0, abs=8.0)
+    assert lesion["seen_on_frames"] is False and lesion["grade"]["source"] == "3D sections"
+    assert any("not seen on the frames" in w and "branch 0" in w for w in data["warnings"])
+    assert "NOT seen on the frames" in analysis_summary_lines(data)[1]
+    table = _qca_table(tmp_path / "unseen", result, data)
+    assert table.GetColumnByName("graded_on").GetValue(0) == "3D sections"
+    assert table.GetColumnByName("seen_on_frames").GetValue(0) == "no"
+    assert table.GetColumnByName("diameter_stenosis_3d_pct").GetValue(0) == pytest.approx(lesion["diameter_stenosis_pct"])

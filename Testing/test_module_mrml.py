@@ -142,3 +142,10 @@ def test_analyse_adds_the_qca_and_the_suggested_view_turns_the_camera(module, th
     logic.addAnalysis(second.result(), context2)
     assert (job / "output" / "analysis-2" / "analysis.json").is_file() and (folder / "analysis.json").is_file()
     assert qca["table"].GetScene() is module.scene
+    # The analysis' warnings reach the module's summary as they reach the command line's stderr.
+    data = json.loads((folder / "analysis.json").read_text())
+    data["warnings"] = ["1 lesion(s) of the 3D sections not seen on the frames: branch 0 at 12.0 mm (3D DS 40%)."]
+    (folder / "analysis.json").write_text(json.dumps(data))
+    nodes.segmentation.SetAttribute("SDFCAR.analysisFolder", str(folder))
+    text = logic.analysisText(nodes.segmentation)
+    assert text.startswith("3D-QCA:") and text.endswith("1 warning(s):\n• " + data["warnings"][0])

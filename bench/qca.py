@@ -29,6 +29,7 @@ from __future__ import annotations
 import argparse
 import csv
 import itertools
+import json
 import sys
 import time
 from pathlib import Path
@@ -42,7 +43,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from SDFCARLib.analysis.centreline import CentrelineError  # noqa: E402
 from SDFCARLib.analysis.phantoms import (branch_arc_length_mm, grid_around, lesion_weight, render_mask,  # noqa: E402
                                          stenosed_tree, stenosed_tube, voxelize_exact)
-from SDFCARLib.analysis.pipeline import analyse_volume, lesion_on_2d_profile  # noqa: E402
+from SDFCARLib.analysis.pipeline import analyse_volume, lesion_grade, lesion_on_2d_profile  # noqa: E402
 from SDFCARLib.analysis.views import foreshortening, foreshortening_map  # noqa: E402
 from SDFCARLib.angiogram import AngiogramSettings  # noqa: E402
 from SDFCARLib.geometry import Geometry, VolumeGrid, standard_geometry  # noqa: E402
@@ -111,13 +112,21 @@ def score(phantom, volume, grid, level, masks, ostium, view_step_deg, frames=Non
                 "mld_err_3d_mm": lesion.mld_mm - truth["mld_mm"],
                 "len_err_3d_mm": lesion.length_mm - truth["lesion_length_mm"]})
     # The same lesion on the two-view mask and frame profiles, as analyse reports it for the frames.
+    both = None
+    if p.frame_diameter_mm is not None and p.frame_density_diameter_mm is not None:
+        with np.errstate(invalid="ignore"):  # the mean of the two frame measures, where both exist
+            both = 0.5 * (p.frame_diameter_mm + p.frame_density_diameter_mm)
     for source, profile in (("masks", p.mask_diameter_mm), ("frames", p.frame_diameter_mm),
-                            ("density", p.frame_density_diameter_mm)):
+                            ("density", p.frame_density_diameter_mm), ("both", both)):
         same = lesion_on_2d_profile(p, profile, lesion)
         if same is not None:
             row.update({f"ds_err_{source}": same.diameter_stenosis_pct - truth["diameter_stenosis_pct"],
                         f"mld_err_{source}_mm": same.mld_mm - truth["mld_mm"],
                         f"len_err_{source}_mm": same.length_mm - truth["lesion_length_mm"]})
+    grade = lesion_grade(p, lesion)  # what analysis.json reports as the lesion's grade
+    row.update({"graded_on": grade.source, "ds_err_grade": grade.measure.diameter_stenosis_pct - truth["diameter_stenosis_pct"],
+                "mld_err_grade_mm": grade.measure.mld_mm - truth["mld_mm"],
+                "len_err_grade_mm": grade.measure.length_mm - truth["lesion_length_mm"]})
     b = p.branch
     if "length_mm" in truth:  # a tube: its centreline against the main branch from the ostium (the longest path),
         # not the lesion's branch, which on a rough surface can be a parallel side strand (RESULTS §20)
@@ -219,7 +228,9 @@ def tube_direction(seed: int, max_foreshortening_pct=None) -> np.ndarray:
             return direction
 
 
-def run_recon(n_cases, view_step_deg, steps=None, save_dir=None, first=0, mask_source="clean", max_foreshortening_pct=None):
+def run_recon(n_cases, view_step_deg, steps=None, save_dir=None, first=0, mask_source="clean", max_foreshortening_pct=None,
+              load_dir=None):
+    from SDFCARLib.io import read_volume, write_volume_nrrd
     from SDFCARLib.masks import MaskError
     from SDFCARLib.optimiser import make_settings, reconstruct
 
@@ -252,17 +263,22 @@ def run_recon(n_cases, view_step_deg, steps=None, save_dir=None, first=0, mask_s
         else:
             masks, frames = [render_mask(ph.tree, v) for v in VIEWS], None
         settings = make_settings("fast", **({"steps": steps} if steps else {}))
+        saved = Path(load_dir or ".") / f"recon{n}_occupancy.nrrd", Path(load_dir or ".") / f"recon{n}_geometry.json"
         t0 = time.perf_counter()
-        rec = reconstruct(geometry, masks, settings, "mask", frames=frames)
-        t_rec = time.perf_counter() - t0
-        if save_dir:  # keep the reconstruction for a look in Slicer (occupancy on the 0.4 mm grid, LPS)
-            from SDFCARLib.io import write_volume_nrrd
-
+        if load_dir:  # a reconstruction --save kept (same case, same masks): the analysis alone is measured
+            occupancy, _ = read_volume(saved[0])
+            views = Geometry.from_dict(json.loads(saved[1].read_text())).views
+            t_rec = None
+        else:
+            rec = reconstruct(geometry, masks, settings, "mask", frames=frames)
+            occupancy, views, t_rec = rec.occupancy, rec.geometry.views, time.perf_counter() - t0
+        if save_dir:  # keep the reconstruction (occupancy on the 0.4 mm grid, LPS; the poses it ended with)
             Path(save_dir).mkdir(parents=True, exist_ok=True)
-            write_volume_nrrd(Path(save_dir) / f"recon{n}_occupancy.nrrd", rec.occupancy, geometry.volume)
+            write_volume_nrrd(Path(save_dir) / saved[0].name, occupancy, geometry.volume)
+            (Path(save_dir) / saved[1].name).write_text(json.dumps(Geometry(geometry.volume, views).to_dict()))
         try:
-            row = score(ph, rec.occupancy, geometry.volume, float(settings.region.threshold), masks,
-                        ph.truth["ostium_mm"], view_step_deg, frames, rec.geometry.views)
+            row = score(ph, occupancy, geometry.volume, float(settings.region.threshold), masks,
+                        ph.truth["ostium_mm"], view_step_deg, frames, views)
         except CentrelineError as exc:  # e.g. nothing above the level: a failed case, not a failed run
             row = {"error": str(exc)}
         rows.append(dict(case=name, reconstruct_s=t_rec, **extra, **row))
@@ -279,8 +295,9 @@ def summarise(rows: List[Dict]) -> str:
     found = [r for r in rows if r.get("found")]
     sig = [r for r in found if r.get("ds_true", 0) >= 50]
     frames = bool(col("healthy_mae_frames_mm").size)
-    lines = ["| measure | 3D sections | two-view masks |" + (" two-view frames (edges) | frames (density) |" if frames else "")
-             + " target |", "|---|---|---|" + ("---|---|" if frames else "") + "---|"]
+    lines = ["| measure | 3D sections | two-view masks |"
+             + (" two-view frames (edges) | frames (density) | frames (mean of the two) |" if frames else "")
+             + " target |", "|---|---|---|" + ("---|---|---|" if frames else "") + "---|"]
 
     def ms(v):
         return "n/a" if v.size == 0 else f"{v.mean():+.2f} ± {v.std():.2f} (max |·| {np.abs(v).max():.2f})"
@@ -290,11 +307,12 @@ def summarise(rows: List[Dict]) -> str:
         return "n/a" if v.size == 0 else f"{v.mean():.3f} (worst {v.max():.3f})"
 
     def extra(key, subset):
-        return f" {ms(col(key, subset))} | {ms(col(key.replace('frames', 'density'), subset))} |" if frames else ""
+        return (f" {ms(col(key, subset))} | {ms(col(key.replace('frames', 'density'), subset))} |"
+                f" {ms(col(key.replace('frames', 'both'), subset))} |") if frames else ""
 
     mild = [r for r in found if r["ds_true"] < 50]
     lines.append(f"| healthy diameter MAE (mm), mean of cases | {mae('healthy_mae_3d_mm')} | {mae('healthy_mae_masks_mm')} |"
-                 + (f" {mae('healthy_mae_frames_mm')} | {mae('healthy_mae_density_mm')} |" if frames else "") + " ≤ 0.15 |")
+                 + (f" {mae('healthy_mae_frames_mm')} | {mae('healthy_mae_density_mm')} | — |" if frames else "") + " ≤ 0.15 |")
     lines.append(f"| %DS error, 50–70 % lesions (points) | {ms(col('ds_err_3d', sig))} | {ms(col('ds_err_masks', sig))} |"
                  + extra("ds_err_frames", sig) + " within 8 |")
     lines.append(f"| %DS error, 30 % lesions (points) | {ms(col('ds_err_3d', mild))} | {ms(col('ds_err_masks', mild))} |"
@@ -303,15 +321,26 @@ def summarise(rows: List[Dict]) -> str:
                  + extra("mld_err_frames_mm", found) + " (CAAS 0.01 ± 0.13) |")
     lines.append(f"| lesion length error (mm) | {ms(col('len_err_3d_mm', found))} | {ms(col('len_err_masks_mm', found))} |"
                  + extra("len_err_frames_mm", found) + " within 2 |")
-    lines.append(f"| 3D length error (%) | {ms(col('length_err_pct', found))} | — |{' — | — |' if frames else ''} within 2 % |")
-    lines.append(f"| foreshortening error, acquisition views (points, worst view) | {ms(col('fs_err_pts', found))} | — |{' — | — |' if frames else ''} within 1 |")
-    lines.append(f"| truth foreshortening in the suggested view (%) | {ms(col('best_fs_truth_pct', found))} | — |{' — | — |' if frames else ''} ≤ 5 |")
-    lines.append(f"| least truth foreshortening over the range (%) | {ms(col('least_fs_truth_pct', found))} | — |{' — | — |' if frames else ''} (the bound) |")
+    lines.append(f"| 3D length error (%) | {ms(col('length_err_pct', found))} | — |{' — | — | — |' if frames else ''} within 2 % |")
+    lines.append(f"| foreshortening error, acquisition views (points, worst view) | {ms(col('fs_err_pts', found))} | — |{' — | — | — |' if frames else ''} within 1 |")
+    lines.append(f"| truth foreshortening in the suggested view (%) | {ms(col('best_fs_truth_pct', found))} | — |{' — | — | — |' if frames else ''} ≤ 5 |")
+    lines.append(f"| least truth foreshortening over the range (%) | {ms(col('least_fs_truth_pct', found))} | — |{' — | — | — |' if frames else ''} (the bound) |")
     lines.append(f"\nlesions found: {len(found)} of {len(rows)} cases; |%DS err| ≤ 8 in {int(np.sum(np.abs(col('ds_err_3d', sig)) <= 8))} of {len(sig)} "
                  f"50–70 % cases (3D), |length err| ≤ 2 mm in {int(np.sum(np.abs(col('len_err_3d_mm', found)) <= 2))} of {len(found)}; "
                  f"suggested view ≤ 5 % in {int(np.sum(col('best_fs_truth_pct', found) <= 5))} of {len(col('best_fs_truth_pct', found))}"
                  + (f"; lesion on the main branch in {int(col('lesion_on_main_branch', found).sum())} of "
                     f"{col('lesion_on_main_branch', found).size}" if col('lesion_on_main_branch', found).size else ""))
+    if frames:
+        within = ", ".join(f"{name} {int(np.sum(np.abs(col('ds_err_' + key, sig)) <= 8))}"
+                           for name, key in (("edges", "frames"), ("density", "density"), ("mean", "both")))
+        lines.append(f"frames, |%DS err| ≤ 8 of the {len(sig)} 50–70 % lesions found in 3D: {within}")
+    sources = {}
+    for r in found:
+        sources[r["graded_on"]] = sources.get(r["graded_on"], 0) + 1
+    g = col("ds_err_grade", sig)
+    lines.append(f"graded as analysis.json reports (frames' density, else edges, else 3D; {sources}): %DS error "
+                 f"50–70 % {ms(g)}, within 8 in {int(np.sum(np.abs(g) <= 8))} of {len(sig)}; MLD error "
+                 f"{ms(col('mld_err_grade_mm', found))} mm; lesion length error {ms(col('len_err_grade_mm', found))} mm")
     return "\n".join(lines)
 
 
@@ -322,7 +351,9 @@ def main(argv=None) -> int:
     ap.add_argument("--cases", type=int, default=4, help="recon suite: number of cases (at most 10)")
     ap.add_argument("--steps", type=int, default=None, help="recon suite: optimiser steps (default: the preset's)")
     ap.add_argument("--first", type=int, default=0, help="recon suite: index of the first case (0–9)")
-    ap.add_argument("--save", help="recon suite: write each reconstruction's occupancy here")
+    ap.add_argument("--save", help="recon suite: write each reconstruction's occupancy and final poses here")
+    ap.add_argument("--load", help="recon suite: analyse the reconstructions --save wrote here (same --masks, --first, "
+                                   "--max-foreshortening-pct) instead of reconstructing")
     ap.add_argument("--max-foreshortening-pct", type=float, default=None,
                     help="recon suite: draw each tube's axis until no view foreshortens it more (default: the first draw)")
     ap.add_argument("--masks", choices=("clean", "segmented", "segmented-moving"), default="clean",
@@ -341,7 +372,7 @@ def main(argv=None) -> int:
         rows = run_truth(tree_cases(), args.spacing, args.view_step_deg, args.masks)
     else:
         rows = run_recon(args.cases, args.view_step_deg, args.steps, args.save, args.first, args.masks,
-                         args.max_foreshortening_pct)
+                         args.max_foreshortening_pct, args.load)
     print()
     print(summarise(rows))
     print(f"\n{len(rows)} cases in {time.perf_counter() - t0:.0f} s")

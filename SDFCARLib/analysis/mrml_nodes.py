@@ -8,6 +8,7 @@ per-branch CSV profiles) and adds
                                       "Diameter" (3D equivalent diameter, mm) and "Radius" per
                                       control point; attributes SDFCAR.branchId / parentId
     a table node "… QCA"              one row per branch: length, mean/min diameter, worst lesion
+                                      (graded on the frames where given, and its 3D-section measures)
     a table node per branch profile   arc length and diameters (3D, masks, and the frames' edges and
                                       density where analyse was given the frames), feeding
     a plot chart "… diameters"        one line per branch, diameter against arc length
@@ -50,6 +51,11 @@ def _slicer_module():
     return slicer
 
 
+#: the "… QCA" table: one row per branch; its worst lesion as graded (MLD … lesion length, graded_on,
+#: seen_on_frames) and as the 3D sections measure it
+QCA_TABLE_COLUMNS = ("branch", "parent", "length_mm", "mean_diameter_mm", "mld_mm", "diameter_stenosis_pct",
+                     "area_stenosis_pct", "lesion_length_mm", "graded_on", "seen_on_frames", "diameter_stenosis_3d_pct",
+                     "mld_3d_mm")
 #: profile columns measured on the frames (edges, density), in the branch profile tables when present
 FRAME_COLUMNS = ("diameter_frames_mm", "diameter_frames_density_mm")
 
@@ -158,18 +164,25 @@ def add_analysis_nodes(scene, analysis_dir: PathLike, name: str = "SDFCAR", poin
         ps.SetMarkerStyle(slicer.vtkMRMLPlotSeriesNode.MarkerStyleNone)
         chart.AddAndObservePlotSeriesNodeID(ps.GetID())
         series.append(ps)
-    rows: Dict[str, List[Any]] = {k: [] for k in ("branch", "parent", "length_mm", "mean_diameter_mm", "mld_mm",
-                                                  "diameter_stenosis_pct", "area_stenosis_pct", "lesion_length_mm")}
+    rows: Dict[str, List[Any]] = {k: [] for k in QCA_TABLE_COLUMNS}
     for b in data["branches"]:
-        worst = max(b["lesions"], key=lambda x: x["diameter_stenosis_pct"]) if b["lesions"] else None
+        # The worst lesion by its grade (pipeline's "Grade of a lesion"); analysis.json from before grades
+        # carries the 3D measures only, which were its grade.
+        graded = [(x.get("grade") or dict(x, source="3D sections"), x) for x in b["lesions"]]
+        grade, worst = max(graded, key=lambda gx: gx[0]["diameter_stenosis_pct"]) if graded else (None, None)
         rows["branch"].append(str(b["branch_id"]))
         rows["parent"].append("" if b["parent_id"] is None else str(b["parent_id"]))
         rows["length_mm"].append(b["length_mm"])
         rows["mean_diameter_mm"].append((b.get("diameter_3d") or {}).get("mean_mm"))
-        rows["mld_mm"].append(worst["mld_mm"] if worst else (b.get("minimal_lumen") or {}).get("mld_mm"))
+        rows["mld_mm"].append(grade["mld_mm"] if grade else (b.get("minimal_lumen") or {}).get("mld_mm"))
         for key, field in (("diameter_stenosis_pct", "diameter_stenosis_pct"), ("area_stenosis_pct", "area_stenosis_pct"),
                            ("lesion_length_mm", "length_mm")):
-            rows[key].append(worst[field] if worst else None)
+            rows[key].append(grade[field] if grade else None)
+        rows["graded_on"].append(grade["source"] if grade else "")
+        rows["seen_on_frames"].append("" if worst is None or worst.get("seen_on_frames") is None
+                                      else ("yes" if worst["seen_on_frames"] else "no"))
+        rows["diameter_stenosis_3d_pct"].append(worst["diameter_stenosis_pct"] if worst else None)
+        rows["mld_3d_mm"].append(worst["mld_mm"] if worst else None)
     table = _add_table(scene, f"{name} QCA", rows)
     view_map = _add_view_map(scene, f"{name} view map", data) if data.get("view_map") else None
     return {"curves": curves, "table": table, "chart": chart, "series": series, "view_map": view_map,

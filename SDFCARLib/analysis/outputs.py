@@ -31,7 +31,7 @@ import numpy as np
 from ..geometry import Geometry
 from ..io import InputError, read_image, read_label, read_mask, read_volume, write_json
 from ..outputs import staged_directory
-from .pipeline import QCAResult, analyse_volume, summary
+from .pipeline import QCAResult, analyse_volume, lesion_grade, summary
 
 PathLike = Union[str, Path]
 ANALYSIS_FILES = ("analysis.json", "centrelines.vtk", "diameter_profiles.png", "view_map.png")
@@ -119,6 +119,7 @@ def plot_profiles(path: PathLike, result: QCAResult, max_branches: int = 6) -> b
     ranked = sorted(result.profiles, key=lambda p: (-len(p.lesions), -len(p.unreliable),
                                                     -p.branch.length_mm))[:max_branches]
     fig, axes = plt.subplots(len(ranked), 1, figsize=(8, 2.3 * len(ranked)), squeeze=False)
+    min_stenosis = float(result.settings.get("min_stenosis_pct", 20.0))
     for ax, p in zip(axes[:, 0], ranked):
         s = p.branch.arc_length_mm
         ax.plot(s, p.diameter_mm, color="C0", lw=1.5, label="3D cross-section")
@@ -133,10 +134,13 @@ def plot_profiles(path: PathLike, result: QCAResult, max_branches: int = 6) -> b
         ex = np.where(p.excluded, p.diameter_mm, np.nan)
         ax.plot(s, ex, color="0.6", lw=3, alpha=0.5, label="junction / end (not in reference)")
         for lesion in p.lesions:
+            grade = lesion_grade(p, lesion, min_stenosis)
+            m = grade.measure
             ax.axvspan(lesion.start_mm, lesion.end_mm, color="C3", alpha=0.15)
-            ax.plot([lesion.mld_position_mm], [lesion.mld_mm], "v", color="C3")
-            ax.annotate(f"MLD {lesion.mld_mm:.2f} mm, DS {lesion.diameter_stenosis_pct:.0f}%, "
-                        f"L {lesion.length_mm:.1f} mm", (lesion.mld_position_mm, lesion.mld_mm),
+            ax.plot([m.mld_position_mm], [m.mld_mm], "v", color="C3")
+            unseen = ", not seen on the frames" if grade.seen_on_frames is False else ""
+            ax.annotate(f"MLD {m.mld_mm:.2f} mm, DS {m.diameter_stenosis_pct:.0f}%, L {m.length_mm:.1f} mm "
+                        f"({grade.source}{unseen})", (m.mld_position_mm, m.mld_mm),
                         textcoords="offset points", xytext=(6, -12), fontsize=8, color="C3")
         for flagged in p.unreliable:
             lesion = flagged.lesion
@@ -248,14 +252,18 @@ def analysis_summary_lines(data: Dict[str, Any]) -> List[str]:
     lines = [f"3D-QCA: {tree.get('branches', 0)} branches, {float(tree.get('total_length_mm', 0.0)):.1f} mm of centreline"]
 
     def lesion_line(lesion: Dict[str, Any]) -> str:
-        line = (f"  branch {lesion['branch_id']}: MLD {lesion['mld_mm']:.2f} mm, reference "
-                f"{lesion['reference_diameter_mm']:.2f} mm, DS {lesion['diameter_stenosis_pct']:.0f}%, "
-                f"AS {lesion['area_stenosis_pct']:.0f}%, length {lesion['length_mm']:.1f} mm")
-        frames = lesion.get("frames")
-        if frames:  # the same lesion measured on the frames (analyse --frames)
-            seen = [f"{name} DS {m['diameter_stenosis_pct']:.0f}%, MLD {m['mld_mm']:.2f} mm, length {m['length_mm']:.1f} mm"
-                    for name, m in (("density", frames.get("density")), ("edges", frames.get("edges"))) if m]
-            line += "; on the frames: " + ("; ".join(seen) if seen else "no narrowing there")
+        grade = lesion.get("grade") or dict(lesion, source="3D sections")  # (analysis.json written before grades)
+        line = (f"  branch {lesion['branch_id']}: DS {grade['diameter_stenosis_pct']:.0f}%, AS {grade['area_stenosis_pct']:.0f}%, "
+                f"MLD {grade['mld_mm']:.2f} mm, reference {grade['reference_diameter_mm']:.2f} mm, "
+                f"length {grade['length_mm']:.1f} mm (graded on the {grade['source']})")
+        frames = lesion.get("frames") or {}
+        others = [("3D sections", lesion)] + [(f"frames ({name})", frames.get(name)) for name in ("density", "edges")]
+        seen = [f"{name} DS {m['diameter_stenosis_pct']:.0f}%, MLD {m['mld_mm']:.2f} mm"
+                for name, m in others if m and name != grade["source"]]
+        if seen:
+            line += "; " + "; ".join(seen)
+        if lesion.get("seen_on_frames") is False:
+            line += "; NOT seen on the frames: check it there"
         return line
 
     lines += [lesion_line(lesion) for lesion in data.get("lesions") or []]

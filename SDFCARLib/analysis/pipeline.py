@@ -16,8 +16,16 @@ Broken reconstructions (``fragments``)
     apart (``BranchProfile.unreliable``, analysis.json ``unreliable_lesions``) with its reasons; it
     is not the target of the best-view map.
 
+Grade of a lesion (``lesion_grade``)
+    Lesions are found on the 3D sections: they say where a lesion is on the tree. Where the frames
+    are given, each lesion is graded on them, as 2D-QCA grades on its edges: the same lesion on the
+    frames' density profile, else on their fitted edges, else (frames that show no narrowing there,
+    or none given) on the 3D sections. The frames are far sharper than a reconstruction from
+    segmented masks (RESULTS §21–22); a lesion the 3D sections find but the frames do not show is
+    reported with ``seen_on_frames`` false and a warning.
+
 Target segment of the best-view map
-    The worst lesion (highest %DS over all branches) padded by ``TARGET_PAD_MM`` of reference
+    The worst lesion (highest graded %DS over all branches) padded by ``TARGET_PAD_MM`` of reference
     vessel on each side, as a clinician frames a lesion; without a lesion, the first
     ``TARGET_DEFAULT_MM`` of the main branch after the ostium.
 """
@@ -98,14 +106,15 @@ def _segment(branch: CentrelineBranch, start_mm: float, end_mm: float) -> np.nda
     return np.flatnonzero(keep)
 
 
-def _choose_target(profiles: List[BranchProfile]) -> Dict[str, Any]:
+def _choose_target(profiles: List[BranchProfile], min_stenosis_pct: float) -> Dict[str, Any]:
     worst = None
     for p in profiles:
         for lesion in p.lesions:
-            if worst is None or lesion.diameter_stenosis_pct > worst[1].diameter_stenosis_pct:
-                worst = (p, lesion)
+            graded = lesion_grade(p, lesion, min_stenosis_pct).measure.diameter_stenosis_pct
+            if worst is None or graded > worst[2]:
+                worst = (p, lesion, graded)
     if worst is not None:
-        p, lesion = worst
+        p, lesion, _ = worst
         return {"branch_id": p.branch.branch_id, "kind": "worst lesion",
                 "start_mm": max(0.0, lesion.start_mm - TARGET_PAD_MM),
                 "end_mm": min(p.branch.length_mm, lesion.end_mm + TARGET_PAD_MM)}
@@ -174,7 +183,10 @@ def analyse_volume(volume: np.ndarray, grid: VolumeGrid, level: float = 0.5, vie
             prof.warning = str(exc)
         profiles.append(prof)
     fore = {b.branch_id: [foreshortening(b.points_mm, v) for v in views] for b in tree.branches if len(b.points_mm) > 1}
-    target = dict(target) if target else _choose_target(profiles)
+    blur: Dict[str, Any] = {}
+    if frames is not None and profiles:  # before the target: the worst lesion is the worst graded one
+        blur = _fit_frame_widths(profiles, frames, views, psf_sigma_mm)
+    target = dict(target) if target else _choose_target(profiles, min_stenosis_pct)
     vm = None
     target_branch = tree.branch(int(target["branch_id"]))
     idx = _segment(target_branch, float(target["start_mm"]), float(target["end_mm"]))
@@ -189,9 +201,6 @@ def analyse_volume(volume: np.ndarray, grid: VolumeGrid, level: float = 0.5, vie
              "overlap": overlap_fraction(seg, seg_r, others, others_r, v.primary_deg, v.secondary_deg)} for v in views]
         if best_view:
             vm = view_map(seg, seg_r, others, others_r, step_deg=view_step_deg)
-    blur: Dict[str, Any] = {}
-    if frames is not None and profiles:
-        blur = _fit_frame_widths(profiles, frames, views, psf_sigma_mm)
     settings = {"level": level, "min_branch_mm": min_branch_mm, "min_stenosis_pct": min_stenosis_pct, **blur,
                 "view_step_deg": view_step_deg, "ostium_mm": None if ostium_mm is None else list(map(float, ostium_mm)),
                 "min_component_share": min_component_share, "bridges_checked": len(bridges)}
@@ -281,6 +290,33 @@ def lesion_on_2d_profile(p: BranchProfile, values: Optional[np.ndarray], lesion:
                           min_stenosis_pct)
 
 
+GRADED_ON_DENSITY, GRADED_ON_EDGES, GRADED_ON_3D = "frames (density)", "frames (edges)", "3D sections"
+
+
+@dataclass
+class LesionGrade:
+    """How a lesion found on the 3D sections is graded (module docstring, "Grade of a lesion")."""
+
+    source: str  # GRADED_ON_DENSITY, GRADED_ON_EDGES or GRADED_ON_3D
+    measure: Lesion  # the lesion as that source measures it
+    seen_on_frames: Optional[bool]  # None: no frames given
+
+    def to_dict(self) -> Dict[str, Any]:
+        return dict(self.measure.to_dict(), source=self.source)
+
+
+def lesion_grade(p: BranchProfile, lesion: Lesion, min_stenosis_pct: float = 20.0) -> LesionGrade:
+    """The grade of ``lesion`` (found on ``p``'s 3D sections): the frames' density, else their edges,
+    else the 3D sections (module docstring)."""
+    if p.frame_diameter_mm is None:
+        return LesionGrade(GRADED_ON_3D, lesion, None)
+    for source, values in ((GRADED_ON_DENSITY, p.frame_density_diameter_mm), (GRADED_ON_EDGES, p.frame_diameter_mm)):
+        same = lesion_on_2d_profile(p, values, lesion, min_stenosis_pct)
+        if same is not None:
+            return LesionGrade(source, same, True)
+    return LesionGrade(GRADED_ON_3D, lesion, False)
+
+
 def _on_frames(p: BranchProfile, lesion: Lesion, min_stenosis_pct: float) -> Optional[Dict[str, Any]]:
     """The lesion as the frames measure it, by their edges and by their density (None each where they find
     no lesion there); None without frames."""
@@ -291,6 +327,22 @@ def _on_frames(p: BranchProfile, lesion: Lesion, min_stenosis_pct: float) -> Opt
         same = lesion_on_2d_profile(p, values, lesion, min_stenosis_pct)
         out[source] = None if same is None else same.to_dict()
     return out
+
+
+def _lesion_entry(p: BranchProfile, lesion: Lesion, min_stenosis_pct: float, **extra) -> Dict[str, Any]:
+    """A lesion of analysis.json: its 3D-section measures (top level), its grade, the frames' measures."""
+    grade = lesion_grade(p, lesion, min_stenosis_pct)
+    return dict(lesion.to_dict(), branch_id=p.branch.branch_id, grade=grade.to_dict(),
+                seen_on_frames=grade.seen_on_frames, frames=_on_frames(p, lesion, min_stenosis_pct), **extra)
+
+
+def _unseen_warning(unseen: List[Dict[str, Any]]) -> Optional[str]:
+    if not unseen:
+        return None
+    where = ", ".join(f"branch {d['branch_id']} at {d['mld_position_mm']:.1f} mm (3D DS {d['diameter_stenosis_pct']:.0f}%)"
+                      for d in unseen)
+    return (f"{len(unseen)} lesion(s) of the 3D sections not seen on the frames: {where}. The reconstruction may be "
+            "rough or flattened there; check the frames before acting on these (they are graded on the 3D sections).")
 
 
 def summary(result: QCAResult) -> Dict[str, Any]:
@@ -316,11 +368,9 @@ def summary(result: QCAResult) -> Dict[str, Any]:
                                                            "slope_mm_per_mm": p.reference.slope_mm_per_mm},
             "minimal_lumen": mld,
             "component": None if result.fragments is None else result.fragments.branch_record(b),
-            "lesions": [dict(lesion.to_dict(), branch_id=b.branch_id, reliable=True,
-                             frames=_on_frames(p, lesion, min_stenosis)) for lesion in p.lesions],
-            "unreliable_lesions": [dict(u.lesion.to_dict(), branch_id=b.branch_id, reliable=False, flag=UNRELIABLE,
-                                        reasons=list(u.reasons), frames=_on_frames(p, u.lesion, min_stenosis))
-                                   for u in p.unreliable],
+            "lesions": [_lesion_entry(p, lesion, min_stenosis, reliable=True) for lesion in p.lesions],
+            "unreliable_lesions": [_lesion_entry(p, u.lesion, min_stenosis, reliable=False, flag=UNRELIABLE,
+                                                 reasons=list(u.reasons)) for u in p.unreliable],
             "narrowings_below_resolution": p.unresolved,
             "foreshortening_per_view": result.view_foreshortening.get(b.branch_id, []),
             "warning": p.warning or None,
@@ -328,8 +378,9 @@ def summary(result: QCAResult) -> Dict[str, Any]:
         branches.append(entry)
         all_lesions.extend(entry["lesions"])
         unreliable.extend(entry["unreliable_lesions"])
-    all_lesions.sort(key=lambda d: -d["diameter_stenosis_pct"])
-    unreliable.sort(key=lambda d: -d["diameter_stenosis_pct"])
+    all_lesions.sort(key=lambda d: -d["grade"]["diameter_stenosis_pct"])
+    unreliable.sort(key=lambda d: -d["grade"]["diameter_stenosis_pct"])
+    unseen = [d for d in all_lesions if d["seen_on_frames"] is False]
     out: Dict[str, Any] = {
         "coordinate_system": "LPS", "units": {"length": "mm", "angle": "degrees", "stenosis": "percent"},
         "settings": result.settings,
@@ -339,7 +390,8 @@ def summary(result: QCAResult) -> Dict[str, Any]:
         "branches": branches, "lesions": all_lesions, "unreliable_lesions": unreliable,
         "bifurcations": result.bifurcations, "target_segment": result.target,
         "connectivity": result.fragments.summary() if result.fragments is not None else None,
-        "warnings": [w for w in [result.fragments.warning() if result.fragments is not None else None] if w],
+        "warnings": [w for w in [result.fragments.warning() if result.fragments is not None else None,
+                                 _unseen_warning(unseen)] if w],
     }
     if result.view_map is not None:
         best = result.view_map.best()
