@@ -21,7 +21,10 @@ suggested view. Prints a Markdown table of case rows and a summary; ``--csv`` ke
 
     python bench/qca.py --suite tubes --csv bench/qca_tubes.csv
     python bench/qca.py --suite recon --cases 4
-    python bench/qca.py --suite recon --cases 10 --masks segmented
+    python bench/qca.py --suite recon --cases 10 --masks segmented --save runs/recon   # keep the reconstructions
+    python bench/qca.py --suite recon --cases 10 --masks segmented --load runs/recon   # analyse them again
+
+The "graded" line is what analysis.json reports as each lesion's grade (``pipeline.lesion_grade``).
 """
 
 from __future__ import annotations
