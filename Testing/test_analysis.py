@@ -424,3 +424,27 @@ def test_analyse_warns_about_a_broken_reconstruction(tmp_path, capsys):
     assert data["connectivity"]["components"] == 2 and len(data["unreliable_lesions"]) == 2
     assert main(["analyse", str(folder), "--out", str(tmp_path / "a2"), "--min-component-share", "2"]) == 2
     assert "between 0 and 1" in capsys.readouterr().err
+
+
+def test_strands_that_run_inside_their_parents_lumen_are_told_from_side_branches():
+    # A rough reconstruction thins into a main path plus strands beside it inside its lumen (RESULTS §22e).
+    from SDFCARLib.analysis.centreline import CentrelineBranch, CentrelineTree
+    from SDFCARLib.analysis.pipeline import strands_within_parents
+
+    def line(start, direction, length, step=0.25):
+        t = np.arange(0.0, length + 1e-9, step)
+        return np.asarray(start, float) + t[:, None] * (np.asarray(direction, float) / np.linalg.norm(direction))
+
+    def branch(bid, points, parent=None, at=None):
+        return CentrelineBranch(bid, points, np.full(len(points), 0.5), parent_id=parent, parent_index=at)
+
+    main = branch(0, line((0, 0, 0), (1, 0, 0), 40.0))
+    strand = branch(1, line((10, 0.3, 0), (1, 0.12, 0), 8.0), 0, 40)  # 1.3 mm off the axis at most, along it
+    side = branch(2, line((20, 0, 0), (0.5, 0.87, 0), 10.0), 0, 80)  # leaves at 60°
+    stub_of_strand = branch(3, line((14, 0.8, 0), (1, -0.1, 0), 3.0), 1, 16)
+    short_side = branch(4, line((30, 0, 0), (0, 1, 0), 4.0), 0, 120)  # across the vessel: not along it
+    tree = CentrelineTree([main, strand, side, stub_of_strand, short_side])
+    diameters = {b.branch_id: np.full(len(b.points_mm), 3.0) for b in tree.branches}
+    assert strands_within_parents(tree, diameters) == {1, 3}
+    diameters[0][:] = 1.0  # beside a 1 mm vessel the same path leaves its lumen: a branch
+    assert 1 not in strands_within_parents(tree, diameters)

@@ -9,6 +9,15 @@ Resolution
     ``RESOLVABLE_VOXELS`` voxels of the grid; the others are counted per branch
     (``narrowings_below_resolution``).
 
+Side strands (``strands_within_parents``)
+    A rough reconstruction (masks segmented from images) thins into a main path plus strands that
+    run beside it inside its own lumen; each strand makes a junction zone on the main branch, which
+    then leaves most of its sections out of the reference and misses its lesions (RESULTS §22).
+    A side branch that stays within ``STRAND_MAX_REACH_DIAMETERS`` of its parent's median diameter
+    from the parent's centreline and runs along it (mean |cos| of the angle between their tangents
+    above ``STRAND_MIN_ALIGNMENT``) is such a strand: it is dropped from the analysed tree with
+    everything below it (a real side branch leaves its parent). ``settings["strands_dropped"]``.
+
 Broken reconstructions (``fragments``)
     Only the pieces of the lumen above ``fragments.MIN_COMPONENT_SHARE`` of the main tree are
     analysed. A lesion on a piece cut off from the main tree, beside another piece, or on a gap
@@ -50,6 +59,8 @@ TARGET_PAD_MM = 2.5
 TARGET_DEFAULT_MM = 20.0
 OTHERS_STEP_MM = 1.0  # tree samples kept for the overlap test: finer adds time, not accuracy
 RESOLVABLE_VOXELS = 2.5  # a lesion's reference diameter and length must span this many voxels
+STRAND_MAX_REACH_DIAMETERS = 1.0  # a strand stays this close to its parent's centreline (× parent diameter)
+STRAND_MIN_ALIGNMENT = 0.75  # … and runs along it: mean |cos| between the two tangents
 
 
 @dataclass
@@ -153,9 +164,13 @@ def analyse_volume(volume: np.ndarray, grid: VolumeGrid, level: float = 0.5, vie
         pieces[~fragments.analysed_mask()] = 0
     tree = extract_centrelines(pieces, grid, level=level, ostium_mm=ostium_mm, min_branch_mm=min_branch_mm)
     fvol = np.asarray(volume, np.float32)
+    all_sections = {b.branch_id: branch_cross_sections(fvol, grid, b, level) for b in tree.branches}
+    strands = strands_within_parents(tree, {k: v.equivalent_diameter_mm for k, v in all_sections.items()})
+    if strands:
+        tree = CentrelineTree([b for b in tree.branches if b.branch_id not in strands])
     profiles: List[BranchProfile] = []
     for branch in tree.branches:
-        sections = branch_cross_sections(fvol, grid, branch, level)
+        sections = all_sections[branch.branch_id]
         excluded = junction_zones(tree, branch)
         prof = BranchProfile(branch, sections, excluded)
         if masks is not None and len(views):
@@ -203,7 +218,8 @@ def analyse_volume(volume: np.ndarray, grid: VolumeGrid, level: float = 0.5, vie
             vm = view_map(seg, seg_r, others, others_r, step_deg=view_step_deg)
     settings = {"level": level, "min_branch_mm": min_branch_mm, "min_stenosis_pct": min_stenosis_pct, **blur,
                 "view_step_deg": view_step_deg, "ostium_mm": None if ostium_mm is None else list(map(float, ostium_mm)),
-                "min_component_share": min_component_share, "bridges_checked": len(bridges)}
+                "min_component_share": min_component_share, "bridges_checked": len(bridges),
+                "strands_dropped": len(strands)}
     return QCAResult(tree, profiles, bifurcation_angles(tree), list(views), fore, target, vm, settings, fragments)
 
 
@@ -234,6 +250,29 @@ def _fit_frame_widths(profiles: List[BranchProfile], frames: Sequence[np.ndarray
     for p, d in zip(profiles, per_profile):
         p.frame_density_diameter_mm = density_diameter(d, attenuations)
     return {"psf_sigma_mm": sigmas, "psf_sigma_estimated": estimated, "attenuation_per_mm": attenuations}
+
+
+def strands_within_parents(tree: CentrelineTree, diameters_mm: Dict[int, np.ndarray]) -> set:
+    """Ids of the side branches that are strands of their parent's lumen, and of everything below them
+    (module docstring, "Side strands"); ``diameters_mm``: each branch's 3D equivalent diameters."""
+    from scipy.spatial import cKDTree
+
+    strands: set = set()
+    for b in tree.branches:  # breadth first: a parent is judged before its children
+        if b.parent_id is None:
+            continue
+        if b.parent_id in strands:
+            strands.add(b.branch_id)
+            continue
+        parent = tree.branch(b.parent_id)
+        width = np.nanmedian(diameters_mm[parent.branch_id]) if np.isfinite(diameters_mm[parent.branch_id]).any() else np.nan
+        if not np.isfinite(width) or len(b.points_mm) < 2:
+            continue
+        distance, nearest = cKDTree(parent.points_mm).query(b.points_mm)
+        alignment = float(np.mean(np.abs(np.sum(b.tangents() * parent.tangents()[nearest], axis=1))))
+        if distance.max() < STRAND_MAX_REACH_DIAMETERS * width and alignment > STRAND_MIN_ALIGNMENT:
+            strands.add(b.branch_id)
+    return strands
 
 
 def _end_caps(branch: CentrelineBranch) -> np.ndarray:
@@ -386,7 +425,8 @@ def summary(result: QCAResult) -> Dict[str, Any]:
         "settings": result.settings,
         "views": [{"label": view_label(v.primary_deg, v.secondary_deg), "primary_deg": v.primary_deg,
                    "secondary_deg": v.secondary_deg} for v in result.views],
-        "tree": {"branches": len(result.tree.branches), "total_length_mm": result.tree.total_length_mm()},
+        "tree": {"branches": len(result.tree.branches), "total_length_mm": result.tree.total_length_mm(),
+                 "strands_dropped": int(result.settings.get("strands_dropped", 0))},
         "branches": branches, "lesions": all_lesions, "unreliable_lesions": unreliable,
         "bifurcations": result.bifurcations, "target_segment": result.target,
         "connectivity": result.fragments.summary() if result.fragments is not None else None,
