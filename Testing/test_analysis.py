@@ -448,3 +448,8 @@ def test_strands_that_run_inside_their_parents_lumen_are_told_from_side_branches
     assert strands_within_parents(tree, diameters) == {1, 3}
     diameters[0][:] = 1.0  # beside a 1 mm vessel the same path leaves its lumen: a branch
     assert 1 not in strands_within_parents(tree, diameters)
+    from SDFCARLib.analysis.outputs import analysis_summary_lines
+
+    header = analysis_summary_lines({"tree": {"branches": 3, "total_length_mm": 54.0, "strands_dropped": 2}})[0]
+    assert header.startswith("3D-QCA: 3 branches, 54.0 mm") and "2 strand(s)" in header
+    assert "strand" not in analysis_summary_lines({"tree": {"branches": 3, "total_length_mm": 54.0, "strands_dropped": 0}})[0]

@@ -250,6 +250,8 @@ def analysis_summary_lines(data: Dict[str, Any]) -> List[str]:
     prints these lines; the Slicer module shows them)."""
     tree = data.get("tree") or {}
     lines = [f"3D-QCA: {tree.get('branches', 0)} branches, {float(tree.get('total_length_mm', 0.0)):.1f} mm of centreline"]
+    if tree.get("strands_dropped"):
+        lines[0] += f" ({tree['strands_dropped']} strand(s) inside a parent's lumen dropped: the reconstruction is rough there)"
 
     def lesion_line(lesion: Dict[str, Any]) -> str:
         grade = lesion.get("grade") or dict(lesion, source="3D sections")  # (analysis.json written before grades)

@@ -45,6 +45,7 @@ from dataclasses import dataclass, field
 from typing import Any, Dict, List, Optional, Sequence
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from ..geometry import CArmView, VolumeGrid
 from .centreline import CentrelineBranch, CentrelineTree, bifurcation_angles, extract_centrelines
@@ -255,8 +256,6 @@ def _fit_frame_widths(profiles: List[BranchProfile], frames: Sequence[np.ndarray
 def strands_within_parents(tree: CentrelineTree, diameters_mm: Dict[int, np.ndarray]) -> set:
     """Ids of the side branches that are strands of their parent's lumen, and of everything below them
     (module docstring, "Side strands"); ``diameters_mm``: each branch's 3D equivalent diameters."""
-    from scipy.spatial import cKDTree
-
     strands: set = set()
     for b in tree.branches:  # breadth first: a parent is judged before its children
         if b.parent_id is None:
