@@ -624,6 +624,12 @@ def parameterWidgets(ui):
     return mapping
 
 
+def _warningLines(data):
+    """The "warnings" of a report.json or analysis.json as lines of a summary (none: no lines)."""
+    warnings = [str(w) for w in data.get("warnings") or []]
+    return ["", f"{len(warnings)} warning(s):"] + [f"• {w}" for w in warnings] if warnings else []
+
+
 def finishedJobFiles(job, state, statusLabel, what):
     """A finished job's files; None after saying in the status line (and, on failure, in a dialog with
     the worker's traceback) why there are none. The scene is not touched either way."""
@@ -1080,10 +1086,7 @@ class SDFCARLogic(ScriptedLoadableModuleLogic):
         views = len(lines) or len((report.get("geometry") or {}).get("views") or []) or 1
         if not lines:
             lines = ["This result has no reprojection QA (made by an SDFCAR version before it existed)."]
-        warnings = [str(w) for w in report.get("warnings") or []]
-        if warnings:
-            lines += ["", f"{len(warnings)} warning(s):"] + [f"• {w}" for w in warnings]
-        return "\n".join(lines), views
+        return "\n".join(lines + _warningLines(report)), views
 
     @staticmethod
     def analysisText(resultNode):
@@ -1098,12 +1101,8 @@ class SDFCARLogic(ScriptedLoadableModuleLogic):
             data = json.loads(analysis.read_text(encoding="utf-8"))
         except (OSError, ValueError) as exc:
             return f"The analysis in {folder} cannot be read ({exc}); press Analyse to run it again."
-        lines = analysis_summary_lines(data)
-        # What the command line prints as warnings (a broken reconstruction, lesions the frames do not show).
-        warnings = [str(w) for w in data.get("warnings") or []]
-        if warnings:
-            lines += ["", f"{len(warnings)} warning(s):"] + [f"• {w}" for w in warnings]
-        return "\n".join(lines)
+        # With what the command line prints as warnings (a broken reconstruction, lesions the frames do not show).
+        return "\n".join(analysis_summary_lines(data) + _warningLines(data))
 
     def showQAOverlay(self, resultNode, viewNumber):
         """Show the QA overlay of a view in the slice views (loaded from the result folder when the scene lacks it)."""

@@ -444,9 +444,9 @@ def test_strands_that_run_inside_their_parents_lumen_are_told_from_side_branches
     stub_of_strand = branch(3, line((14, 0.8, 0), (1, -0.1, 0), 3.0), 1, 16)
     short_side = branch(4, line((30, 0, 0), (0, 1, 0), 4.0), 0, 120)  # across the vessel: not along it
     tree = CentrelineTree([main, strand, side, stub_of_strand, short_side])
-    diameters = {b.branch_id: np.full(len(b.points_mm), 3.0) for b in tree.branches}
+    diameters = {0: 3.0, 1: 3.0}  # the parents' median diameters
     assert strands_within_parents(tree, diameters) == {1, 3}
-    diameters[0][:] = 1.0  # beside a 1 mm vessel the same path leaves its lumen: a branch
+    diameters[0] = 1.0  # beside a 1 mm vessel the same path leaves its lumen: a branch
     assert 1 not in strands_within_parents(tree, diameters)
     from SDFCARLib.analysis.outputs import analysis_summary_lines
 

@@ -266,19 +266,19 @@ def run_recon(n_cases, view_step_deg, steps=None, save_dir=None, first=0, mask_s
         else:
             masks, frames = [render_mask(ph.tree, v) for v in VIEWS], None
         settings = make_settings("fast", **({"steps": steps} if steps else {}))
-        saved = Path(load_dir or ".") / f"recon{n}_occupancy.nrrd", Path(load_dir or ".") / f"recon{n}_geometry.json"
+        occupancy_name, geometry_name = f"recon{n}_occupancy.nrrd", f"recon{n}_geometry.json"
         t0 = time.perf_counter()
         if load_dir:  # a reconstruction --save kept (same case, same masks): the analysis alone is measured
-            occupancy, _ = read_volume(saved[0])
-            views = Geometry.from_dict(json.loads(saved[1].read_text())).views
+            occupancy, _ = read_volume(Path(load_dir) / occupancy_name)
+            views = Geometry.from_dict(json.loads((Path(load_dir) / geometry_name).read_text())).views
             t_rec = None
         else:
             rec = reconstruct(geometry, masks, settings, "mask", frames=frames)
             occupancy, views, t_rec = rec.occupancy, rec.geometry.views, time.perf_counter() - t0
         if save_dir:  # keep the reconstruction (occupancy on the 0.4 mm grid, LPS; the poses it ended with)
             Path(save_dir).mkdir(parents=True, exist_ok=True)
-            write_volume_nrrd(Path(save_dir) / saved[0].name, occupancy, geometry.volume)
-            (Path(save_dir) / saved[1].name).write_text(json.dumps(Geometry(geometry.volume, views).to_dict()))
+            write_volume_nrrd(Path(save_dir) / occupancy_name, occupancy, geometry.volume)
+            (Path(save_dir) / geometry_name).write_text(json.dumps(Geometry(geometry.volume, views).to_dict()))
         try:
             row = score(ph, occupancy, geometry.volume, float(settings.region.threshold), masks,
                         ph.truth["ostium_mm"], view_step_deg, frames, views)

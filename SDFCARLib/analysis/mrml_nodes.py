@@ -168,7 +168,7 @@ def add_analysis_nodes(scene, analysis_dir: PathLike, name: str = "SDFCAR", poin
     for b in data["branches"]:
         # The worst lesion by its grade (pipeline's "Grade of a lesion"); analysis.json from before grades
         # carries the 3D measures only, which were its grade.
-        graded = [(x.get("grade") or dict(x, source="3D sections"), x) for x in b["lesions"]]
+        graded = [(x.get("grade") or dict(x, source="3D sections"), x) for x in b["lesions"]]  # pipeline.GRADED_ON_3D
         grade, worst = max(graded, key=lambda gx: gx[0]["diameter_stenosis_pct"]) if graded else (None, None)
         rows["branch"].append(str(b["branch_id"]))
         rows["parent"].append("" if b["parent_id"] is None else str(b["parent_id"]))

@@ -31,7 +31,7 @@ import numpy as np
 from ..geometry import Geometry
 from ..io import InputError, read_image, read_label, read_mask, read_volume, write_json
 from ..outputs import staged_directory
-from .pipeline import QCAResult, analyse_volume, lesion_grade, summary
+from .pipeline import GRADED_ON_3D, QCAResult, analyse_volume, lesion_grade, summary
 
 PathLike = Union[str, Path]
 ANALYSIS_FILES = ("analysis.json", "centrelines.vtk", "diameter_profiles.png", "view_map.png")
@@ -254,12 +254,12 @@ def analysis_summary_lines(data: Dict[str, Any]) -> List[str]:
         lines[0] += f" ({tree['strands_dropped']} strand(s) inside a parent's lumen dropped: the reconstruction is rough there)"
 
     def lesion_line(lesion: Dict[str, Any]) -> str:
-        grade = lesion.get("grade") or dict(lesion, source="3D sections")  # (analysis.json written before grades)
+        grade = lesion.get("grade") or dict(lesion, source=GRADED_ON_3D)  # (analysis.json written before grades)
         line = (f"  branch {lesion['branch_id']}: DS {grade['diameter_stenosis_pct']:.0f}%, AS {grade['area_stenosis_pct']:.0f}%, "
                 f"MLD {grade['mld_mm']:.2f} mm, reference {grade['reference_diameter_mm']:.2f} mm, "
                 f"length {grade['length_mm']:.1f} mm (graded on the {grade['source']})")
         frames = lesion.get("frames") or {}
-        others = [("3D sections", lesion)] + [(f"frames ({name})", frames.get(name)) for name in ("density", "edges")]
+        others = [(GRADED_ON_3D, lesion)] + [(f"frames ({name})", frames.get(name)) for name in ("density", "edges")]
         seen = [f"{name} DS {m['diameter_stenosis_pct']:.0f}%, MLD {m['mld_mm']:.2f} mm"
                 for name, m in others if m and name != grade["source"]]
         if seen:

@@ -165,13 +165,16 @@ def analyse_volume(volume: np.ndarray, grid: VolumeGrid, level: float = 0.5, vie
         pieces[~fragments.analysed_mask()] = 0
     tree = extract_centrelines(pieces, grid, level=level, ostium_mm=ostium_mm, min_branch_mm=min_branch_mm)
     fvol = np.asarray(volume, np.float32)
-    all_sections = {b.branch_id: branch_cross_sections(fvol, grid, b, level) for b in tree.branches}
-    strands = strands_within_parents(tree, {k: v.equivalent_diameter_mm for k, v in all_sections.items()})
+    # Sections of the parents first, for the strand test; the strands dropped need none (a rough
+    # reconstruction has most of its branches among them).
+    parent_ids = {b.parent_id for b in tree.branches if b.parent_id is not None}
+    known = {b.branch_id: branch_cross_sections(fvol, grid, b, level) for b in tree.branches if b.branch_id in parent_ids}
+    strands = strands_within_parents(tree, {k: _median_diameter(v.equivalent_diameter_mm) for k, v in known.items()})
     if strands:
         tree = CentrelineTree([b for b in tree.branches if b.branch_id not in strands])
     profiles: List[BranchProfile] = []
     for branch in tree.branches:
-        sections = all_sections[branch.branch_id]
+        sections = known[branch.branch_id] if branch.branch_id in known else branch_cross_sections(fvol, grid, branch, level)
         excluded = junction_zones(tree, branch)
         prof = BranchProfile(branch, sections, excluded)
         if masks is not None and len(views):
@@ -253,9 +256,13 @@ def _fit_frame_widths(profiles: List[BranchProfile], frames: Sequence[np.ndarray
     return {"psf_sigma_mm": sigmas, "psf_sigma_estimated": estimated, "attenuation_per_mm": attenuations}
 
 
-def strands_within_parents(tree: CentrelineTree, diameters_mm: Dict[int, np.ndarray]) -> set:
+def _median_diameter(diameter_mm: np.ndarray) -> float:
+    return float(np.nanmedian(diameter_mm)) if np.isfinite(diameter_mm).any() else float("nan")
+
+
+def strands_within_parents(tree: CentrelineTree, parent_diameter_mm: Dict[int, float]) -> set:
     """Ids of the side branches that are strands of their parent's lumen, and of everything below them
-    (module docstring, "Side strands"); ``diameters_mm``: each branch's 3D equivalent diameters."""
+    (module docstring, "Side strands"); ``parent_diameter_mm``: each parent's median 3D equivalent diameter."""
     strands: set = set()
     for b in tree.branches:  # breadth first: a parent is judged before its children
         if b.parent_id is None:
@@ -264,7 +271,7 @@ def strands_within_parents(tree: CentrelineTree, diameters_mm: Dict[int, np.ndar
             strands.add(b.branch_id)
             continue
         parent = tree.branch(b.parent_id)
-        width = np.nanmedian(diameters_mm[parent.branch_id]) if np.isfinite(diameters_mm[parent.branch_id]).any() else np.nan
+        width = parent_diameter_mm.get(parent.branch_id, float("nan"))
         if not np.isfinite(width) or len(b.points_mm) < 2:
             continue
         distance, nearest = cKDTree(parent.points_mm).query(b.points_mm)
@@ -338,6 +345,7 @@ class LesionGrade:
     source: str  # GRADED_ON_DENSITY, GRADED_ON_EDGES or GRADED_ON_3D
     measure: Lesion  # the lesion as that source measures it
     seen_on_frames: Optional[bool]  # None: no frames given
+    on_frames: Optional[Dict[str, Optional[Lesion]]] = None  # "edges", "density": the same lesion there, or None
 
     def to_dict(self) -> Dict[str, Any]:
         return dict(self.measure.to_dict(), source=self.source)
@@ -345,33 +353,24 @@ class LesionGrade:
 
 def lesion_grade(p: BranchProfile, lesion: Lesion, min_stenosis_pct: float = 20.0) -> LesionGrade:
     """The grade of ``lesion`` (found on ``p``'s 3D sections): the frames' density, else their edges,
-    else the 3D sections (module docstring)."""
+    else the 3D sections (module docstring); with both frame measures of it."""
     if p.frame_diameter_mm is None:
         return LesionGrade(GRADED_ON_3D, lesion, None)
-    for source, values in ((GRADED_ON_DENSITY, p.frame_density_diameter_mm), (GRADED_ON_EDGES, p.frame_diameter_mm)):
-        same = lesion_on_2d_profile(p, values, lesion, min_stenosis_pct)
-        if same is not None:
-            return LesionGrade(source, same, True)
-    return LesionGrade(GRADED_ON_3D, lesion, False)
-
-
-def _on_frames(p: BranchProfile, lesion: Lesion, min_stenosis_pct: float) -> Optional[Dict[str, Any]]:
-    """The lesion as the frames measure it, by their edges and by their density (None each where they find
-    no lesion there); None without frames."""
-    if p.frame_diameter_mm is None:
-        return None
-    out = {}
-    for source, values in (("edges", p.frame_diameter_mm), ("density", p.frame_density_diameter_mm)):
-        same = lesion_on_2d_profile(p, values, lesion, min_stenosis_pct)
-        out[source] = None if same is None else same.to_dict()
-    return out
+    on_frames = {name: lesion_on_2d_profile(p, values, lesion, min_stenosis_pct)
+                 for name, values in (("edges", p.frame_diameter_mm), ("density", p.frame_density_diameter_mm))}
+    for source, name in ((GRADED_ON_DENSITY, "density"), (GRADED_ON_EDGES, "edges")):
+        if on_frames[name] is not None:
+            return LesionGrade(source, on_frames[name], True, on_frames)
+    return LesionGrade(GRADED_ON_3D, lesion, False, on_frames)
 
 
 def _lesion_entry(p: BranchProfile, lesion: Lesion, min_stenosis_pct: float, **extra) -> Dict[str, Any]:
-    """A lesion of analysis.json: its 3D-section measures (top level), its grade, the frames' measures."""
+    """A lesion of analysis.json: its 3D-section measures (top level), its grade, the frames' measures
+    (``frames``: None without frames, else each measure's lesion or None where it shows none)."""
     grade = lesion_grade(p, lesion, min_stenosis_pct)
+    frames = None if grade.on_frames is None else {k: None if v is None else v.to_dict() for k, v in grade.on_frames.items()}
     return dict(lesion.to_dict(), branch_id=p.branch.branch_id, grade=grade.to_dict(),
-                seen_on_frames=grade.seen_on_frames, frames=_on_frames(p, lesion, min_stenosis_pct), **extra)
+                seen_on_frames=grade.seen_on_frames, frames=frames, **extra)
 
 
 def _unseen_warning(unseen: List[Dict[str, Any]]) -> Optional[str]:
