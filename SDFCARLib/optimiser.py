@@ -36,6 +36,7 @@ from typing import Any, Callable, Dict, List, Optional, Sequence, Tuple
 import numpy as np
 import scipy
 import skimage
+from scipy import ndimage
 import torch
 
 from . import __version__
@@ -52,7 +53,7 @@ from .metrics import component_counts
 from .projector import ConeBeamProjector, project_volume
 from .qa import qa_warnings, reprojection_qa
 from .pruning import PruneSettings, prune_redundant_branches, removal_zone, unconfirmed_fragments
-from .settings import MASK_THRESHOLD_MM, TARGET_KINDS, ReconstructionError, Settings, make_settings
+from .settings import MASK_THRESHOLD_MM, TARGET_KINDS, ReconstructionError, RegionSettings, Settings, make_settings
 
 Progress = Optional[Callable[[Dict[str, Any]], None]]
 Cancel = Optional[Callable[[], bool]]
@@ -118,7 +119,7 @@ class Reconstruction:
     settings: Settings
     occupancy: np.ndarray  # float32 in [0, 1]
     field: np.ndarray  # float32: s (sdf modes, mm-free units) or logit (occupancy modes)
-    segmentation: np.ndarray  # bool, occupancy >= threshold
+    segmentation: np.ndarray  # bool, occupancy >= threshold (grown into occupancy >= grow_threshold when set)
     support: Optional[np.ndarray]  # bool voxels the field was evaluated on (None: all)
     report: Dict[str, Any] = field(default_factory=dict)
     history: List[Dict[str, float]] = field(default_factory=list)
@@ -377,6 +378,10 @@ def finish(problem: Problem, model: ImplicitField, history: List[Dict[str, float
         segmentation, unconfirmed, reconnection = drop_then_join_fragments(
             segmentation, occupancy_volume, field_volume, vessel_pixels(problem.targets, problem.target_kind), geometry,
             problem.support, settings, projectors=problem.projectors if problem.support is not None else None)
+    # last: grown only from what pruning and the fragment checks kept (before them it grows ghosts too)
+    kept_voxels = int(segmentation.sum())
+    segmentation = grown_segmentation(segmentation, occupancy_volume, settings.region)
+    grown_voxels = int(segmentation.sum()) - kept_voxels if settings.region.grow_threshold else None
     projected = reprojected_masks(segmentation, geometry)
     references = vessel_pixels(problem.targets, problem.target_kind)
     qa = [reprojection_qa(p, m, v) for p, m, v in zip(projected, references, geometry.views)]
@@ -398,6 +403,7 @@ def finish(problem: Problem, model: ImplicitField, history: List[Dict[str, float
         "geometry_digest": geometry.digest(),
         "support_voxels": int(problem.voxels.size),
         "segmented_voxels": int(segmentation.sum()),
+        "grown_voxels": grown_voxels,  # added below the threshold by grow_threshold (None: off)
         "pruning": pruning,
         "reconnection": reconnection,
         "unconfirmed_fragments": unconfirmed,
@@ -414,6 +420,14 @@ def finish(problem: Problem, model: ImplicitField, history: List[Dict[str, float
     }
     return Reconstruction(geometry, settings, occupancy_volume, field_volume, segmentation, problem.support, report, history,
                           list(zip(projected, references)))
+
+
+def grown_segmentation(segmentation: np.ndarray, occupancy: np.ndarray, region: RegionSettings) -> np.ndarray:
+    """The segmentation grown into the 26-connected voxels of occupancy ≥ ``grow_threshold`` (hysteresis)."""
+    if not region.grow_threshold or region.grow_threshold >= region.threshold or not segmentation.any():
+        return segmentation
+    candidates, _ = ndimage.label((occupancy >= region.grow_threshold) | segmentation, structure=np.ones((3, 3, 3), bool))
+    return np.isin(candidates, np.unique(candidates[segmentation]))
 
 
 def drop_then_join_fragments(

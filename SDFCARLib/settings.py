@@ -122,6 +122,10 @@ class RegionSettings:
     support: str = "full"  # "full": every voxel; "hull": the masks' visual hull widened by the margin
     support_margin_mm: float = 0.5
     threshold: float = 0.5  # segmentation = occupancy ≥ threshold
+    # 0: off. Otherwise, after pruning and the fragment steps, the segmentation also takes the voxels
+    # ≥ grow_threshold 26-connected to it (hysteresis): a vessel thinner than a voxel comes out of the
+    # fit as partial occupancy below the threshold, and a single threshold breaks it
+    grow_threshold: float = 0.0
     prune: bool = False  # remove the skeleton pieces no mask pixel needs (pruning.py)
     prune_piece_mm: float = 6.0
     prune_tolerance: float = 0.02
@@ -259,6 +263,9 @@ class Settings:
                 f"decide), got {r.reconnect_min_occupancy}")
         if not 0 < r.threshold < 1:
             raise ReconstructionError(f"threshold must be between 0 and 1, got {r.threshold}")
+        if not 0 <= r.grow_threshold <= r.threshold:
+            raise ReconstructionError(f"grow_threshold must be 0 (off) or an occupancy up to threshold ({r.threshold:g}), "
+                                      f"got {r.grow_threshold}")
         if run.device not in DEVICES and not str(run.device).startswith("cuda:"):
             raise ReconstructionError(f"device must be auto, cpu or cuda, got {run.device!r}")
         cal = self.calibration

@@ -166,6 +166,12 @@ def test_reconstruct_reports_components():
             assert reconnection["components_before"] - reconnection["joined"] <= reconnection["components_after"]
         else:
             assert reconnection is None
+        assert result.report["grown_voxels"] is None  # grow_threshold off by default
+    grown = reconstruct(geometry, masks, make_settings("fast", steps=60, grow_threshold=0.2, device="cpu"))
+    low = grown.occupancy >= 0.2
+    assert grown.report["grown_voxels"] >= 0
+    assert int(grown.segmentation.sum()) == int((grown.occupancy >= 0.5).sum()) + grown.report["grown_voxels"]
+    assert np.all(low[grown.segmentation]) and grown.report["segmented_voxels"] == int(grown.segmentation.sum())
 
 
 def test_ground_truth_metrics_show_components_of_result_and_truth():
@@ -188,3 +194,23 @@ def test_a_fragment_beside_a_gap_ends_up_in_the_tree_too():
     assert component_counts(segmentation)["components"] == 3
     joined, _, _, info = reconnect_fragments(segmentation, occupancy, (H, H, H))
     assert component_counts(joined)["components"] == 1 and info["components_after"] == 1
+
+
+def test_growing_the_segmentation_takes_partial_occupancy_connected_to_it_and_nothing_apart():
+    from SDFCARLib.optimiser import grown_segmentation
+    from SDFCARLib.settings import RegionSettings
+
+    occupancy = np.zeros((30, 9, 9), np.float32)
+    occupancy[2:12, 4, 4] = 0.9  # a vessel ...
+    occupancy[12:18, 4, 4] = 0.35  # ... thinner than a voxel for 6 voxels ...
+    occupancy[18:28, 4, 4] = 0.9  # ... and on
+    occupancy[5:9, 1, 1] = 0.35  # a faint blob beside it, not touching
+    occupancy[12:18, 4, 5] = 0.15  # below the grow threshold, touching the thin part
+    segmentation = occupancy >= 0.5
+    assert component_counts(segmentation)["components"] == 2
+    grown = grown_segmentation(segmentation, occupancy, RegionSettings(grow_threshold=0.3))
+    assert grown[2:28, 4, 4].all() and component_counts(grown)["components"] == 1
+    assert int(grown.sum()) == 26  # neither the blob apart nor the voxels below 0.3
+    assert grown_segmentation(segmentation, occupancy, RegionSettings()) is segmentation  # 0: off
+    # what was removed (occupancy zeroed) is not grown back, and an empty result stays empty
+    assert not grown_segmentation(np.zeros_like(segmentation), occupancy, RegionSettings(grow_threshold=0.3)).any()
