@@ -378,10 +378,15 @@ def finish(problem: Problem, model: ImplicitField, history: List[Dict[str, float
         segmentation, unconfirmed, reconnection = drop_then_join_fragments(
             segmentation, occupancy_volume, field_volume, vessel_pixels(problem.targets, problem.target_kind), geometry,
             problem.support, settings, projectors=problem.projectors if problem.support is not None else None)
-    # last: grown only from what pruning and the fragment checks kept (before them it grows ghosts too)
-    kept_voxels = int(segmentation.sum())
-    segmentation = grown_segmentation(segmentation, occupancy_volume, settings.region)
-    grown_voxels = int(segmentation.sum()) - kept_voxels if settings.region.grow_threshold else None
+    # last: grown only from what pruning and the fragment checks kept (before them it grows ghosts too);
+    # the grown voxels' occupancy is raised to the threshold, as bridges are filled, so that occupancy.nrrd,
+    # the surface and `analyse` keep reading the segmentation as occupancy ≥ threshold
+    grown = grown_segmentation(segmentation, occupancy_volume, settings.region) & ~segmentation
+    grown_voxels = int(grown.sum()) if settings.region.grow_threshold else None
+    if grown.any():
+        occupancy_volume[grown] = settings.region.threshold
+        field_volume[grown] = field_values(occupancy_volume[grown], settings.mode.field_kind, settings.field.alpha)
+        segmentation = occupancy_volume >= settings.region.threshold
     projected = reprojected_masks(segmentation, geometry)
     references = vessel_pixels(problem.targets, problem.target_kind)
     qa = [reprojection_qa(p, m, v) for p, m, v in zip(projected, references, geometry.views)]

@@ -145,13 +145,6 @@ def _commit(staging: Path, out_dir: Path, names: Sequence[str], overwrite: bool)
 
 
 # --- pieces -------------------------------------------------------------------------------------
-def segmentation_level_volume(occupancy: np.ndarray, segmentation: np.ndarray, level: float) -> np.ndarray:
-    """The occupancy with the segmentation's voxels at or above ``level`` and the others below it, so the
-    surface at ``level`` bounds exactly the segmentation (which ``grow_threshold`` may extend below it)."""
-    below = np.nextafter(np.float32(level), np.float32(0))
-    return np.where(segmentation, np.maximum(occupancy, level), np.minimum(occupancy, below)).astype(np.float32)
-
-
 def surface_mesh(volume: np.ndarray, grid: VolumeGrid, level: float = 0.5) -> Tuple[np.ndarray, np.ndarray]:
     """Marching-cubes surface of ``volume`` at ``level``: vertices (N, 3) in LPS mm, faces (M, 3).
 
@@ -246,7 +239,7 @@ def write_reconstruction(
         write_volume_nrrd(staging / RESULT_FILES["occupancy"], result.occupancy, grid)
         write_volume_nrrd(staging / RESULT_FILES["field"], result.field, grid)
         write_segmentation_nrrd(staging / RESULT_FILES["segmentation"], result.segmentation, grid, name=name)
-        vertices, faces = surface_mesh(segmentation_level_volume(result.occupancy, result.segmentation, level), grid, level)
+        vertices, faces = surface_mesh(result.occupancy, grid, level)
         if len(faces) == 0:
             report_warnings.append(
                 f"the segmentation is empty (no voxel reaches occupancy {level:g}): surface.vtk holds no triangles; "

@@ -17,7 +17,8 @@ Settings
     higher learning rate for the hash table, fewer steps, L_geo on 2× max-pooled images, the
     skeleton pieces no mask pixel needs pruned afterwards (``pruning.py``), the detached fragments
     that not every view confirms removed (``pruning.unconfirmed_fragments``), the rest joined to the
-    tree where both views show vessel across the gap (``connectivity.py``), and, where the X-ray frames
+    tree where both views show vessel across the gap (``connectivity.py``), the partial occupancy
+    connected to the result taken in (``grow_threshold``), and, where the X-ray frames
     are given with the masks, the occupancy fitted to the path lengths they show (``evidence.py``). Why each differs is
     said next to it; what it measured is in ``bench/RESULTS.md``.
 
@@ -123,8 +124,8 @@ class RegionSettings:
     support_margin_mm: float = 0.5
     threshold: float = 0.5  # segmentation = occupancy ≥ threshold
     # 0: off. Otherwise, after pruning and the fragment steps, the segmentation also takes the voxels
-    # ≥ grow_threshold 26-connected to it (hysteresis): a vessel thinner than a voxel comes out of the
-    # fit as partial occupancy below the threshold, and a single threshold breaks it
+    # ≥ grow_threshold 26-connected to it (hysteresis; their occupancy is raised to the threshold): a
+    # vessel thinner than a voxel comes out of the fit as partial occupancy, which one threshold breaks
     grow_threshold: float = 0.0
     prune: bool = False  # remove the skeleton pieces no mask pixel needs (pruning.py)
     prune_piece_mm: float = 6.0
@@ -301,6 +302,8 @@ PRESETS: Dict[str, Dict[str, Any]] = {  # the default first: lists offer it firs
         drop_unconfirmed_fragments=True,
         # and join the rest to the tree across short gaps inside the support (both views show vessel there)
         reconnect=True,
+        # then take in the partial occupancy connected to what was kept: vessels thinner than a voxel
+        grow_threshold=0.3,
         # where the frames come with the masks, fit the path lengths they show (ghosts add path the frame lacks)
         frame_evidence=True,
         # and correct the motion between the views that two views observe, read off the same frames

@@ -453,21 +453,3 @@ def test_strands_that_run_inside_their_parents_lumen_are_told_from_side_branches
     header = analysis_summary_lines({"tree": {"branches": 3, "total_length_mm": 54.0, "strands_dropped": 2}})[0]
     assert header.startswith("3D-QCA: 3 branches, 54.0 mm") and "2 strand(s)" in header
     assert "strand" not in analysis_summary_lines({"tree": {"branches": 3, "total_length_mm": 54.0, "strands_dropped": 0}})[0]
-
-
-def test_analyse_reads_a_segmentation_grown_below_the_threshold_as_lumen(tmp_path):
-    from SDFCARLib.analysis.outputs import _read_result_volume
-    from SDFCARLib.geometry import VolumeGrid
-    from SDFCARLib.io import write_segmentation_nrrd, write_volume_nrrd
-
-    grid = VolumeGrid((20, 8, 8), (0.5, 0.5, 0.5))
-    occupancy = np.zeros(grid.shape, np.float32)
-    occupancy[2:18, 3:5, 3:5] = 0.9
-    occupancy[8:12, 3:5, 3:5] = 0.35  # grown by grow_threshold = 0.3
-    write_volume_nrrd(tmp_path / "occupancy.nrrd", occupancy, grid)
-    write_segmentation_nrrd(tmp_path / "segmentation.seg.nrrd", occupancy >= 0.3, grid)
-    grown = {"settings": {"threshold": 0.5, "grow_threshold": 0.3}}
-    volume, _, level, _ = _read_result_volume(tmp_path, grown)
-    assert np.array_equal(volume >= level, occupancy >= 0.3)
-    volume, _, level, _ = _read_result_volume(tmp_path, {"settings": {"threshold": 0.5}})  # no growing: the occupancy
-    assert np.array_equal(volume, occupancy)

@@ -151,6 +151,7 @@ def test_reconstruct_reports_components():
     geometry = Geometry(grid, views)
     for reconnect in (False, True):
         result = reconstruct(geometry, masks, make_settings("fast", steps=60, reconnect=reconnect, device="cpu"))
+        assert result.report["grown_voxels"] is not None  # fast grows by default
         assert result.segmentation.any()
         np.testing.assert_array_equal(result.segmentation, result.occupancy >= result.settings.region.threshold)
         counts = result.report["components"]
@@ -166,12 +167,14 @@ def test_reconstruct_reports_components():
             assert reconnection["components_before"] - reconnection["joined"] <= reconnection["components_after"]
         else:
             assert reconnection is None
-        assert result.report["grown_voxels"] is None  # grow_threshold off by default
+    plain = reconstruct(geometry, masks, make_settings("fast", steps=60, grow_threshold=0, device="cpu"))
+    assert plain.report["grown_voxels"] is None  # 0: off
     grown = reconstruct(geometry, masks, make_settings("fast", steps=60, grow_threshold=0.2, device="cpu"))
-    low = grown.occupancy >= 0.2
-    assert grown.report["grown_voxels"] >= 0
-    assert int(grown.segmentation.sum()) == int((grown.occupancy >= 0.5).sum()) + grown.report["grown_voxels"]
-    assert np.all(low[grown.segmentation]) and grown.report["segmented_voxels"] == int(grown.segmentation.sum())
+    added = grown.segmentation & ~plain.segmentation  # the same fit (same seed), grown
+    assert grown.report["grown_voxels"] == int(added.sum()) > 0 and not (plain.segmentation & ~grown.segmentation).any()
+    assert np.all(plain.occupancy[added] >= 0.2) and np.all(grown.occupancy[added] == 0.5)  # raised to the threshold
+    np.testing.assert_array_equal(grown.segmentation, grown.occupancy >= 0.5)  # what the outputs read
+    assert component_counts(grown.segmentation)["components"] <= component_counts(plain.segmentation)["components"]
 
 
 def test_ground_truth_metrics_show_components_of_result_and_truth():

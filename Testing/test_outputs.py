@@ -229,19 +229,3 @@ def test_real_scene_still_finds_its_files_after_the_move_into_place(tmp_path, ti
     vertices_lps, _ = read_surface_vtk(files["surface"])
     model_ras = vtk_to_numpy(model.GetPolyData().GetPoints().GetData())
     np.testing.assert_allclose(model_ras, vertices_lps * np.array([-1.0, -1.0, 1.0]), atol=1e-4)
-
-
-def test_the_surface_bounds_the_segmentation_also_where_it_was_grown_below_the_threshold():
-    from SDFCARLib.outputs import segmentation_level_volume
-
-    occupancy = np.zeros((12, 12, 12), np.float32)
-    occupancy[3:9, 3:9, 3:9] = 0.8
-    occupancy[3:9, 3:9, 9:11] = 0.35  # grown (grow_threshold) though below 0.5
-    occupancy[0:2, 0:2, 0:2] = 0.9  # removed by pruning though above 0.5 (left out of the segmentation)
-    segmentation = occupancy >= 0.3
-    segmentation[0:2, 0:2, 0:2] = False
-    level_volume = segmentation_level_volume(occupancy, segmentation, 0.5)
-    assert np.array_equal(level_volume >= 0.5, segmentation)
-    plain = occupancy.copy()
-    plain[0:2, 0:2, 0:2] = 0.0
-    assert np.array_equal(segmentation_level_volume(plain, plain >= 0.5, 0.5), plain)  # nothing grown: unchanged

@@ -200,14 +200,7 @@ def _read_result_volume(result_dir: Path, report: Dict[str, Any]):
     level = float((report.get("settings") or {}).get("threshold", 0.5))
     if occupancy.is_file():
         volume, grid = read_volume(occupancy, "occupancy")
-        volume = volume.astype(np.float32)
-        if float((report.get("settings") or {}).get("grow_threshold") or 0.0) > 0 and segmentation.is_file():
-            # grown below the threshold (grow_threshold): the segmentation says which voxels are lumen
-            from ..outputs import segmentation_level_volume
-
-            label, _ = read_label(segmentation, what="segmentation")
-            volume = segmentation_level_volume(volume, label.astype(bool), level)
-        return volume, grid, level, occupancy.name
+        return volume.astype(np.float32), grid, level, occupancy.name
     if segmentation.is_file():
         label, grid = read_label(segmentation, what="segmentation")
         return label.astype(np.float32), grid, 0.5, segmentation.name
