@@ -1,6 +1,7 @@
 """Per-patient self-supervised optimisation: build the problem, run the loop, finish the result.
 
-``reconstruct(geometry, targets, settings)`` does three steps, each its own function:
+``reconstruct(geometry, targets, settings)`` does three steps, each its own function (the first two,
+with the frames' evidence and the calibrations asked for, are ``fit_field``):
 
 1. ``build_problem`` checks the targets (one per view), chooses the support (every voxel, or the
    masks' visual hull widened by a margin), estimates the memory and picks the device, and builds
@@ -36,7 +37,6 @@ from typing import Any, Callable, Dict, List, Optional, Sequence, Tuple
 import numpy as np
 import scipy
 import skimage
-from scipy import ndimage
 import torch
 
 from . import __version__
@@ -49,7 +49,7 @@ from .consistency import consistency_warnings, view_consistency
 from .mask_checks import mask_warnings, support_masks
 from .masks import MaskError, binarise_mask
 from .connectivity import ReconnectSettings, field_values, reconnect_fragments
-from .metrics import component_counts
+from .metrics import component_counts, component_labels
 from .projector import ConeBeamProjector, project_volume
 from .qa import qa_warnings, reprojection_qa
 from .pruning import PruneSettings, prune_redundant_branches, removal_zone, unconfirmed_fragments
@@ -385,8 +385,8 @@ def finish(problem: Problem, model: ImplicitField, history: List[Dict[str, float
     grown_voxels = int(grown.sum()) if settings.region.grow_threshold else None
     if grown.any():
         occupancy_volume[grown] = settings.region.threshold
-        field_volume[grown] = field_values(occupancy_volume[grown], settings.mode.field_kind, settings.field.alpha)
-        segmentation = occupancy_volume >= settings.region.threshold
+        field_volume[grown] = field_values(np.float32(settings.region.threshold), settings.mode.field_kind, settings.field.alpha)
+        segmentation = segmentation | grown
     projected = reprojected_masks(segmentation, geometry)
     references = vessel_pixels(problem.targets, problem.target_kind)
     qa = [reprojection_qa(p, m, v) for p, m, v in zip(projected, references, geometry.views)]
@@ -431,7 +431,7 @@ def grown_segmentation(segmentation: np.ndarray, occupancy: np.ndarray, region: 
     """The segmentation grown into the 26-connected voxels of occupancy ≥ ``grow_threshold`` (hysteresis)."""
     if not region.grow_threshold or region.grow_threshold >= region.threshold or not segmentation.any():
         return segmentation
-    candidates, _ = ndimage.label((occupancy >= region.grow_threshold) | segmentation, structure=np.ones((3, 3, 3), bool))
+    candidates, _ = component_labels((occupancy >= region.grow_threshold) | segmentation)
     return np.isin(candidates, np.unique(candidates[segmentation]))
 
 
@@ -486,10 +486,24 @@ def fitted_loss(geometry: Geometry, targets: Sequence[np.ndarray], settings: Set
     return float(np.mean([h["loss"] for h in history[-last_steps:]]))
 
 
-def reconstruct(
+@dataclass
+class FittedField:
+    """What ``fit_field`` leaves for ``finish``: the problem (at the calibrated geometry), the trained
+    field, its loss history and timings, and what the calibrations and the frames' evidence found."""
+
+    problem: Problem
+    model: ImplicitField
+    history: List[Dict[str, float]]
+    optimise_s: float
+    t_start: float
+    calibrations: List[Any]
+    evidence: FrameEvidence
+
+
+def fit_field(
     geometry: Geometry,
     targets: Sequence[np.ndarray],
-    settings: Optional[Settings] = None,
+    settings: Settings,
     target_kind: str = "mask",
     progress: Progress = None,
     cancel: Cancel = None,
@@ -497,16 +511,9 @@ def reconstruct(
     snapshot: Optional[Callable[[int, np.ndarray], None]] = None,
     snapshot_every: int = 0,
     frames: Optional[Sequence[np.ndarray]] = None,
-) -> Reconstruction:
-    """Reconstruct the vessel tree seen in ``targets`` (one image per view of ``geometry``).
-
-    ``frames``: the X-ray frames the masks were drawn or segmented on, one per view (optional);
-    with ``frame_evidence`` the occupancy is fitted to the path lengths read off them (``evidence.py``).
-
-    ``snapshot(step, occupancy)`` — for benchmarks of time to accuracy — receives the occupancy
-    volume every ``snapshot_every`` steps (its time is excluded from the optimisation timings).
-    """
-    settings = settings or make_settings()
+) -> FittedField:
+    """``reconstruct`` up to the trained field: the frames' evidence, the calibrations asked for, the
+    problem and the optimisation (``reconstruct``'s arguments). ``finish`` makes the result of it."""
     settings.validate()
     t_start = time.perf_counter()
     if settings.run.threads:
@@ -532,7 +539,34 @@ def reconstruct(
         raise ReconstructionCancelled("cancelled before the optimisation started")
     model = ImplicitField(field_config(settings)).to(problem.device)
     history, optimise_s = optimise(problem, model, progress, cancel, progress_interval_s, snapshot, snapshot_every)
-    result = finish(problem, model, history, optimise_s, t_start, progress, cancel)
+    return FittedField(problem, model, history, optimise_s, t_start, calibrations, evidence)
+
+
+def reconstruct(
+    geometry: Geometry,
+    targets: Sequence[np.ndarray],
+    settings: Optional[Settings] = None,
+    target_kind: str = "mask",
+    progress: Progress = None,
+    cancel: Cancel = None,
+    progress_interval_s: float = 0.5,
+    snapshot: Optional[Callable[[int, np.ndarray], None]] = None,
+    snapshot_every: int = 0,
+    frames: Optional[Sequence[np.ndarray]] = None,
+) -> Reconstruction:
+    """Reconstruct the vessel tree seen in ``targets`` (one image per view of ``geometry``).
+
+    ``frames``: the X-ray frames the masks were drawn or segmented on, one per view (optional);
+    with ``frame_evidence`` the occupancy is fitted to the path lengths read off them (``evidence.py``).
+
+    ``snapshot(step, occupancy)`` — for benchmarks of time to accuracy — receives the occupancy
+    volume every ``snapshot_every`` steps (its time is excluded from the optimisation timings).
+    """
+    settings = settings or make_settings()
+    fitted = fit_field(geometry, targets, settings, target_kind, progress, cancel, progress_interval_s, snapshot,
+                       snapshot_every, frames)
+    calibrations, evidence = fitted.calibrations, fitted.evidence
+    result = finish(fitted.problem, fitted.model, fitted.history, fitted.optimise_s, fitted.t_start, progress, cancel)
     if calibrations:
         result.report["calibration"] = calibrations[-1].report()
         if len(calibrations) > 1:  # from the frames, then the re-fit search on top

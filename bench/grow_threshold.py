@@ -23,33 +23,15 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import numpy as np  # noqa: E402
-import torch  # noqa: E402
 
 from bench.realistic_cases import add_grid_arguments, protocol_setup  # noqa: E402
-from SDFCARLib.field import ImplicitField  # noqa: E402
 from SDFCARLib.metrics import evaluate  # noqa: E402
-from SDFCARLib.optimiser import build_problem, field_config, finish, optimise, read_frame_evidence  # noqa: E402
+from SDFCARLib.optimiser import finish, fit_field  # noqa: E402
 from SDFCARLib.phantoms import lad_tree, rca_tree, simulate_views, voxelize  # noqa: E402
 from SDFCARLib.realistic import RealisticOptions, realistic_input  # noqa: E402
 from SDFCARLib.settings import MASK_THRESHOLD_MM, REALISTIC_PROTOCOLS, make_settings  # noqa: E402
 
 KEYS = ("cldice", "tprec", "tsens", "dice", "chamfer_l2_mm", "components")
-
-
-def fitted(geometry, masks, frames, settings):
-    """``reconstruct`` up to the end of the optimisation: (problem, model, history, seconds)."""
-    t0 = time.perf_counter()
-    torch.manual_seed(settings.run.seed)
-    np.random.seed(settings.run.seed % (2**32))
-    evidence = read_frame_evidence(frames, masks, geometry, settings, "mask")
-    if settings.calibration.calibrate_from_frames and evidence.images is not None:
-        from SDFCARLib.calibration import calibrate_from_frames
-        geometry = calibrate_from_frames(geometry, evidence.images, None,
-                                         settings.calibration.calibration_min_consistency_gain).geometry
-    problem = build_problem(geometry, masks, settings, "mask", None, evidence=evidence)
-    model = ImplicitField(field_config(settings)).to(problem.device)
-    history, optimise_s = optimise(problem, model)
-    return problem, model, history, optimise_s, t0
 
 
 def main() -> int:
@@ -74,11 +56,12 @@ def main() -> int:
         else:
             masks, frames = simulate_views(label, geometry.volume, geometry.views, MASK_THRESHOLD_MM)[1], None
         settings = make_settings("fast", seed=seed)
-        problem, model, history, optimise_s, t0 = fitted(geometry, masks, frames, settings)
-        fit_s = time.perf_counter() - t0
+        fitted = fit_field(geometry, masks, settings, "mask", frames=frames)
+        fit_s = time.perf_counter() - fitted.t_start
         for rule, grow in rules:
             variant = make_settings("fast", seed=seed, grow_threshold=grow)
-            result = finish(dataclasses.replace(problem, settings=variant), model, history, optimise_s, t0)
+            result = finish(dataclasses.replace(fitted.problem, settings=variant), fitted.model, fitted.history,
+                            fitted.optimise_s, fitted.t_start)
             m = evaluate(result.segmentation, label, geometry.volume, geometry.views, masks)
             table[rule].append(m)
             print(f"{name} {rule:9s} clDice {m['cldice']:.3f} Tprec {m['tprec']:.3f} Tsens {m['tsens']:.3f} Dice {m['dice']:.3f} "
