@@ -500,20 +500,12 @@ class FittedField:
     evidence: FrameEvidence
 
 
-def fit_field(
-    geometry: Geometry,
-    targets: Sequence[np.ndarray],
-    settings: Settings,
-    target_kind: str = "mask",
-    progress: Progress = None,
-    cancel: Cancel = None,
-    progress_interval_s: float = 0.5,
-    snapshot: Optional[Callable[[int, np.ndarray], None]] = None,
-    snapshot_every: int = 0,
-    frames: Optional[Sequence[np.ndarray]] = None,
-) -> FittedField:
+def fit_field(geometry: Geometry, targets: Sequence[np.ndarray], settings: Settings, target_kind: str = "mask",
+              frames: Optional[Sequence[np.ndarray]] = None, progress: Progress = None, cancel: Cancel = None,
+              **loop: Any) -> FittedField:
     """``reconstruct`` up to the trained field: the frames' evidence, the calibrations asked for, the
-    problem and the optimisation (``reconstruct``'s arguments). ``finish`` makes the result of it."""
+    problem and the optimisation (``reconstruct``'s arguments; ``loop``: ``optimise``'s progress interval
+    and snapshots). ``finish`` makes the result of it."""
     settings.validate()
     t_start = time.perf_counter()
     if settings.run.threads:
@@ -538,7 +530,7 @@ def fit_field(
     if _is_cancelled(cancel):
         raise ReconstructionCancelled("cancelled before the optimisation started")
     model = ImplicitField(field_config(settings)).to(problem.device)
-    history, optimise_s = optimise(problem, model, progress, cancel, progress_interval_s, snapshot, snapshot_every)
+    history, optimise_s = optimise(problem, model, progress, cancel, **loop)
     return FittedField(problem, model, history, optimise_s, t_start, calibrations, evidence)
 
 
@@ -563,8 +555,8 @@ def reconstruct(
     volume every ``snapshot_every`` steps (its time is excluded from the optimisation timings).
     """
     settings = settings or make_settings()
-    fitted = fit_field(geometry, targets, settings, target_kind, progress, cancel, progress_interval_s, snapshot,
-                       snapshot_every, frames)
+    fitted = fit_field(geometry, targets, settings, target_kind, frames, progress, cancel,
+                       progress_interval_s=progress_interval_s, snapshot=snapshot, snapshot_every=snapshot_every)
     calibrations, evidence = fitted.calibrations, fitted.evidence
     result = finish(fitted.problem, fitted.model, fitted.history, fitted.optimise_s, fitted.t_start, progress, cancel)
     if calibrations:
