@@ -23,6 +23,7 @@ suggested view. Prints a Markdown table of case rows and a summary; ``--csv`` ke
     python bench/qca.py --suite recon --cases 4
     python bench/qca.py --suite recon --cases 10 --masks segmented --save runs/recon   # keep the reconstructions
     python bench/qca.py --suite recon --cases 10 --masks segmented --load runs/recon   # analyse them again
+    python bench/qca.py --suite recon --cases 10 --masks segmented --grow 0 0.3       # finishing rules, same fits
 
 The "graded" line is what analysis.json reports as each lesion's grade (``pipeline.lesion_grade``).
 """
@@ -31,6 +32,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import dataclasses
 import itertools
 import json
 import sys
@@ -232,10 +234,13 @@ def tube_direction(seed: int, max_foreshortening_pct=None) -> np.ndarray:
 
 
 def run_recon(n_cases, view_step_deg, steps=None, save_dir=None, first=0, mask_source="clean", max_foreshortening_pct=None,
-              load_dir=None):
+              load_dir=None, grow_thresholds=None):
+    """Reconstruct and analyse each case. ``grow_thresholds``: fit the field once per case and finish it once
+    per grow threshold (``RegionSettings.grow_threshold``), so the rows of a case differ only in that rule;
+    each row then carries its ``grow_threshold``."""
     from SDFCARLib.io import read_volume, write_volume_nrrd
     from SDFCARLib.masks import MaskError
-    from SDFCARLib.optimiser import make_settings, reconstruct
+    from SDFCARLib.optimiser import finish, fit_field, make_settings, reconstruct
 
     rows = []
     picks = [("50%/10mm/3mm/con", dict(stenosis_pct=50, lesion_length_mm=10, diameter_mm=3.0, eccentric=False)),
@@ -266,6 +271,22 @@ def run_recon(n_cases, view_step_deg, steps=None, save_dir=None, first=0, mask_s
         else:
             masks, frames = [render_mask(ph.tree, v) for v in VIEWS], None
         settings = make_settings("fast", **({"steps": steps} if steps else {}))
+        if grow_thresholds:
+            fitted = fit_field(geometry, masks, settings, "mask", frames=frames)
+            t_fit = time.perf_counter() - fitted.t_start
+            for grow in grow_thresholds:
+                variant = make_settings("fast", grow_threshold=grow, **({"steps": steps} if steps else {}))
+                result = finish(dataclasses.replace(fitted.problem, settings=variant), fitted.model, fitted.history,
+                                fitted.optimise_s, fitted.t_start)
+                try:
+                    row = score(ph, result.occupancy, geometry.volume, float(variant.region.threshold), masks,
+                                ph.truth["ostium_mm"], view_step_deg, frames, result.geometry.views)
+                except CentrelineError as exc:
+                    row = {"error": str(exc)}
+                rows.append(dict(case=name, grow_threshold=grow, reconstruct_s=t_fit, **extra, **row))
+                print(f"{name}: " + ", ".join(f"{k}={v:.3g}" if isinstance(v, float) else f"{k}={v}"
+                                              for k, v in rows[-1].items()), flush=True)
+            continue
         occupancy_name, geometry_name = f"recon{n}_occupancy.nrrd", f"recon{n}_geometry.json"
         t0 = time.perf_counter()
         if load_dir:  # a reconstruction --save kept (same case, same masks): the analysis alone is measured
@@ -363,9 +384,14 @@ def main(argv=None) -> int:
                     help="clean masks rendered from the tubes, or masks segmented from their simulated angiograms (then the "
                          "two-view widths and areas are also read from those angiograms: the 'frames' columns); "
                          "segmented-moving (recon suite): the same with the object moved up to 3 mm / 2° between the views")
+    ap.add_argument("--grow", type=float, nargs="+", default=None,
+                    help="recon suite: fit each case once and analyse it finished with each of these grow thresholds "
+                         "(0 = the threshold alone; the fast preset grows into 0.3), side by side")
     ap.add_argument("--view-step-deg", type=float, default=2.0)
     ap.add_argument("--csv", help="write the case rows here")
     args = ap.parse_args(argv)
+    if args.grow and (args.suite != "recon" or args.save or args.load):
+        ap.error("--grow compares finishing rules of fresh reconstructions: it needs --suite recon, without --save or --load")
     if args.masks == "segmented-moving" and args.suite != "recon":
         ap.error("--masks segmented-moving needs --suite recon (a motion between the views matters to a reconstruction)")
     t0 = time.perf_counter()
@@ -375,9 +401,14 @@ def main(argv=None) -> int:
         rows = run_truth(tree_cases(), args.spacing, args.view_step_deg, args.masks)
     else:
         rows = run_recon(args.cases, args.view_step_deg, args.steps, args.save, args.first, args.masks,
-                         args.max_foreshortening_pct, args.load)
+                         args.max_foreshortening_pct, args.load, args.grow)
     print()
-    print(summarise(rows))
+    if args.grow:
+        for grow in args.grow:
+            print(f"## grow_threshold {grow:g}\n")
+            print(summarise([r for r in rows if r["grow_threshold"] == grow]) + "\n")
+    else:
+        print(summarise(rows))
     print(f"\n{len(rows)} cases in {time.perf_counter() - t0:.0f} s")
     if args.csv:
         keys = sorted({k for r in rows for k in r}, key=lambda k: (k != "case", k))
