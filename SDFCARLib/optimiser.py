@@ -28,6 +28,7 @@ The loop calls ``progress(dict)`` with phase, step, total, losses, elapsed and E
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import platform
 import time
@@ -499,6 +500,13 @@ class FittedField:
     calibrations: List[Any]
     evidence: FrameEvidence
 
+    def finished(self, settings: Optional[Settings] = None, progress: Progress = None,
+                 cancel: Cancel = None) -> Reconstruction:
+        """``finish`` of this fit; ``settings`` (default: the fit's own) may change what ``finish`` decides —
+        threshold, growing, pruning, the fragment steps — so benchmarks compare those rules on one fit."""
+        problem = self.problem if settings is None else dataclasses.replace(self.problem, settings=settings)
+        return finish(problem, self.model, self.history, self.optimise_s, self.t_start, progress, cancel)
+
 
 def fit_field(geometry: Geometry, targets: Sequence[np.ndarray], settings: Settings, target_kind: str = "mask",
               frames: Optional[Sequence[np.ndarray]] = None, progress: Progress = None, cancel: Cancel = None,
@@ -558,7 +566,7 @@ def reconstruct(
     fitted = fit_field(geometry, targets, settings, target_kind, frames, progress, cancel,
                        progress_interval_s=progress_interval_s, snapshot=snapshot, snapshot_every=snapshot_every)
     calibrations, evidence = fitted.calibrations, fitted.evidence
-    result = finish(fitted.problem, fitted.model, fitted.history, fitted.optimise_s, fitted.t_start, progress, cancel)
+    result = fitted.finished(progress=progress, cancel=cancel)
     if calibrations:
         result.report["calibration"] = calibrations[-1].report()
         if len(calibrations) > 1:  # from the frames, then the re-fit search on top

@@ -15,7 +15,6 @@ rule: `fast` did not grow then.)
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import sys
 import time
 from pathlib import Path
@@ -26,7 +25,7 @@ import numpy as np  # noqa: E402
 
 from bench.realistic_cases import add_grid_arguments, protocol_setup  # noqa: E402
 from SDFCARLib.metrics import evaluate  # noqa: E402
-from SDFCARLib.optimiser import finish, fit_field  # noqa: E402
+from SDFCARLib.optimiser import fit_field  # noqa: E402
 from SDFCARLib.phantoms import lad_tree, rca_tree, simulate_views, voxelize  # noqa: E402
 from SDFCARLib.realistic import RealisticOptions, realistic_input  # noqa: E402
 from SDFCARLib.settings import MASK_THRESHOLD_MM, REALISTIC_PROTOCOLS, make_settings  # noqa: E402
@@ -60,8 +59,7 @@ def main() -> int:
         fit_s = time.perf_counter() - fitted.t_start
         for rule, grow in rules:
             variant = make_settings("fast", seed=seed, grow_threshold=grow)
-            result = finish(dataclasses.replace(fitted.problem, settings=variant), fitted.model, fitted.history,
-                            fitted.optimise_s, fitted.t_start)
+            result = fitted.finished(variant)
             m = evaluate(result.segmentation, label, geometry.volume, geometry.views, masks)
             table[rule].append(m)
             print(f"{name} {rule:9s} clDice {m['cldice']:.3f} Tprec {m['tprec']:.3f} Tsens {m['tsens']:.3f} Dice {m['dice']:.3f} "
