@@ -16,6 +16,9 @@ Image model
 L_occ
     Mean over the image of (target − image)², Eq. (3) of the paper, averaged over views.
 
+L_bin (``lambda_binary``, off by default)
+    ``partial_occupancy_loss``: the share of the occupancy's mass that is neither 0 nor 1.
+
 L_geo
     Mean over the image of (SDT(target silhouette) − SDT(S))², Eq. (2), averaged over views. SDT
     is the signed 2D distance (distance to the vessel outside it minus distance to the background
@@ -65,6 +68,13 @@ def silhouette(line_integral: torch.Tensor, length_mm: float) -> torch.Tensor:
 
 def occupancy_loss(image: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
     return torch.mean((target - image) ** 2)
+
+
+def partial_occupancy_loss(occupancy: torch.Tensor) -> torch.Tensor:
+    """Σ o(1 − o) / Σ o, the mass-weighted mean of 1 − o: 0 for a binary field, near 1 for a faint
+    haze. Two views leave a vessel's depth open: the fit can spread it thinly along the rays, which a
+    threshold breaks; this term asks each voxel to be vessel or not."""
+    return torch.sum(occupancy * (1.0 - occupancy)) / torch.clamp(torch.sum(occupancy), min=1.0)
 
 
 @dataclass(frozen=True)

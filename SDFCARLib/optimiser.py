@@ -45,7 +45,8 @@ from .device import available_memory_bytes, check_host_memory, choose_device, de
 from .field import FieldConfig, ImplicitField
 from .geometry import Geometry
 from .hull import support_mask
-from .losses import DistanceSettings, GeometricLoss, ViewTarget, frame_target, make_target, occupancy_loss
+from .losses import (DistanceSettings, GeometricLoss, ViewTarget, frame_target, make_target, occupancy_loss,
+                     partial_occupancy_loss)
 from .consistency import consistency_warnings, view_consistency
 from .mask_checks import mask_warnings, support_masks
 from .masks import MaskError, binarise_mask
@@ -331,6 +332,8 @@ def optimise(problem: Problem, model: ImplicitField, progress: Progress = None, 
         if problem.geometric is not None:
             l_geo = problem.geometric([t.silhouette_of(li) for li, t in zip(line_integrals, problem.view_targets)])
             loss = loss + settings.loss.lambda_geo * l_geo
+        if settings.loss.lambda_binary > 0:
+            loss = loss + settings.loss.lambda_binary * partial_occupancy_loss(occupancy)
         loss.backward()
         optimiser.step()
         scheduler.step()

@@ -114,6 +114,8 @@ class LossSettings:
     # λ2 when L_occ fits the frames' path lengths (they say how much vessel a ray crossed, which a mask
     # does not); 0.5 was better on static realistic cases but worse on moving LAD ones (RESULTS §18b)
     lambda_occ_frames: float = 0.25
+    # weight of L_bin (losses.partial_occupancy_loss), the field's mass at partial occupancy; 0: off
+    lambda_binary: float = 0.0
 
 
 @dataclass
@@ -244,7 +246,7 @@ class Settings:
             if not value > 0:
                 raise ReconstructionError(f"{name} must be positive, got {value}")
         for name, value in (("lambda_geo", l.lambda_geo), ("lambda_occ", l.lambda_occ),
-                            ("lambda_occ_frames", l.lambda_occ_frames)):
+                            ("lambda_occ_frames", l.lambda_occ_frames), ("lambda_binary", l.lambda_binary)):
             if not value >= 0:
                 raise ReconstructionError(f"{name} is a loss weight and must not be negative, got {value}")
         if o.table_learning_rate is not None and not o.table_learning_rate > 0:

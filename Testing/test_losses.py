@@ -17,6 +17,7 @@ from SDFCARLib.losses import (
     cascaded_distance,
     make_target,
     occupancy_loss,
+    partial_occupancy_loss,
     signed_distance,
     silhouette,
 )
@@ -45,6 +46,19 @@ def test_occupancy_loss_is_mean_squared_difference():
     target = torch.tensor([[0.0, 1.0], [1.0, 0.0]])
     assert float(occupancy_loss(image, target)) == pytest.approx((0.25 + 0.0625) / 4)
     assert float(occupancy_loss(target, target)) == 0.0
+
+
+def test_partial_occupancy_loss_is_the_mass_weighted_mean_of_one_minus_occupancy():
+    assert float(partial_occupancy_loss(torch.tensor([0.0, 1.0, 1.0, 0.0]))) == 0.0  # binary: nothing partial
+    assert float(partial_occupancy_loss(torch.zeros(5))) == 0.0  # no mass: no division by zero
+    # 0.5 and 0.1 of mass 2 and 0.2: (2·0.5·0.5 + 2·0.1·0.9) / (2·0.5 + 2·0.1)
+    o = torch.tensor([0.5, 0.5, 0.1, 0.1], requires_grad=True)
+    assert float(partial_occupancy_loss(o)) == pytest.approx((0.5 + 0.18) / 1.2)
+    # the same mass spread four times thinner along a ray costs more than held in one full voxel
+    assert float(partial_occupancy_loss(torch.full((8,), 0.25))) > float(partial_occupancy_loss(torch.tensor([1.0, 1.0])))
+    # its gradient (mass held fixed) moves a faint voxel's mass to the strong one
+    partial_occupancy_loss(o).backward()
+    assert float(o.grad[0]) < 0 < float(o.grad[2])
 
 
 def test_make_target():

@@ -199,3 +199,19 @@ def test_same_seed_same_result_different_seed_different_result(case):
     assert [h["loss"] for h in a.history] == [h["loss"] for h in b.history]
     assert not np.array_equal(a.field, c.field)
     assert a.report["seed"] == 1 and c.report["seed"] == 2
+
+
+def test_partial_occupancy_term_makes_the_fitted_field_more_binary(case):
+    """lambda_binary (L_bin, off by default) reaches the fit: the same run with it holds less of its
+    vessel mass at partial occupancy, and the vessel is still there."""
+    from SDFCARLib.losses import partial_occupancy_loss
+
+    def fitted(weight):
+        result = reconstruct(case[0], _masks(case), make_settings("fast", steps=40, seed=3, device="cpu",
+                                                                   lambda_binary=weight))
+        occupancy = torch.sigmoid(-result.settings.field.alpha * torch.as_tensor(result.field))
+        return float(partial_occupancy_loss(occupancy)), float(occupancy.sum())
+
+    (share_off, _), (share_on, mass_on) = fitted(0.0), fitted(0.01)
+    assert share_on < 0.5 * share_off
+    assert mass_on > 0.5 * case[1].sum()  # more binary, not emptied

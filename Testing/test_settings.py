@@ -85,6 +85,7 @@ def test_overrides_and_none_values():
     (dict(threshold=1.0), "threshold"),
     (dict(threads=0), "threads"),
     (dict(lambda_occ_frames=-0.5), "lambda_occ_frames is a loss weight"),
+    (dict(lambda_binary=-0.01), "lambda_binary is a loss weight"),
     (dict(grow_threshold=0.6), "grow_threshold must be 0 (off) or an occupancy up to threshold (0.5)"),
     (dict(grow_threshold=-0.1), "grow_threshold"),
 ])
