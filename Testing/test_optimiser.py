@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from SDFCARLib.geometry import CArmView, Geometry, VolumeGrid
-from SDFCARLib.losses import silhouette
+from SDFCARLib.losses import partial_occupancy_loss, silhouette
 from SDFCARLib.optimiser import ReconstructionCancelled, reconstruct, validate_targets
 from SDFCARLib.settings import MODES, ReconstructionError, make_settings
 from SDFCARLib.phantoms import Branch, CentrelineTree, simulate_views, voxelize
@@ -204,8 +204,6 @@ def test_same_seed_same_result_different_seed_different_result(case):
 def test_partial_occupancy_term_makes_the_fitted_field_more_binary(case):
     """lambda_binary (L_bin, off by default) reaches the fit: the same run with it holds less of its
     vessel mass at partial occupancy, and the vessel is still there."""
-    from SDFCARLib.losses import partial_occupancy_loss
-
     def fitted(weight):
         result = reconstruct(case[0], _masks(case), make_settings("fast", steps=40, seed=3, device="cpu",
                                                                    lambda_binary=weight))

@@ -270,20 +270,24 @@ def run_recon(n_cases, view_step_deg, steps=None, save_dir=None, first=0, mask_s
         else:
             masks, frames = [render_mask(ph.tree, v) for v in VIEWS], None
         settings = make_settings("fast", **({"steps": steps} if steps else {}))
+
+        def add_row(occupancy, views, threshold, reconstruct_s, **rule):
+            try:
+                row = score(ph, occupancy, geometry.volume, float(threshold), masks, ph.truth["ostium_mm"],
+                            view_step_deg, frames, views)
+            except CentrelineError as exc:  # e.g. nothing above the level: a failed case, not a failed run
+                row = {"error": str(exc)}
+            rows.append(dict(case=name, **rule, reconstruct_s=reconstruct_s, **extra, **row))
+            print(f"{name}: " + ", ".join(f"{k}={v:.3g}" if isinstance(v, float) else f"{k}={v}"
+                                          for k, v in rows[-1].items()), flush=True)
+
         if grow_thresholds:
             fitted = fit_field(geometry, masks, settings, "mask", frames=frames)
             t_fit = time.perf_counter() - fitted.t_start
             for grow in grow_thresholds:
                 variant = make_settings("fast", grow_threshold=grow, **({"steps": steps} if steps else {}))
                 result = fitted.finished(variant)
-                try:
-                    row = score(ph, result.occupancy, geometry.volume, float(variant.region.threshold), masks,
-                                ph.truth["ostium_mm"], view_step_deg, frames, result.geometry.views)
-                except CentrelineError as exc:
-                    row = {"error": str(exc)}
-                rows.append(dict(case=name, grow_threshold=grow, reconstruct_s=t_fit, **extra, **row))
-                print(f"{name}: " + ", ".join(f"{k}={v:.3g}" if isinstance(v, float) else f"{k}={v}"
-                                              for k, v in rows[-1].items()), flush=True)
+                add_row(result.occupancy, result.geometry.views, variant.region.threshold, t_fit, grow_threshold=grow)
             continue
         occupancy_name, geometry_name = f"recon{n}_occupancy.nrrd", f"recon{n}_geometry.json"
         t0 = time.perf_counter()
@@ -298,14 +302,7 @@ def run_recon(n_cases, view_step_deg, steps=None, save_dir=None, first=0, mask_s
             Path(save_dir).mkdir(parents=True, exist_ok=True)
             write_volume_nrrd(Path(save_dir) / occupancy_name, occupancy, geometry.volume)
             (Path(save_dir) / geometry_name).write_text(json.dumps(Geometry(geometry.volume, views).to_dict()))
-        try:
-            row = score(ph, occupancy, geometry.volume, float(settings.region.threshold), masks,
-                        ph.truth["ostium_mm"], view_step_deg, frames, views)
-        except CentrelineError as exc:  # e.g. nothing above the level: a failed case, not a failed run
-            row = {"error": str(exc)}
-        rows.append(dict(case=name, reconstruct_s=t_rec, **extra, **row))
-        print(f"{name}: " + ", ".join(f"{k}={v:.3g}" if isinstance(v, float) else f"{k}={v}" for k, v in rows[-1].items()),
-              flush=True)
+        add_row(occupancy, views, settings.region.threshold, t_rec)
     return rows
 
 
