@@ -4,7 +4,8 @@
         --grid80 '{"prune": false}' '{"dt_downsample": 4}'
 
 Each variant is a JSON object of setting overrides (``settings.py`` keys) on the ``fast`` preset;
-the first row is always the unchanged preset. The realistic protocols' angiograms are given as the
+the first row is always the unchanged preset. ``--save DIR`` keeps each run's occupancy, result,
+truth and masks for offline study. The realistic protocols' angiograms are given as the
 benchmark gives them (``frames``: evidence and motion read off them). Prints clDice, Dice, components (result / truth),
 support voxels and wall time per variant, and the machine.
 """
@@ -31,6 +32,14 @@ from SDFCARLib.optimiser import reconstruct  # noqa: E402
 from SDFCARLib.settings import PROTOCOLS, make_settings  # noqa: E402
 
 
+def save_run(folder: Path, stem: str, case, result) -> None:
+    folder.mkdir(parents=True, exist_ok=True)
+    np.savez_compressed(folder / f"{stem}.npz", occupancy=result.occupancy.astype(np.float16),
+                        segmentation=result.segmentation.astype(bool), label=case.label.astype(bool),
+                        masks=np.stack([np.asarray(m, bool) for m in case.masks]))
+    case.geometry.save(folder / f"{stem}.json")
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--suite", default="rca")
@@ -38,6 +47,8 @@ def main() -> int:
     parser.add_argument("--protocol", default="realistic-static-lao30-rao30", choices=sorted(PROTOCOLS))
     parser.add_argument("--grid80", action="store_true", help="80³ at 1.3 mm, 192² at 0.8 mm (section 1's coarse grid)")
     parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument("--save", type=Path, default=None,
+                        help="folder: one .npz per case and variant (occupancy, result, truth label, masks) and its geometry .json, to study offline")
     parser.add_argument("variants", nargs="*", help="JSON objects of setting overrides")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
@@ -56,6 +67,8 @@ def main() -> int:
             result = reconstruct(case.geometry, case.targets, make_settings("fast", seed=spec.seed, **variant),
                                  case.target_kind, frames=case.frames)
             m = evaluate(result.segmentation, case.label, case.geometry.volume, case.geometry.views, case.masks)
+            if args.save is not None:
+                save_run(args.save, f"{spec.name}-v{variants.index(variant)}", case, result)
             scores[json.dumps(variant)].append((m["cldice"], m["dice"], m.get("components")))
             print(f"{spec.name:7s} {json.dumps(variant):40s} clDice {m['cldice']:.3f}  Dice {m['dice']:.3f}  components "
                   f"{m.get('components')}/{m.get('components_label')}  support {result.report['support_voxels']}  "
