@@ -28,7 +28,7 @@ import numpy as np
 
 from .angiogram import AngiogramSettings, simulate_angiogram
 from .geometry import CArmView, Geometry
-from .masks import MaskError, segment_angiogram
+from .masks import AngioMaskSettings, MaskError, segment_angiogram
 from .metrics import cldice, mask_dice
 from .phantoms import simulate_views
 from .settings import MASK_THRESHOLD_MM
@@ -39,6 +39,7 @@ class RealisticOptions:
     max_shift_mm: float = 3.0  # object motion between the acquisitions, per view after the first
     max_rotation_deg: float = 2.0
     snr: float = 25.0  # background signal-to-noise ratio of the simulated frames
+    mask_edge_fraction: float = 0.0  # the mask pipeline's edge rule (masks.AngioMaskSettings.edge_fraction)
 
     def check(self) -> None:
         if self.max_shift_mm < 0 or self.max_rotation_deg < 0 or not self.snr > 0:
@@ -80,7 +81,8 @@ def realistic_input(label: np.ndarray, geometry: Geometry, seed: int,
     for n, (li, view, truth) in enumerate(zip(line_integrals, true_views, true_masks), start=1):
         frame, _ = simulate_angiogram(li, view.pixel_spacing_mm, rng, AngiogramSettings(snr=options.snr))
         try:
-            segmented = segment_angiogram(frame, view.pixel_spacing_mm, view.magnification)
+            segmented = segment_angiogram(frame, view.pixel_spacing_mm, view.magnification,
+                                          AngioMaskSettings(edge_fraction=options.mask_edge_fraction))
         except MaskError as exc:
             raise MaskError(f"view {n}: the simulated angiogram could not be segmented: {exc}") from None
         frames.append(frame)

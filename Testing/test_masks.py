@@ -161,6 +161,25 @@ def test_specks_are_removed_by_size_and_elongation():
     assert _segment(frame, min_elongation=0.0).parameters["components"] == 1  # length only
 
 
+def test_edge_fraction_trims_the_blurred_border_to_the_vessel_and_keeps_its_centreline():
+    line_integral = _tubes((128, 160), [((64, 10), (64, 150), 1.5, 1.0)])  # a 3 mm tube along row 64
+    silhouette = line_integral > 0
+    frame, _ = _frame(line_integral)
+    default = _segment(frame).mask
+    trimmed = _segment(frame, edge_fraction=0.25).mask
+    columns = slice(30, 130)  # away from the tube's ends and the image border
+    assert np.all(trimmed <= default) and _components(trimmed) == 1
+    assert trimmed[62:67, columns].all()  # the centre rows stay
+    extra = lambda m: int((m & ~silhouette)[:, columns].sum())  # noqa: E731
+    missed = lambda m: int((silhouette & ~m)[:, columns].sum())  # noqa: E731
+    # The blur makes the noise-level silhouette wider than the tube; the edge rule takes that back
+    # without losing more of the tube than it removes outside it.
+    assert extra(default) > 0 and extra(trimmed) < 0.5 * extra(default)
+    assert extra(default) - extra(trimmed) > missed(trimmed) - missed(default)
+    with pytest.raises(MaskError, match="edge_fraction must be in"):
+        _segment(frame, edge_fraction=1.0)
+
+
 def test_scales_follow_the_physical_vessel_size_and_parameters_are_reported():
     frame, _ = _frame(_tubes((128, 128), [((10, 64), (120, 64), 1.5, 1.0)]))
     fine = segment_angiogram(frame, 0.2, 1.0).parameters

@@ -211,8 +211,10 @@ class PreparedCase:
     frames: Optional[List[np.ndarray]] = None  # the simulated angiograms of the realistic protocols
 
 
-def prepare_case(spec: CaseSpec, protocol: str, grid: Optional[GridOptions] = None) -> PreparedCase:
-    """Build the case's label on its geometry and simulate its views."""
+def prepare_case(spec: CaseSpec, protocol: str, grid: Optional[GridOptions] = None,
+                 realistic_overrides: Optional[Dict[str, Any]] = None) -> PreparedCase:
+    """Build the case's label on its geometry and simulate its views (``realistic_overrides``: fields of
+    ``realistic.RealisticOptions`` over the realistic protocol's own)."""
     from ..phantoms import lad_tree, load_centreline_vtk, rca_tree, simulate_views, voxelize
 
     t0 = time.perf_counter()
@@ -234,7 +236,7 @@ def prepare_case(spec: CaseSpec, protocol: str, grid: Optional[GridOptions] = No
         # The masks a user would have: segmented from simulated angiograms of a moving heart.
         from ..realistic import RealisticOptions, realistic_input
 
-        realistic = realistic_input(label, geometry, spec.seed, RealisticOptions(**REALISTIC_PROTOCOLS[protocol]))
+        realistic = realistic_input(label, geometry, spec.seed, RealisticOptions(**{**REALISTIC_PROTOCOLS[protocol], **(realistic_overrides or {})}))
         line_integrals, masks, frames = [], realistic.masks, realistic.frames
         info.update(realistic=realistic.info)
     else:
