@@ -211,6 +211,7 @@ def test_the_slicer_qca_table_carries_the_grade_and_the_3d_measure(tmp_path, ste
     lesion = data["lesions"][0]
     assert table.GetColumnByName("graded_on").GetValue(0) == "frames (density)"
     assert table.GetColumnByName("seen_on_frames").GetValue(0) == "yes"
+    assert table.GetColumnByName("seen_on_masks").GetValue(0) == "yes"
     assert table.GetColumnByName("diameter_stenosis_pct").GetValue(0) == pytest.approx(lesion["grade"]["diameter_stenosis_pct"])
     assert table.GetColumnByName("mld_mm").GetValue(0) == pytest.approx(lesion["grade"]["mld_mm"])
     assert table.GetColumnByName("diameter_stenosis_3d_pct").GetValue(0) == pytest.approx(lesion["diameter_stenosis_pct"])
@@ -234,4 +235,54 @@ def test_a_narrowing_of_the_reconstruction_that_the_frames_do_not_show_is_warned
     table = _qca_table(tmp_path / "unseen", result, data)
     assert table.GetColumnByName("graded_on").GetValue(0) == "3D sections"
     assert table.GetColumnByName("seen_on_frames").GetValue(0) == "no"
+    assert table.GetColumnByName("seen_on_masks").GetValue(0) == "no"
     assert table.GetColumnByName("diameter_stenosis_3d_pct").GetValue(0) == pytest.approx(lesion["diameter_stenosis_pct"])
+
+
+def test_a_lesion_is_seen_on_the_masks_when_either_view_or_their_diameter_narrows_there():
+    from SDFCARLib.analysis.centreline import CentrelineBranch
+    from SDFCARLib.analysis.lesion import Lesion
+    from SDFCARLib.analysis.pipeline import BranchProfile, lesion_grade, seen_on_masks
+
+    s = np.arange(0.0, 40.0, 0.25)
+    branch = CentrelineBranch(branch_id=0, points_mm=np.stack([s, 0 * s, 0 * s], axis=1),
+                              inscribed_radius_mm=np.full(len(s), 1.5))
+    narrowed = 3.0 - 1.8 * np.exp(-0.5 * ((s - 20.0) / 2.5) ** 2)  # 60 % at 20 mm
+    healthy = np.full(len(s), 3.0)
+    lesion = Lesion(1.2, 20.0, 3.0, 60.0, 84.0, 15.0, 25.0, 10.0)
+    profile = BranchProfile(branch, sections=None, excluded=np.zeros(len(s), bool))
+    assert seen_on_masks(profile, lesion) is None  # no masks given
+    profile.mask_diameter_mm, profile.view_widths_mm = healthy, np.stack([healthy, healthy])
+    assert seen_on_masks(profile, lesion) is False
+    assert lesion_grade(profile, lesion).seen_on_masks is False
+    profile.view_widths_mm = np.stack([healthy, narrowed])  # an eccentric throat: one view sees it narrow
+    assert seen_on_masks(profile, lesion) is True
+    profile.view_widths_mm = np.stack([healthy, healthy])
+    profile.mask_diameter_mm = narrowed
+    assert seen_on_masks(profile, lesion) is True
+    # elsewhere on the branch does not count
+    profile.mask_diameter_mm = 3.0 - 1.8 * np.exp(-0.5 * ((s - 36.0) / 1.0) ** 2)
+    assert seen_on_masks(profile, lesion) is False
+
+
+def test_without_frames_a_narrowing_of_the_reconstruction_that_the_masks_do_not_show_is_warned_about(stenosed_tube_frames):
+    from SDFCARLib.analysis.outputs import analysis_summary_lines
+    from SDFCARLib.analysis.pipeline import summary
+
+    # The masks of the stenosed tube show its lesion: no warning.
+    data = summary(_analyse(*stenosed_tube_frames, frames=False))
+    assert [d["seen_on_masks"] for d in data["lesions"]] == [True] and data["warnings"] == []
+    # A 3D volume with a 50 % lesion, masks of the same tube without one (a rough reconstruction's bump).
+    tube, _ = _tube_frames(50.0, seed=5)
+    _, healthy = _tube_frames(0.0, seed=5)
+    data = summary(_analyse(tube, healthy, frames=False))
+    lesion = data["lesions"][0]
+    assert lesion["diameter_stenosis_pct"] == pytest.approx(50.0, abs=8.0)
+    assert lesion["seen_on_frames"] is None and lesion["seen_on_masks"] is False
+    assert lesion["grade"]["source"] == "3D sections"
+    assert any("not seen on the masks" in w and "branch 0" in w for w in data["warnings"])
+    assert "NOT seen on the masks" in analysis_summary_lines(data)[1]
+    # With the frames, they decide (and the frames' warning is the one given).
+    data = summary(_analyse(tube, healthy))
+    assert data["lesions"][0]["seen_on_masks"] is False and data["lesions"][0]["seen_on_frames"] is False
+    assert not any("not seen on the masks" in w for w in data["warnings"])

@@ -107,6 +107,11 @@ def score(phantom, volume, grid, level, masks, ostium, view_step_deg, frames=Non
         row["healthy_mae_frames_mm"] = float(np.nanmean(np.concatenate(errf)))
     if errd:
         row["healthy_mae_density_mm"] = float(np.nanmean(np.concatenate(errd)))
+    # Lesions other than the true one (rough surfaces, bridges), and how many the masks do not show (the flag).
+    others = [(q, x) for q in r.profiles for x in q.lesions
+              if best is None or best[0] > truth["lesion_length_mm"] or x is not best[1]]
+    row.update({"false_lesions": len(others),
+                "false_lesions_unseen_on_masks": sum(lesion_grade(q, x).seen_on_masks is False for q, x in others)})
     if best is None or best[0] > truth["lesion_length_mm"]:
         row.update({"found": 0})
         return row
@@ -128,6 +133,8 @@ def score(phantom, volume, grid, level, masks, ostium, view_step_deg, frames=Non
                         f"mld_err_{source}_mm": same.mld_mm - truth["mld_mm"],
                         f"len_err_{source}_mm": same.length_mm - truth["lesion_length_mm"]})
     grade = lesion_grade(p, lesion)  # what analysis.json reports as the lesion's grade
+    if grade.seen_on_masks is not None:
+        row["seen_on_masks"] = int(grade.seen_on_masks)
     row.update({"graded_on": grade.source, "ds_err_grade": grade.measure.diameter_stenosis_pct - truth["diameter_stenosis_pct"],
                 "mld_err_grade_mm": grade.measure.mld_mm - truth["mld_mm"],
                 "len_err_grade_mm": grade.measure.length_mm - truth["lesion_length_mm"]})
@@ -353,6 +360,12 @@ def summarise(rows: List[Dict]) -> str:
         within = ", ".join(f"{name} {int(np.sum(np.abs(col('ds_err_' + key, sig)) <= 8))}"
                            for name, key in (("edges", "frames"), ("density", "density"), ("mean", "both")))
         lines.append(f"frames, |%DS err| ≤ 8 of the {len(sig)} 50–70 % lesions found in 3D: {within}")
+    seen = col("seen_on_masks", found)
+    if seen.size:
+        false, unseen = col("false_lesions"), col("false_lesions_unseen_on_masks")
+        lines.append(f"seen on the masks (pipeline.seen_on_masks): true lesions {int(seen.sum())} of {seen.size} "
+                     f"({int(np.sum(col('seen_on_masks', mild)))} of {col('seen_on_masks', mild).size} 30 %); "
+                     f"other lesions not seen on the masks (flagged) {int(unseen.sum())} of {int(false.sum())}")
     sources = {}
     for r in found:
         sources[r["graded_on"]] = sources.get(r["graded_on"], 0) + 1

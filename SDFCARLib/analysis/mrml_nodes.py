@@ -52,10 +52,10 @@ def _slicer_module():
 
 
 #: the "… QCA" table: one row per branch; its worst lesion as graded (MLD … lesion length, graded_on,
-#: seen_on_frames) and as the 3D sections measure it
+#: seen_on_frames, seen_on_masks) and as the 3D sections measure it
 QCA_TABLE_COLUMNS = ("branch", "parent", "length_mm", "mean_diameter_mm", "mld_mm", "diameter_stenosis_pct",
-                     "area_stenosis_pct", "lesion_length_mm", "graded_on", "seen_on_frames", "diameter_stenosis_3d_pct",
-                     "mld_3d_mm")
+                     "area_stenosis_pct", "lesion_length_mm", "graded_on", "seen_on_frames", "seen_on_masks",
+                     "diameter_stenosis_3d_pct", "mld_3d_mm")
 #: profile columns measured on the frames (edges, density), in the branch profile tables when present
 FRAME_COLUMNS = ("diameter_frames_mm", "diameter_frames_density_mm")
 
@@ -181,6 +181,8 @@ def add_analysis_nodes(scene, analysis_dir: PathLike, name: str = "SDFCAR", poin
         rows["graded_on"].append(grade["source"] if grade else "")
         rows["seen_on_frames"].append("" if worst is None or worst.get("seen_on_frames") is None
                                       else ("yes" if worst["seen_on_frames"] else "no"))
+        rows["seen_on_masks"].append("" if worst is None or worst.get("seen_on_masks") is None
+                                     else ("yes" if worst["seen_on_masks"] else "no"))
         rows["diameter_stenosis_3d_pct"].append(worst["diameter_stenosis_pct"] if worst else None)
         rows["mld_3d_mm"].append(worst["mld_mm"] if worst else None)
     table = _add_table(scene, f"{name} QCA", rows)

@@ -138,7 +138,8 @@ def plot_profiles(path: PathLike, result: QCAResult, max_branches: int = 6) -> b
             m = grade.measure
             ax.axvspan(lesion.start_mm, lesion.end_mm, color="C3", alpha=0.15)
             ax.plot([m.mld_position_mm], [m.mld_mm], "v", color="C3")
-            unseen = ", not seen on the frames" if grade.seen_on_frames is False else ""
+            unseen = (", not seen on the frames" if grade.seen_on_frames is False else
+                      ", not seen on the masks" if grade.seen_on_frames is None and grade.seen_on_masks is False else "")
             ax.annotate(f"MLD {m.mld_mm:.2f} mm, DS {m.diameter_stenosis_pct:.0f}%, L {m.length_mm:.1f} mm "
                         f"({grade.source}{unseen})", (m.mld_position_mm, m.mld_mm),
                         textcoords="offset points", xytext=(6, -12), fontsize=8, color="C3")
@@ -266,6 +267,8 @@ def analysis_summary_lines(data: Dict[str, Any]) -> List[str]:
             line += "; " + "; ".join(seen)
         if lesion.get("seen_on_frames") is False:
             line += "; NOT seen on the frames: check it there"
+        elif lesion.get("seen_on_frames") is None and lesion.get("seen_on_masks") is False:
+            line += "; NOT seen on the masks: check it on the angiograms"
         return line
 
     lines += [lesion_line(lesion) for lesion in data.get("lesions") or []]

@@ -31,7 +31,10 @@ Grade of a lesion (``lesion_grade``)
     frames' density profile, else on their fitted edges, else (frames that show no narrowing there,
     or none given) on the 3D sections. The frames are far sharper than a reconstruction from
     segmented masks (RESULTS §21–22); a lesion the 3D sections find but the frames do not show is
-    reported with ``seen_on_frames`` false and a warning.
+    reported with ``seen_on_frames`` false and a warning. With masks, ``seen_on_masks`` says whether
+    their widths (the two-view diameter or either view's) narrow there too; without frames, a lesion
+    no mask shows gets the same warning: a rough reconstruction's bumps read as stenoses (README's
+    sample case), and the masks are then the only images to check it on.
 
 Target segment of the best-view map
     The worst lesion (highest graded %DS over all branches) padded by ``TARGET_PAD_MM`` of reference
@@ -346,22 +349,34 @@ class LesionGrade:
     measure: Lesion  # the lesion as that source measures it
     seen_on_frames: Optional[bool]  # None: no frames given
     on_frames: Optional[Dict[str, Optional[Lesion]]] = None  # "edges", "density": the same lesion there, or None
+    seen_on_masks: Optional[bool] = None  # None: no masks given
 
     def to_dict(self) -> Dict[str, Any]:
         return dict(self.measure.to_dict(), source=self.source)
 
 
+def seen_on_masks(p: BranchProfile, lesion: Lesion, min_stenosis_pct: float = 20.0) -> Optional[bool]:
+    """Whether the masks show ``lesion`` (found on ``p``'s 3D sections): their two-view diameter or one view's
+    width narrows by ``min_stenosis_pct`` there (an eccentric throat may narrow in one view only; an overlap
+    widens one view, not both). None without masks."""
+    if p.view_widths_mm is None:
+        return None
+    profiles = [p.mask_diameter_mm] + list(p.view_widths_mm)
+    return any(lesion_on_2d_profile(p, values, lesion, min_stenosis_pct) is not None for values in profiles)
+
+
 def lesion_grade(p: BranchProfile, lesion: Lesion, min_stenosis_pct: float = 20.0) -> LesionGrade:
     """The grade of ``lesion`` (found on ``p``'s 3D sections): the frames' density, else their edges,
-    else the 3D sections (module docstring); with both frame measures of it."""
+    else the 3D sections (module docstring); with both frame measures of it, and whether the masks show it."""
+    on_masks = seen_on_masks(p, lesion, min_stenosis_pct)
     if p.frame_diameter_mm is None:
-        return LesionGrade(GRADED_ON_3D, lesion, None)
+        return LesionGrade(GRADED_ON_3D, lesion, None, seen_on_masks=on_masks)
     on_frames = {name: lesion_on_2d_profile(p, values, lesion, min_stenosis_pct)
                  for name, values in (("edges", p.frame_diameter_mm), ("density", p.frame_density_diameter_mm))}
     for source, name in ((GRADED_ON_DENSITY, "density"), (GRADED_ON_EDGES, "edges")):
         if on_frames[name] is not None:
-            return LesionGrade(source, on_frames[name], True, on_frames)
-    return LesionGrade(GRADED_ON_3D, lesion, False, on_frames)
+            return LesionGrade(source, on_frames[name], True, on_frames, on_masks)
+    return LesionGrade(GRADED_ON_3D, lesion, False, on_frames, on_masks)
 
 
 def _lesion_entry(p: BranchProfile, lesion: Lesion, min_stenosis_pct: float, **extra) -> Dict[str, Any]:
@@ -370,16 +385,17 @@ def _lesion_entry(p: BranchProfile, lesion: Lesion, min_stenosis_pct: float, **e
     grade = lesion_grade(p, lesion, min_stenosis_pct)
     frames = None if grade.on_frames is None else {k: None if v is None else v.to_dict() for k, v in grade.on_frames.items()}
     return dict(lesion.to_dict(), branch_id=p.branch.branch_id, grade=grade.to_dict(),
-                seen_on_frames=grade.seen_on_frames, frames=frames, **extra)
+                seen_on_frames=grade.seen_on_frames, frames=frames, seen_on_masks=grade.seen_on_masks, **extra)
 
 
-def _unseen_warning(unseen: List[Dict[str, Any]]) -> Optional[str]:
+def _unseen_warning(unseen: List[Dict[str, Any]], images: str = "frames") -> Optional[str]:
     if not unseen:
         return None
     where = ", ".join(f"branch {d['branch_id']} at {d['mld_position_mm']:.1f} mm (3D DS {d['diameter_stenosis_pct']:.0f}%)"
                       for d in unseen)
-    return (f"{len(unseen)} lesion(s) of the 3D sections not seen on the frames: {where}. The reconstruction may be "
-            "rough or flattened there; check the frames before acting on these (they are graded on the 3D sections).")
+    return (f"{len(unseen)} lesion(s) of the 3D sections not seen on the {images}: {where}. The reconstruction may be "
+            f"rough or flattened there; check the {'frames' if images == 'frames' else 'angiograms'} before acting on "
+            "these (they are graded on the 3D sections).")
 
 
 def summary(result: QCAResult) -> Dict[str, Any]:
@@ -418,6 +434,8 @@ def summary(result: QCAResult) -> Dict[str, Any]:
     all_lesions.sort(key=lambda d: -d["grade"]["diameter_stenosis_pct"])
     unreliable.sort(key=lambda d: -d["grade"]["diameter_stenosis_pct"])
     unseen = [d for d in all_lesions if d["seen_on_frames"] is False]
+    # Without frames the masks are the only images: a narrowing neither mask shows is the reconstruction's.
+    unseen_on_masks = [d for d in all_lesions if d["seen_on_frames"] is None and d["seen_on_masks"] is False]
     out: Dict[str, Any] = {
         "coordinate_system": "LPS", "units": {"length": "mm", "angle": "degrees", "stenosis": "percent"},
         "settings": result.settings,
@@ -429,7 +447,7 @@ def summary(result: QCAResult) -> Dict[str, Any]:
         "bifurcations": result.bifurcations, "target_segment": result.target,
         "connectivity": result.fragments.summary() if result.fragments is not None else None,
         "warnings": [w for w in [result.fragments.warning() if result.fragments is not None else None,
-                                 _unseen_warning(unseen)] if w],
+                                 _unseen_warning(unseen), _unseen_warning(unseen_on_masks, "masks")] if w],
     }
     if result.view_map is not None:
         best = result.view_map.best()
