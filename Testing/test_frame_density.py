@@ -161,18 +161,25 @@ def test_a_lesion_on_the_frames_keeps_its_reference_where_side_strands_exclude_t
     assert old is None or old.diameter_stenosis_pct < 60.0
 
 
-def test_a_lesion_is_graded_on_the_density_else_the_edges_else_the_3d_sections():
+def _straight_branch_with_a_lesion():
+    """A straight 3 mm branch, a 60 % lesion at 20 mm as the 3D sections found it, its profile (no 2D
+    measures yet), and a narrowed and a healthy 2D diameter profile along it."""
     from SDFCARLib.analysis.centreline import CentrelineBranch
     from SDFCARLib.analysis.lesion import Lesion
-    from SDFCARLib.analysis.pipeline import BranchProfile, lesion_grade
+    from SDFCARLib.analysis.pipeline import BranchProfile
 
     s = np.arange(0.0, 40.0, 0.25)
     branch = CentrelineBranch(branch_id=0, points_mm=np.stack([s, 0 * s, 0 * s], axis=1),
                               inscribed_radius_mm=np.full(len(s), 1.5))
     narrowed = 3.0 - 1.8 * np.exp(-0.5 * ((s - 20.0) / 2.5) ** 2)  # 60 % at 20 mm
-    healthy = np.full(len(s), 3.0)
-    lesion = Lesion(1.2, 20.0, 3.0, 60.0, 84.0, 15.0, 25.0, 10.0)  # as the 3D sections found it
-    profile = BranchProfile(branch, sections=None, excluded=np.zeros(len(s), bool))
+    lesion = Lesion(1.2, 20.0, 3.0, 60.0, 84.0, 15.0, 25.0, 10.0)
+    return s, BranchProfile(branch, sections=None, excluded=np.zeros(len(s), bool)), lesion, narrowed, np.full(len(s), 3.0)
+
+
+def test_a_lesion_is_graded_on_the_density_else_the_edges_else_the_3d_sections():
+    from SDFCARLib.analysis.pipeline import lesion_grade
+
+    _, profile, lesion, narrowed, healthy = _straight_branch_with_a_lesion()
     assert (lesion_grade(profile, lesion).source, lesion_grade(profile, lesion).seen_on_frames) == ("3D sections", None)
     profile.frame_diameter_mm, profile.frame_density_diameter_mm = 1.1 * narrowed, narrowed
     grade = lesion_grade(profile, lesion)
@@ -240,17 +247,9 @@ def test_a_narrowing_of_the_reconstruction_that_the_frames_do_not_show_is_warned
 
 
 def test_a_lesion_is_seen_on_the_masks_when_either_view_or_their_diameter_narrows_there():
-    from SDFCARLib.analysis.centreline import CentrelineBranch
-    from SDFCARLib.analysis.lesion import Lesion
-    from SDFCARLib.analysis.pipeline import BranchProfile, lesion_grade, seen_on_masks
+    from SDFCARLib.analysis.pipeline import lesion_grade, seen_on_masks
 
-    s = np.arange(0.0, 40.0, 0.25)
-    branch = CentrelineBranch(branch_id=0, points_mm=np.stack([s, 0 * s, 0 * s], axis=1),
-                              inscribed_radius_mm=np.full(len(s), 1.5))
-    narrowed = 3.0 - 1.8 * np.exp(-0.5 * ((s - 20.0) / 2.5) ** 2)  # 60 % at 20 mm
-    healthy = np.full(len(s), 3.0)
-    lesion = Lesion(1.2, 20.0, 3.0, 60.0, 84.0, 15.0, 25.0, 10.0)
-    profile = BranchProfile(branch, sections=None, excluded=np.zeros(len(s), bool))
+    s, profile, lesion, narrowed, healthy = _straight_branch_with_a_lesion()
     assert seen_on_masks(profile, lesion) is None  # no masks given
     profile.mask_diameter_mm, profile.view_widths_mm = healthy, np.stack([healthy, healthy])
     assert seen_on_masks(profile, lesion) is False
