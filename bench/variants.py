@@ -62,13 +62,13 @@ def main() -> int:
     for index in args.case:
         spec = build_cases(config)[index]
         case = prepare_case(spec, args.protocol, grid)
-        for variant in variants:
+        for number, variant in enumerate(variants):
             t0 = time.perf_counter()
             result = reconstruct(case.geometry, case.targets, make_settings("fast", seed=spec.seed, **variant),
                                  case.target_kind, frames=case.frames)
             m = evaluate(result.segmentation, case.label, case.geometry.volume, case.geometry.views, case.masks)
             if args.save is not None:
-                save_run(args.save, f"{spec.name}-v{variants.index(variant)}", case, result)
+                save_run(args.save, f"{spec.name}-v{number}", case, result)
             scores[json.dumps(variant)].append((m["cldice"], m["dice"], m.get("components")))
             print(f"{spec.name:7s} {json.dumps(variant):40s} clDice {m['cldice']:.3f}  Dice {m['dice']:.3f}  components "
                   f"{m.get('components')}/{m.get('components_label')}  support {result.report['support_voxels']}  "

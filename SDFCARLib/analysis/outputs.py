@@ -31,7 +31,7 @@ import numpy as np
 from ..geometry import Geometry
 from ..io import InputError, read_image, read_label, read_mask, read_volume, write_json
 from ..outputs import staged_directory
-from .pipeline import GRADED_ON_3D, QCAResult, analyse_volume, lesion_grade, summary
+from .pipeline import GRADED_ON_3D, QCAResult, analyse_volume, lesion_grade, summary, unseen_on
 
 PathLike = Union[str, Path]
 ANALYSIS_FILES = ("analysis.json", "centrelines.vtk", "diameter_profiles.png", "view_map.png")
@@ -138,8 +138,8 @@ def plot_profiles(path: PathLike, result: QCAResult, max_branches: int = 6) -> b
             m = grade.measure
             ax.axvspan(lesion.start_mm, lesion.end_mm, color="C3", alpha=0.15)
             ax.plot([m.mld_position_mm], [m.mld_mm], "v", color="C3")
-            unseen = (", not seen on the frames" if grade.seen_on_frames is False else
-                      ", not seen on the masks" if grade.seen_on_frames is None and grade.seen_on_masks is False else "")
+            images = unseen_on(grade.seen_on_frames, grade.seen_on_masks)
+            unseen = f", not seen on the {images}" if images else ""
             ax.annotate(f"MLD {m.mld_mm:.2f} mm, DS {m.diameter_stenosis_pct:.0f}%, L {m.length_mm:.1f} mm "
                         f"({grade.source}{unseen})", (m.mld_position_mm, m.mld_mm),
                         textcoords="offset points", xytext=(6, -12), fontsize=8, color="C3")
@@ -265,9 +265,10 @@ def analysis_summary_lines(data: Dict[str, Any]) -> List[str]:
                 for name, m in others if m and name != grade["source"]]
         if seen:
             line += "; " + "; ".join(seen)
-        if lesion.get("seen_on_frames") is False:
+        images = unseen_on(lesion.get("seen_on_frames"), lesion.get("seen_on_masks"))
+        if images == "frames":
             line += "; NOT seen on the frames: check it there"
-        elif lesion.get("seen_on_frames") is None and lesion.get("seen_on_masks") is False:
+        elif images == "masks":
             line += "; NOT seen on the masks: check it on the angiograms"
         return line
 

@@ -379,6 +379,16 @@ def lesion_grade(p: BranchProfile, lesion: Lesion, min_stenosis_pct: float = 20.
     return LesionGrade(GRADED_ON_3D, lesion, False, on_frames, on_masks)
 
 
+def unseen_on(seen_on_frames: Optional[bool], seen_on_masks: Optional[bool]) -> Optional[str]:
+    """Which images a lesion of the 3D sections is not seen on, to warn about: "frames" where they were
+    given and do not show it; without frames, "masks" where no mask shows it; else None."""
+    if seen_on_frames is False:
+        return "frames"
+    if seen_on_frames is None and seen_on_masks is False:
+        return "masks"
+    return None
+
+
 def _lesion_entry(p: BranchProfile, lesion: Lesion, min_stenosis_pct: float, **extra) -> Dict[str, Any]:
     """A lesion of analysis.json: its 3D-section measures (top level), its grade, the frames' measures
     (``frames``: None without frames, else each measure's lesion or None where it shows none)."""
@@ -388,14 +398,14 @@ def _lesion_entry(p: BranchProfile, lesion: Lesion, min_stenosis_pct: float, **e
                 seen_on_frames=grade.seen_on_frames, frames=frames, seen_on_masks=grade.seen_on_masks, **extra)
 
 
-def _unseen_warning(unseen: List[Dict[str, Any]], images: str = "frames") -> Optional[str]:
+def _unseen_warning(lesions: List[Dict[str, Any]], images: str, check_on: str) -> Optional[str]:
+    unseen = [d for d in lesions if unseen_on(d["seen_on_frames"], d["seen_on_masks"]) == images]
     if not unseen:
         return None
     where = ", ".join(f"branch {d['branch_id']} at {d['mld_position_mm']:.1f} mm (3D DS {d['diameter_stenosis_pct']:.0f}%)"
                       for d in unseen)
     return (f"{len(unseen)} lesion(s) of the 3D sections not seen on the {images}: {where}. The reconstruction may be "
-            f"rough or flattened there; check the {'frames' if images == 'frames' else 'angiograms'} before acting on "
-            "these (they are graded on the 3D sections).")
+            f"rough or flattened there; check the {check_on} before acting on these (they are graded on the 3D sections).")
 
 
 def summary(result: QCAResult) -> Dict[str, Any]:
@@ -433,9 +443,6 @@ def summary(result: QCAResult) -> Dict[str, Any]:
         unreliable.extend(entry["unreliable_lesions"])
     all_lesions.sort(key=lambda d: -d["grade"]["diameter_stenosis_pct"])
     unreliable.sort(key=lambda d: -d["grade"]["diameter_stenosis_pct"])
-    unseen = [d for d in all_lesions if d["seen_on_frames"] is False]
-    # Without frames the masks are the only images: a narrowing neither mask shows is the reconstruction's.
-    unseen_on_masks = [d for d in all_lesions if d["seen_on_frames"] is None and d["seen_on_masks"] is False]
     out: Dict[str, Any] = {
         "coordinate_system": "LPS", "units": {"length": "mm", "angle": "degrees", "stenosis": "percent"},
         "settings": result.settings,
@@ -447,7 +454,8 @@ def summary(result: QCAResult) -> Dict[str, Any]:
         "bifurcations": result.bifurcations, "target_segment": result.target,
         "connectivity": result.fragments.summary() if result.fragments is not None else None,
         "warnings": [w for w in [result.fragments.warning() if result.fragments is not None else None,
-                                 _unseen_warning(unseen), _unseen_warning(unseen_on_masks, "masks")] if w],
+                                 _unseen_warning(all_lesions, "frames", "frames"),
+                                 _unseen_warning(all_lesions, "masks", "angiograms")] if w],
     }
     if result.view_map is not None:
         best = result.view_map.best()

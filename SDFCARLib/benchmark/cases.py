@@ -236,7 +236,8 @@ def prepare_case(spec: CaseSpec, protocol: str, grid: Optional[GridOptions] = No
         # The masks a user would have: segmented from simulated angiograms of a moving heart.
         from ..realistic import RealisticOptions, realistic_input
 
-        realistic = realistic_input(label, geometry, spec.seed, RealisticOptions(**{**REALISTIC_PROTOCOLS[protocol], **(realistic_overrides or {})}))
+        options = RealisticOptions(**{**REALISTIC_PROTOCOLS[protocol], **(realistic_overrides or {})})
+        realistic = realistic_input(label, geometry, spec.seed, options)
         line_integrals, masks, frames = [], realistic.masks, realistic.frames
         info.update(realistic=realistic.info)
     else:
