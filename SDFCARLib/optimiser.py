@@ -362,6 +362,9 @@ def finish(problem: Problem, model: ImplicitField, history: List[Dict[str, float
     occupancy_volume, field_volume = evaluate_volume(model, problem)
     threshold = settings.region.threshold
     segmentation = occupancy_volume >= threshold
+    # The fit's projectors already traced every ray through the support, which holds every voxel the
+    # steps below keep; over the whole grid (no support) their matrices are too large to reread.
+    traced = problem.projectors if problem.support is not None else None
     pruning: Optional[Dict[str, Any]] = None
     if settings.region.prune and segmentation.any():
         if _is_cancelled(cancel):
@@ -369,7 +372,8 @@ def finish(problem: Problem, model: ImplicitField, history: List[Dict[str, float
         _report(progress, phase="prune", step=steps, total=steps, elapsed_s=optimise_s, eta_s=None, device=str(problem.device))
         kept, pruning = prune_redundant_branches(
             segmentation, vessel_pixels(problem.targets, problem.target_kind), geometry,
-            PruneSettings(max_piece_mm=settings.region.prune_piece_mm, tolerance=settings.region.prune_tolerance))
+            PruneSettings(max_piece_mm=settings.region.prune_piece_mm, tolerance=settings.region.prune_tolerance),
+            projectors=traced)
         zone = removal_zone(segmentation, kept, geometry.volume.spacing_mm)
         occupancy_volume[zone] = 0.0
         field_volume[zone] = float(field_volume.max()) if settings.mode.field_kind == "sdf" else float(field_volume.min())
@@ -381,7 +385,7 @@ def finish(problem: Problem, model: ImplicitField, history: List[Dict[str, float
             raise ReconstructionCancelled("cancelled before checking and joining the fragments")
         segmentation, unconfirmed, reconnection = drop_then_join_fragments(
             segmentation, occupancy_volume, field_volume, vessel_pixels(problem.targets, problem.target_kind), geometry,
-            problem.support, settings, projectors=problem.projectors if problem.support is not None else None)
+            problem.support, settings, projectors=traced)
     # last: grown only from what pruning and the fragment checks kept (before them it grows ghosts too);
     # the grown voxels' occupancy is raised to the threshold, as bridges are filled, so that occupancy.nrrd,
     # the surface and `analyse` keep reading the segmentation as occupancy ≥ threshold
@@ -391,7 +395,7 @@ def finish(problem: Problem, model: ImplicitField, history: List[Dict[str, float
         occupancy_volume[grown] = settings.region.threshold
         field_volume[grown] = field_values(np.float32(settings.region.threshold), settings.mode.field_kind, settings.field.alpha)
         segmentation = segmentation | grown
-    projected = reprojected_masks(segmentation, geometry)
+    projected = reprojected_masks(segmentation, geometry, projectors=traced)
     references = vessel_pixels(problem.targets, problem.target_kind)
     qa = [reprojection_qa(p, m, v) for p, m, v in zip(projected, references, geometry.views)]
     qa_warned = qa_warnings(qa)
@@ -606,11 +610,23 @@ def evaluate_volume(model: ImplicitField, problem: Problem, chunk: int = 262144)
     return occ_volume.reshape(grid.shape), field_volume.reshape(grid.shape)
 
 
-def reprojected_masks(segmentation: np.ndarray, geometry: Geometry,
-                      mask_threshold_mm: float = MASK_THRESHOLD_MM) -> List[np.ndarray]:
-    """Per view, the segmentation's projected mask (line integral above the mask threshold)."""
+def reprojected_masks(segmentation: np.ndarray, geometry: Geometry, mask_threshold_mm: float = MASK_THRESHOLD_MM,
+                      projectors: Optional[Sequence[ConeBeamProjector]] = None) -> List[np.ndarray]:
+    """Per view, the segmentation's projected mask (line integral above the mask threshold).
+
+    ``projectors``: one per view whose inputs hold every segmented voxel (the reconstruction's own,
+    whose rays are already traced); otherwise the segmentation is projected afresh."""
     if not segmentation.any():
         return [np.zeros(view.detector_shape, dtype=bool) for view in geometry.views]
-    volume = segmentation.astype(np.float32)
-    return [project_volume(volume, view, geometry.volume) > mask_threshold_mm for view in geometry.views]
+    segmented = np.flatnonzero(segmentation.reshape(-1))
+    if projectors is None or not all(p.covers(segmented) for p in projectors):
+        volume = segmentation.astype(np.float32)
+        return [project_volume(volume, view, geometry.volume) > mask_threshold_mm for view in geometry.views]
+    masks = []
+    for view, projector in zip(geometry.views, projectors):
+        integrals, pixels, _ = projector.group_integrals(segmentation.astype(np.int64), 1)
+        mask = np.zeros(view.detector_shape, dtype=bool)
+        mask.reshape(-1)[pixels[integrals[:, 0] > mask_threshold_mm]] = True
+        masks.append(mask)
+    return masks
 

@@ -184,6 +184,31 @@ class ConeBeamProjector:
         """Line-integral image (rows, cols) in mm of the voxel ``values``."""
         return self.scatter(self.line_integrals(values))
 
+    def covers(self, voxels: np.ndarray) -> bool:
+        """Whether every one of the flat voxel indices ``voxels`` is an input of this projector."""
+        voxels = np.asarray(voxels, dtype=np.int64)
+        return self.voxels is None or bool(np.isin(voxels, self.voxels, assume_unique=True).all())
+
+    def group_integrals(self, groups: np.ndarray, count: int):
+        """Line integral (mm) of each voxel group 1..``count`` along every ray that meets one.
+
+        ``groups``: a label per grid voxel (flat, 0 = in no group; the projector's non-input voxels
+        must be 0). Returns the (rays × count) integrals in float64, those rays' flat pixel indices,
+        and which groups the view sees at all. Summed from the operator's entries in the groups'
+        voxels only, so a projector of a large support serves a small segmentation without
+        tracing its rays again.
+        """
+        matrix = self.operator.matrix
+        crow = matrix.crow_indices().cpu().numpy()
+        row = np.repeat(np.arange(crow.size - 1), np.diff(crow))
+        columns = matrix.col_indices().cpu().numpy()
+        label = np.asarray(groups).reshape(-1)[columns if self.voxels is None else self.voxels[columns]]
+        keep = label > 0
+        row, label, value = row[keep], label[keep] - 1, matrix.values().cpu().numpy()[keep].astype(np.float64)
+        hit, local = np.unique(row, return_inverse=True)
+        integrals = np.bincount(local * count + label, weights=value, minlength=hit.size * count).reshape(hit.size, count)
+        return integrals, self.pixels[hit], np.bincount(label, weights=value, minlength=count) > 0
+
     def to(self, device: str) -> "ConeBeamProjector":
         self.device = torch.device(device)
         self.operator.to(self.device)

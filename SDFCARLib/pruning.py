@@ -38,7 +38,6 @@ from dataclasses import dataclass
 from typing import Any, Dict, Optional, Sequence, Tuple
 
 import numpy as np
-import torch
 from scipy import ndimage
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components, dijkstra
@@ -141,11 +140,14 @@ def prune_redundant_branches(
     masks: Sequence[np.ndarray],
     geometry: Geometry,
     settings: Optional[PruneSettings] = None,
+    projectors: Optional[Sequence[ConeBeamProjector]] = None,
 ) -> Tuple[np.ndarray, Dict[str, Any]]:
     """The segmentation without the pieces that no mask pixel needs (see module docstring).
 
-    ``masks``: one boolean image per view of ``geometry`` (vessel pixels). Returns the pruned
-    segmentation and a report (pieces, pieces removed, voxels removed, seconds).
+    ``masks``: one boolean image per view of ``geometry`` (vessel pixels). ``projectors``: one per
+    view whose inputs hold every segmented voxel (the reconstruction's own); otherwise projectors of
+    the segmented voxels are built. Returns the pruned segmentation and a report (pieces, pieces
+    removed, voxels removed, seconds).
     """
     t0 = time.perf_counter()
     settings = settings or PruneSettings()
@@ -163,14 +165,12 @@ def prune_redundant_branches(
         return segmentation.copy(), info
 
     voxels = np.flatnonzero(segmentation.reshape(-1))
-    piece_of_voxel = torch.as_tensor(pieces.reshape(-1)[voxels] - 1)
-    indicator = torch.zeros(voxels.size, count)
-    indicator[torch.arange(voxels.size), piece_of_voxel] = 1.0
+    if projectors is None or not all(p.covers(voxels) for p in projectors):
+        projectors = [ConeBeamProjector(view, geometry.volume, voxels=voxels) for view in geometry.views]
     covered_parts = []
-    for mask, view in zip(masks, geometry.views):
-        projector = ConeBeamProjector(view, geometry.volume, voxels=voxels)
-        piece_integrals = torch.mm(projector.operator.matrix, indicator).numpy()
-        in_mask = np.asarray(mask, dtype=bool).reshape(-1)[projector.pixels]
+    for mask, projector in zip(masks, projectors):
+        piece_integrals, pixels, _ = projector.group_integrals(pieces, count)
+        in_mask = np.asarray(mask, dtype=bool).reshape(-1)[pixels]
         covered_parts.append((piece_integrals > settings.threshold_mm) & in_mask[:, None])
     cover = np.concatenate(covered_parts, axis=0)
     cover = cover[cover.any(axis=1)]  # mask pixels that some piece covers
@@ -221,13 +221,13 @@ def unconfirmed_fragments(
         info["seconds"] = time.perf_counter() - t0
         return removed, info
     segmented = np.flatnonzero(segmentation.reshape(-1))
-    if projectors is None or any(p.voxels is None or not np.isin(segmented, p.voxels).all() for p in projectors):
+    if projectors is None or not all(p.covers(segmented) for p in projectors):
         projectors = [ConeBeamProjector(view, geometry.volume, voxels=segmented) for view in geometry.views]
     confirmed = np.ones(sizes.size, dtype=bool)
     for mask, view, projector in zip(masks, geometry.views, projectors):
         if tuple(np.shape(mask)) != tuple(view.detector_shape):
             raise ValueError(f"unconfirmed_fragments: mask shape {np.shape(mask)} differs from the detector {tuple(view.detector_shape)}")
-        integrals, pixels, seen = _component_integrals(projector, components.reshape(-1), sizes.size)
+        integrals, pixels, seen = projector.group_integrals(components, sizes.size)
         covered = (integrals > threshold_mm) & np.asarray(mask, dtype=bool).reshape(-1)[pixels][:, None]
         alone = (covered & (covered.sum(axis=1) == 1)[:, None]).sum(axis=0)
         confirmed &= (alone > 0) | ~seen
@@ -236,22 +236,6 @@ def unconfirmed_fragments(
     info.update(removed_fragments=int((~confirmed).sum()), removed_voxels=int(removed.sum()),
                 seconds=time.perf_counter() - t0)
     return removed, info
-
-
-def _component_integrals(projector: ConeBeamProjector, labels_flat: np.ndarray, count: int):
-    """Line integral of each labelled component (1..count) along every ray that meets one:
-    (pixels × count) integrals, those pixels' flat indices, and which components the view sees.
-    Summed from the operator's entries in the components' voxels only, so a projector of a large
-    support costs no more than one of the segmentation."""
-    matrix = projector.operator.matrix
-    crow = matrix.crow_indices().cpu().numpy()
-    row = np.repeat(np.arange(crow.size - 1), np.diff(crow))
-    label = labels_flat[projector.voxels[matrix.col_indices().cpu().numpy()]]
-    keep = label > 0
-    row, label, value = row[keep], label[keep] - 1, matrix.values().cpu().numpy()[keep]
-    hit, local = np.unique(row, return_inverse=True)
-    integrals = np.bincount(local * count + label, weights=value, minlength=hit.size * count).reshape(hit.size, count)
-    return integrals, projector.pixels[hit], np.bincount(label, weights=value, minlength=count) > 0
 
 
 def removal_zone(segmentation: np.ndarray, kept: np.ndarray, spacing_mm: Sequence[float]) -> np.ndarray:

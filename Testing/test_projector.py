@@ -157,6 +157,27 @@ def test_restricted_projector_equals_full_on_supported_volume():
     np.testing.assert_allclose(project_volume(dense.reshape(grid.shape), view, grid), full, rtol=1e-5, atol=1e-6)
 
 
+def test_group_integrals_of_a_support_projector_equal_fresh_projections_of_each_group():
+    grid, view = small_problem()
+    centres = grid.voxel_centers()
+    support = np.flatnonzero(np.linalg.norm(centres - [2.0, 0.0, -1.0], axis=-1) < 4.5)
+    projector = ConeBeamProjector(view, grid, voxels=support)
+    groups = np.zeros(grid.num_voxels, np.int64)
+    groups[support[::3]] = 1  # two interleaved groups inside the support, the rest in none
+    groups[support[1::3]] = 2
+    integrals, pixels, seen = projector.group_integrals(groups.reshape(grid.shape), 2)
+    assert integrals.shape == (pixels.size, 2) and integrals.dtype == np.float64 and seen.tolist() == [True, True]
+    for label in (1, 2):
+        image = np.zeros(view.detector_shape[0] * view.detector_shape[1])
+        image[pixels] = integrals[:, label - 1]
+        fresh = project_volume((groups == label).reshape(grid.shape).astype(np.float64), view, grid)
+        np.testing.assert_allclose(image.reshape(view.detector_shape), fresh, rtol=1e-6, atol=1e-6)
+    assert projector.covers(support[::2]) and not projector.covers(np.array([0]))
+    full = ConeBeamProjector(view, grid)  # every voxel an input: the labels are read as they are
+    assert full.covers(np.array([0, grid.num_voxels - 1]))
+    np.testing.assert_allclose(full.group_integrals(groups, 2)[0].sum(axis=0), integrals.sum(axis=0), rtol=1e-6)
+
+
 def test_gradcheck_float64():
     grid = VolumeGrid((6, 5, 4), (1.0, 1.2, 0.9), (0.3, -0.2, 0.1))
     view = CArmView(20.0, 10.0, 1000.0, 750.0, (1.0, 1.0), (8, 8))

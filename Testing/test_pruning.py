@@ -60,6 +60,28 @@ def test_prune_removes_the_ghost_and_keeps_the_vessels(ghost_case):
         assert after >= before - 0.01 and after > 0.9
 
 
+def test_the_reconstructions_own_projectors_give_the_same_pruning_and_reprojection(ghost_case):
+    from SDFCARLib.optimiser import reprojected_masks
+    from SDFCARLib.projector import ConeBeamProjector
+
+    geometry, truth, ghost, masks = ghost_case
+    segmentation = truth | ghost
+    support = np.flatnonzero(ndimage.binary_dilation(segmentation, iterations=2).reshape(-1))  # a support holding it
+    own = [ConeBeamProjector(view, GRID, voxels=support) for view in VIEWS]
+    fresh, fresh_info = prune_redundant_branches(segmentation, masks, geometry)
+    reused, reused_info = prune_redundant_branches(segmentation, masks, geometry, projectors=own)
+    np.testing.assert_array_equal(reused, fresh)
+    assert reused_info["removed_pieces"] == fresh_info["removed_pieces"] >= 1
+    for a, b in zip(reprojected_masks(segmentation, geometry, projectors=own), reprojected_masks(segmentation, geometry)):
+        assert a.shape == b.shape and a.dtype == bool and a.any()
+        np.testing.assert_array_equal(a, b)
+    # projectors that do not hold every segmented voxel are not used: the segmentation is traced afresh
+    narrow = [ConeBeamProjector(view, GRID, voxels=np.flatnonzero(truth.reshape(-1))) for view in VIEWS]
+    np.testing.assert_array_equal(prune_redundant_branches(segmentation, masks, geometry, projectors=narrow)[0], fresh)
+    for a, b in zip(reprojected_masks(segmentation, geometry, projectors=narrow), reprojected_masks(segmentation, geometry)):
+        np.testing.assert_array_equal(a, b)
+
+
 def test_prune_keeps_a_true_tree_whole():
     tree = CentrelineTree([
         Branch(np.array([[-14.0, -4.0, -13.0], [0.0, 3.0, 0.0], [13.0, -2.0, 14.0]]), np.array([2.0, 1.6, 1.2])),
