@@ -244,6 +244,7 @@ def test_a_narrowing_of_the_reconstruction_that_the_frames_do_not_show_is_warned
     assert table.GetColumnByName("seen_on_frames").GetValue(0) == "no"
     assert table.GetColumnByName("seen_on_masks").GetValue(0) == "no"
     assert table.GetColumnByName("diameter_stenosis_3d_pct").GetValue(0) == pytest.approx(lesion["diameter_stenosis_pct"])
+    assert table.GetColumnByName("diameter_stenosis_masks_pct").GetValue(0) == pytest.approx(lesion["masks_diameter_stenosis_pct"])
 
 
 def test_a_lesion_is_seen_on_the_masks_when_either_view_or_their_diameter_narrows_there():
@@ -264,6 +265,22 @@ def test_a_lesion_is_seen_on_the_masks_when_either_view_or_their_diameter_narrow
     assert seen_on_masks(profile, lesion) is False
 
 
+def test_the_masks_stenosis_at_a_lesion_is_their_largest_narrowing_there():
+    from SDFCARLib.analysis.pipeline import masks_stenosis_pct
+
+    s, profile, lesion, narrowed, healthy = _straight_branch_with_a_lesion()
+    assert masks_stenosis_pct(profile, lesion) is None  # no masks given
+    profile.mask_diameter_mm, profile.view_widths_mm = healthy, np.stack([healthy, healthy])
+    assert masks_stenosis_pct(profile, lesion) == 0.0
+    mild = 3.0 - 0.75 * np.exp(-0.5 * ((s - 20.0) / 2.5) ** 2)  # 25 % at the lesion
+    profile.view_widths_mm = np.stack([mild, healthy])
+    assert masks_stenosis_pct(profile, lesion) == pytest.approx(25.0, abs=2.0)
+    profile.mask_diameter_mm = narrowed  # the two-view diameter narrows 60 %: the largest counts
+    assert masks_stenosis_pct(profile, lesion) == pytest.approx(60.0, abs=3.0)
+    profile.mask_diameter_mm = 3.0 - 1.8 * np.exp(-0.5 * ((s - 36.0) / 1.0) ** 2)  # elsewhere on the branch
+    assert masks_stenosis_pct(profile, lesion) == pytest.approx(25.0, abs=2.0)
+
+
 def test_without_frames_a_narrowing_of_the_reconstruction_that_the_masks_do_not_show_is_warned_about(stenosed_tube_frames):
     from SDFCARLib.analysis.outputs import analysis_summary_lines
     from SDFCARLib.analysis.pipeline import summary
@@ -271,6 +288,8 @@ def test_without_frames_a_narrowing_of_the_reconstruction_that_the_masks_do_not_
     # The masks of the stenosed tube show its lesion: no warning.
     data = summary(_analyse(*stenosed_tube_frames, frames=False))
     assert [d["seen_on_masks"] for d in data["lesions"]] == [True] and data["warnings"] == []
+    shown = data["lesions"][0]["masks_diameter_stenosis_pct"]
+    assert shown >= 20.0 and f"masks DS {shown:.0f}%" in analysis_summary_lines(data)[1]
     # A 3D volume with a 50 % lesion, masks of the same tube without one (a rough reconstruction's bump).
     tube, _ = _tube_frames(50.0, seed=5)
     _, healthy = _tube_frames(0.0, seed=5)
@@ -278,6 +297,7 @@ def test_without_frames_a_narrowing_of_the_reconstruction_that_the_masks_do_not_
     lesion = data["lesions"][0]
     assert lesion["diameter_stenosis_pct"] == pytest.approx(50.0, abs=8.0)
     assert lesion["seen_on_frames"] is None and lesion["seen_on_masks"] is False
+    assert lesion["masks_diameter_stenosis_pct"] < 20.0  # the healthy masks show (almost) no narrowing there
     assert lesion["grade"]["source"] == "3D sections"
     assert any("not seen on the masks" in w and "branch 0" in w for w in data["warnings"])
     assert "NOT seen on the masks" in analysis_summary_lines(data)[1]

@@ -47,7 +47,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from SDFCARLib.analysis.centreline import CentrelineError  # noqa: E402
 from SDFCARLib.analysis.phantoms import (branch_arc_length_mm, grid_around, lesion_weight, render_mask,  # noqa: E402
                                          stenosed_tree, stenosed_tube, voxelize_exact)
-from SDFCARLib.analysis.pipeline import analyse_volume, lesion_grade, lesion_on_2d_profile  # noqa: E402
+from SDFCARLib.analysis.pipeline import analyse_volume, lesion_grade, lesion_on_2d_profile, masks_stenosis_pct  # noqa: E402
 from SDFCARLib.analysis.views import foreshortening, foreshortening_map  # noqa: E402
 from SDFCARLib.angiogram import AngiogramSettings  # noqa: E402
 from SDFCARLib.geometry import Geometry, VolumeGrid, standard_geometry  # noqa: E402
@@ -111,7 +111,10 @@ def score(phantom, volume, grid, level, masks, ostium, view_step_deg, frames=Non
     others = [(q, x) for q in r.profiles for x in q.lesions
               if best is None or best[0] > truth["lesion_length_mm"] or x is not best[1]]
     row.update({"false_lesions": len(others),
-                "false_lesions_unseen_on_masks": sum(lesion_grade(q, x).seen_on_masks is False for q, x in others)})
+                "false_lesions_unseen_on_masks": sum(lesion_grade(q, x).seen_on_masks is False for q, x in others),
+                # each as "3D %DS / the masks' largest %DS there", to choose the masks' rule on
+                "false_lesions_ds_3d_masks": " ".join(f"{x.diameter_stenosis_pct:.1f}/{masks_stenosis_pct(q, x) or 0.0:.1f}"
+                                                      for q, x in others)})
     if best is None or best[0] > truth["lesion_length_mm"]:
         row.update({"found": 0})
         return row
@@ -135,6 +138,7 @@ def score(phantom, volume, grid, level, masks, ostium, view_step_deg, frames=Non
     grade = lesion_grade(p, lesion)  # what analysis.json reports as the lesion's grade
     if grade.seen_on_masks is not None:
         row["seen_on_masks"] = int(grade.seen_on_masks)
+        row["masks_ds"] = masks_stenosis_pct(p, lesion)
     row.update({"graded_on": grade.source, "ds_err_grade": grade.measure.diameter_stenosis_pct - truth["diameter_stenosis_pct"],
                 "mld_err_grade_mm": grade.measure.mld_mm - truth["mld_mm"],
                 "len_err_grade_mm": grade.measure.length_mm - truth["lesion_length_mm"]})
@@ -366,6 +370,13 @@ def summarise(rows: List[Dict]) -> str:
         lines.append(f"seen on the masks (pipeline.seen_on_masks): true lesions {int(seen.sum())} of {seen.size} "
                      f"({int(np.sum(col('seen_on_masks', mild)))} of {col('seen_on_masks', mild).size} 30 %); "
                      f"other lesions not seen on the masks (flagged) {int(unseen.sum())} of {int(false.sum())}")
+        # the masks' largest %DS at a lesion over its 3D %DS: can a ratio tell true lesions from the others?
+        true_ratio = np.array([r["masks_ds"] / r["ds_3d"] for r in found if r.get("masks_ds") is not None])
+        other_ratio = np.array([float(m) / float(d) for r in rows for d, m in
+                                (pair.split("/") for pair in str(r.get("false_lesions_ds_3d_masks") or "").split())])
+        lines.append(f"masks' %DS / 3D %DS: true lesions min {true_ratio.min():.2f}, below 0.6 in {int(np.sum(true_ratio < 0.6))} "
+                     f"of {true_ratio.size}; other lesions " + (f"max {other_ratio.max():.2f}, at or above 0.6 in "
+                     f"{int(np.sum(other_ratio >= 0.6))} of {other_ratio.size}" if other_ratio.size else "none"))
     sources = {}
     for r in found:
         sources[r["graded_on"]] = sources.get(r["graded_on"], 0) + 1

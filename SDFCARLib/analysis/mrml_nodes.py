@@ -52,10 +52,10 @@ def _slicer_module():
 
 
 #: the "… QCA" table: one row per branch; its worst lesion as graded (MLD … lesion length, graded_on,
-#: seen_on_frames, seen_on_masks) and as the 3D sections measure it
+#: seen_on_frames, seen_on_masks), as the 3D sections measure it, and the masks' largest narrowing there
 QCA_TABLE_COLUMNS = ("branch", "parent", "length_mm", "mean_diameter_mm", "mld_mm", "diameter_stenosis_pct",
                      "area_stenosis_pct", "lesion_length_mm", "graded_on", "seen_on_frames", "seen_on_masks",
-                     "diameter_stenosis_3d_pct", "mld_3d_mm")
+                     "diameter_stenosis_3d_pct", "mld_3d_mm", "diameter_stenosis_masks_pct")
 #: profile columns measured on the frames (edges, density), in the branch profile tables when present
 FRAME_COLUMNS = ("diameter_frames_mm", "diameter_frames_density_mm")
 
@@ -185,6 +185,7 @@ def add_analysis_nodes(scene, analysis_dir: PathLike, name: str = "SDFCAR", poin
                                      else ("yes" if worst["seen_on_masks"] else "no"))
         rows["diameter_stenosis_3d_pct"].append(worst["diameter_stenosis_pct"] if worst else None)
         rows["mld_3d_mm"].append(worst["mld_mm"] if worst else None)
+        rows["diameter_stenosis_masks_pct"].append(worst.get("masks_diameter_stenosis_pct") if worst else None)
     table = _add_table(scene, f"{name} QCA", rows)
     view_map = _add_view_map(scene, f"{name} view map", data) if data.get("view_map") else None
     return {"curves": curves, "table": table, "chart": chart, "series": series, "view_map": view_map,

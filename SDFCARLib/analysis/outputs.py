@@ -263,6 +263,8 @@ def analysis_summary_lines(data: Dict[str, Any]) -> List[str]:
         others = [(GRADED_ON_3D, lesion)] + [(f"frames ({name})", frames.get(name)) for name in ("density", "edges")]
         seen = [f"{name} DS {m['diameter_stenosis_pct']:.0f}%, MLD {m['mld_mm']:.2f} mm"
                 for name, m in others if m and name != grade["source"]]
+        if lesion.get("masks_diameter_stenosis_pct") is not None:  # what the drawn masks show there, beside it
+            seen.append(f"masks DS {lesion['masks_diameter_stenosis_pct']:.0f}%")
         if seen:
             line += "; " + "; ".join(seen)
         images = unseen_on(lesion.get("seen_on_frames"), lesion.get("seen_on_masks"))

@@ -355,6 +355,16 @@ class LesionGrade:
         return dict(self.measure.to_dict(), source=self.source)
 
 
+def masks_stenosis_pct(p: BranchProfile, lesion: Lesion) -> Optional[float]:
+    """The largest % diameter stenosis the masks show at ``lesion`` (found on ``p``'s 3D sections): on their
+    two-view diameter or either view's width; 0 where none narrows there, None without masks."""
+    if p.view_widths_mm is None:
+        return None
+    found = [lesion_on_2d_profile(p, values, lesion, min_stenosis_pct=1.0)
+             for values in [p.mask_diameter_mm] + list(p.view_widths_mm)]
+    return max([x.diameter_stenosis_pct for x in found if x is not None], default=0.0)
+
+
 def seen_on_masks(p: BranchProfile, lesion: Lesion, min_stenosis_pct: float = 20.0) -> Optional[bool]:
     """Whether the masks show ``lesion`` (found on ``p``'s 3D sections): their two-view diameter or one view's
     width narrows by ``min_stenosis_pct`` there (an eccentric throat may narrow in one view only; an overlap
@@ -395,7 +405,8 @@ def _lesion_entry(p: BranchProfile, lesion: Lesion, min_stenosis_pct: float, **e
     grade = lesion_grade(p, lesion, min_stenosis_pct)
     frames = None if grade.on_frames is None else {k: None if v is None else v.to_dict() for k, v in grade.on_frames.items()}
     return dict(lesion.to_dict(), branch_id=p.branch.branch_id, grade=grade.to_dict(),
-                seen_on_frames=grade.seen_on_frames, frames=frames, seen_on_masks=grade.seen_on_masks, **extra)
+                seen_on_frames=grade.seen_on_frames, frames=frames, seen_on_masks=grade.seen_on_masks,
+                masks_diameter_stenosis_pct=masks_stenosis_pct(p, lesion), **extra)
 
 
 def _unseen_warning(lesions: List[Dict[str, Any]], images: str, check_on: str) -> Optional[str]:
