@@ -86,6 +86,22 @@ class HashEncoding(nn.Module):
         self.register_buffer("_corners", _CORNERS.clone(), persistent=False)
         self.register_buffer("_primes", torch.tensor(_PRIMES, dtype=torch.int64), persistent=False)
         self.table = nn.Parameter(torch.empty(offsets[-1], features_per_level).uniform_(-1e-4, 1e-4))
+        self.level_weights = None  # (levels,) in [0, 1], or None: every level at full weight
+
+    def fade_in_levels(self, active_levels: float) -> None:
+        """Weigh level l by clamp(active_levels − l, 0, 1): the first ``active_levels`` levels fully, the
+        next partly, the finer ones not at all (coarse-to-fine fitting); ``levels`` or more: all, unweighted."""
+        if active_levels >= self.levels:
+            self.level_weights = None
+            return
+        level = torch.arange(self.levels, dtype=self.table.dtype, device=self.table.device)
+        self.level_weights = (active_levels - level).clamp(0.0, 1.0)
+
+    def _weighed(self, features: torch.Tensor) -> torch.Tensor:
+        if self.level_weights is None:
+            return features
+        n = features.shape[0]
+        return (features.reshape(n, self.levels, self.features_per_level) * self.level_weights[None, :, None]).reshape(n, -1)
 
     def vertex_indices(self, x: torch.Tensor):
         """Table rows (N, L, 8) and trilinear weights (N, L, 8) of points ``x`` (N, 3) in [0, 1]."""
@@ -122,10 +138,10 @@ class HashEncoding(nn.Module):
     def forward(self, x) -> torch.Tensor:
         """Encode points (N, 3) in [0, 1], or ``EncodedPoints`` from ``prepare``."""
         if isinstance(x, EncodedPoints):
-            return x.operator(self.table).reshape(x.count, self.output_dim)
+            return self._weighed(x.operator(self.table).reshape(x.count, self.output_dim))
         index, weight = self.vertex_indices(x)
         features = self.table[index]  # (N, L, 8, F)
-        return (features * weight[..., None]).sum(dim=2).reshape(x.shape[0], self.output_dim)
+        return self._weighed((features * weight[..., None]).sum(dim=2).reshape(x.shape[0], self.output_dim))
 
 
 @dataclass

@@ -301,6 +301,9 @@ def build_problem(geometry: Geometry, targets: Sequence[np.ndarray], settings: S
                    projectors, view_targets, geometric, time.perf_counter() - t_start, warnings, consistency, record)
 
 
+COARSE_START_LEVELS = 2  # the encoding's levels active at the first step of a coarse-to-fine fit
+
+
 def optimise(problem: Problem, model: ImplicitField, progress: Progress = None, cancel: Cancel = None,
              progress_interval_s: float = 0.5, snapshot: Optional[Callable[[int, np.ndarray], None]] = None,
              snapshot_every: int = 0) -> Tuple[List[Dict[str, float]], float]:
@@ -316,6 +319,7 @@ def optimise(problem: Problem, model: ImplicitField, progress: Progress = None, 
     scheduler = torch.optim.lr_scheduler.LambdaLR(
         optimiser, lambda n: min(1.0, (n + 1) / o.warmup_steps) if o.warmup_steps > 0 else 1.0)
     history: List[Dict[str, float]] = []
+    fade_steps = o.coarse_to_fine_fraction * o.steps
     lambda_occ = problem.evidence.get("lambda_occ", settings.loss.lambda_occ)
     t_loop = time.perf_counter()
     last_report = -math.inf
@@ -323,6 +327,10 @@ def optimise(problem: Problem, model: ImplicitField, progress: Progress = None, 
         if _is_cancelled(cancel):
             raise ReconstructionCancelled(f"cancelled at step {step - 1} of {o.steps}")
         optimiser.zero_grad(set_to_none=True)
+        if fade_steps:
+            # two levels from the start, the rest faded in one after another over the first fade_steps
+            levels = model.encoding.levels
+            model.encoding.fade_in_levels(COARSE_START_LEVELS + (levels - COARSE_START_LEVELS) * (step - 1) / fade_steps)
         occupancy = model(encoded, checkpoint_points=o.checkpoint_points)
         line_integrals = [projector.render(occupancy) for projector in problem.projectors]
         l_occ = sum(occupancy_loss(t.rendered(li), t.image)

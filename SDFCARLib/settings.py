@@ -94,6 +94,8 @@ class OptimisationSettings:
     learning_rate: float = 1e-4
     table_learning_rate: Optional[float] = None  # the hash table's; None: learning_rate
     warmup_steps: int = 0  # linear warm-up of both learning rates
+    # >0: the encoding's finer levels are faded in over this share of the steps, coarse to fine (0: all from the start)
+    coarse_to_fine_fraction: float = 0.0
     checkpoint_points: int = 262144  # >0: the MLP in checkpointed chunks of this many points (memory)
 
 
@@ -255,6 +257,9 @@ class Settings:
             raise ReconstructionError("dt_downsample must be at least 1")
         if o.warmup_steps < 0 or o.checkpoint_points < 0:
             raise ReconstructionError("warmup_steps and checkpoint_points must not be negative")
+        if not 0 <= o.coarse_to_fine_fraction < 1:
+            raise ReconstructionError(f"coarse_to_fine_fraction is the share of the steps over which the finer levels "
+                                      f"fade in: 0 (off) up to below 1, got {o.coarse_to_fine_fraction}")
         if not r.prune_piece_mm > 0 or not 0 <= r.prune_tolerance < 1:
             raise ReconstructionError("prune_piece_mm must be positive and prune_tolerance in [0, 1)")
         if not r.reconnect_max_gap_mm > 0:
@@ -297,6 +302,9 @@ PRESETS: Dict[str, Dict[str, Any]] = {  # the default first: lists offer it firs
         # 400 steps converge only with the table at 1e-2; the MLP at 1e-3 (α = 50 amplifies its
         # output layer's steps), both warmed up so that Adam's first steps do not saturate σ(−α·s)
         steps=400, learning_rate=1e-3, table_learning_rate=1e-2, warmup_steps=20,
+        # the finer hash levels faded in over the first half: the fit settles the tree's course before its
+        # detail, and leaves it in fewer pieces (bench/RESULTS.md §27c)
+        coarse_to_fine_fraction=0.5,
         dt_downsample=2,
         # two views cannot rule out ghost branches: drop the pieces no mask pixel needs
         prune=True,

@@ -119,6 +119,28 @@ def test_prepared_encoding_equals_direct_encoding_values_and_gradients():
     torch.testing.assert_close(enc.table.grad, grad_direct, atol=1e-5, rtol=1e-5)
 
 
+def test_fading_in_levels_weighs_each_levels_features_and_no_gradient_reaches_the_faded_ones():
+    torch.manual_seed(1)
+    enc = HashEncoding(levels=5, features_per_level=2, log2_table_size=11, base_resolution=4, max_resolution=40)
+    with torch.no_grad():
+        enc.table.copy_(torch.randn_like(enc.table))
+    points = torch.rand(200, 3)
+    full = enc(points).detach().reshape(200, 5, 2)
+    enc.fade_in_levels(2.25)  # levels 0 and 1 whole, level 2 at a quarter, 3 and 4 off
+    torch.testing.assert_close(enc.level_weights, torch.tensor([1.0, 1.0, 0.25, 0.0, 0.0]))
+    for x in (points, enc.prepare(points)):
+        enc.table.grad = None
+        faded = enc(x)
+        torch.testing.assert_close(faded.detach().reshape(200, 5, 2), full * enc.level_weights[None, :, None],
+                                   atol=1e-5, rtol=1e-5)
+        faded.sum().backward()
+        finest = slice(int(enc._offset[3]), None)  # the rows of levels 3 and 4
+        assert not enc.table.grad[finest].any() and enc.table.grad[: int(enc._offset[1])].abs().sum() > 0
+    enc.fade_in_levels(5.0)  # all levels: no weighting at all
+    assert enc.level_weights is None
+    torch.testing.assert_close(enc(points).detach().reshape(200, 5, 2), full)
+
+
 def small_config(**overrides) -> FieldConfig:
     values = dict(levels=4, log2_table_size=12, base_resolution=4, max_resolution=32, width=32, depth=4)
     values.update(overrides)

@@ -201,6 +201,20 @@ def test_same_seed_same_result_different_seed_different_result(case):
     assert a.report["seed"] == 1 and c.report["seed"] == 2
 
 
+def test_a_coarse_to_fine_fit_differs_from_one_with_every_level_from_the_start_and_finds_the_vessel(case):
+    """coarse_to_fine_fraction (on in fast) reaches the fit (the fading itself: test_field.py), and the
+    vessel is still found."""
+    def fitted(fraction):
+        return reconstruct(case[0], _masks(case), make_settings("fast", steps=40, seed=3, device="cpu",
+                                                                 coarse_to_fine_fraction=fraction))
+
+    every_level, coarse_first = fitted(0.0), fitted(0.5)
+    assert coarse_first.report["settings"]["coarse_to_fine_fraction"] == 0.5
+    assert not np.array_equal(every_level.field, coarse_first.field)
+    assert coarse_first.segmentation.sum() > 0.5 * case[1].sum()
+    assert every_level.segmentation.sum() > 0.5 * case[1].sum()
+
+
 def test_partial_occupancy_term_makes_the_fitted_field_more_binary(case):
     """lambda_binary (L_bin, off by default) reaches the fit: the same run with it holds less of its
     vessel mass at partial occupancy, and the vessel is still there."""
