@@ -355,13 +355,17 @@ class LesionGrade:
         return dict(self.measure.to_dict(), source=self.source)
 
 
+def _mask_profiles(p: BranchProfile) -> List[np.ndarray]:
+    """The masks' profiles a lesion is read on: their two-view diameter and each view's width."""
+    return [p.mask_diameter_mm] + list(p.view_widths_mm)
+
+
 def masks_stenosis_pct(p: BranchProfile, lesion: Lesion) -> Optional[float]:
     """The largest % diameter stenosis the masks show at ``lesion`` (found on ``p``'s 3D sections): on their
     two-view diameter or either view's width; 0 where none narrows there, None without masks."""
     if p.view_widths_mm is None:
         return None
-    found = [lesion_on_2d_profile(p, values, lesion, min_stenosis_pct=1.0)
-             for values in [p.mask_diameter_mm] + list(p.view_widths_mm)]
+    found = [lesion_on_2d_profile(p, values, lesion, min_stenosis_pct=1.0) for values in _mask_profiles(p)]
     return max([x.diameter_stenosis_pct for x in found if x is not None], default=0.0)
 
 
@@ -371,8 +375,7 @@ def seen_on_masks(p: BranchProfile, lesion: Lesion, min_stenosis_pct: float = 20
     widens one view, not both). None without masks."""
     if p.view_widths_mm is None:
         return None
-    profiles = [p.mask_diameter_mm] + list(p.view_widths_mm)
-    return any(lesion_on_2d_profile(p, values, lesion, min_stenosis_pct) is not None for values in profiles)
+    return any(lesion_on_2d_profile(p, values, lesion, min_stenosis_pct) is not None for values in _mask_profiles(p))
 
 
 def lesion_grade(p: BranchProfile, lesion: Lesion, min_stenosis_pct: float = 20.0) -> LesionGrade:
