@@ -136,7 +136,10 @@ def pose_score(geometry: Geometry, targets: Sequence[np.ndarray], settings, targ
     fitted from scratch for ``calibration_steps`` steps (lower: the views agree better)."""
     from .optimiser import fitted_loss
 
-    short = settings.replace(steps=settings.calibration.calibration_steps, prune=False, reconnect=False)
+    # every level of the encoding from the first step: a candidate is scored by its last steps' loss, and
+    # a short fit still fading its finer levels in scores a coarser field, which blurs the shift's minimum
+    short = settings.replace(steps=settings.calibration.calibration_steps, prune=False, reconnect=False,
+                             coarse_to_fine_fraction=0.0)
     return fitted_loss(geometry, targets, short, target_kind, CALIBRATION_SCORE_STEPS, cancel)
 
 

@@ -302,6 +302,9 @@ PRESETS: Dict[str, Dict[str, Any]] = {  # the default first: lists offer it firs
         # 400 steps converge only with the table at 1e-2; the MLP at 1e-3 (α = 50 amplifies its
         # output layer's steps), both warmed up so that Adam's first steps do not saturate σ(−α·s)
         steps=400, learning_rate=1e-3, table_learning_rate=1e-2, warmup_steps=20,
+        # the finer hash levels faded in over the first half: the fit settles the tree's course before its
+        # detail, and leaves it in fewer pieces (bench/RESULTS.md §27c, §28a)
+        coarse_to_fine_fraction=0.5,
         dt_downsample=2,
         # two views cannot rule out ghost branches: drop the pieces no mask pixel needs
         prune=True,

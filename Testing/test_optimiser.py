@@ -202,7 +202,7 @@ def test_same_seed_same_result_different_seed_different_result(case):
 
 
 def test_a_coarse_to_fine_fit_differs_from_one_with_every_level_from_the_start_and_finds_the_vessel(case):
-    """coarse_to_fine_fraction (off by default) reaches the fit (the fading itself: test_field.py), and the
+    """coarse_to_fine_fraction (on in fast) reaches the fit (the fading itself: test_field.py), and the
     vessel is still found."""
     def fitted(fraction):
         return reconstruct(case[0], _masks(case), make_settings("fast", steps=40, seed=3, device="cpu",
