@@ -1,0 +1,113 @@
+"""Finishing rules tried offline on saved reconstructions (``bench/variants.py --save DIR``).
+
+    .venv/bin/python bench/saved_run_rules.py 'bench/runs/c2f-clean/*/*-v0.npz'
+
+No fit is repeated: each rule edits the saved segmentation, which is scored against the saved truth.
+Two families, both candidates for dropping ghosts after the fit:
+
+``width``  a vessel is a tube, so its projected width (perpendicular to its course) is the same
+           diameter in every view, scaled by the magnification at its depth. A ghost lies where the
+           rays of two *different* vessels cross, and their widths need not agree. Each segmented
+           voxel gets the ratio (smaller / larger) of the masks' half-widths at its projections (the
+           distance map read at the nearest 2D centreline pixel, in mm at the voxel's depth); the rule
+           drops voxels (``vox<q>``) or whole 6 mm skeleton pieces (``piece<q>``, median ratio) below q.
+``frag``   detached components holding less than a share f of the segmented voxels are dropped.
+
+Prints one line per run (clDice / components for every rule) and the means with the number of runs
+each rule made better and worse, and the machine.
+"""
+
+from __future__ import annotations
+
+import argparse
+import glob
+import os
+import platform
+import sys
+from pathlib import Path
+from typing import Dict, List, Tuple
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+import numpy as np  # noqa: E402
+from scipy import ndimage  # noqa: E402
+from skimage.morphology import skeletonize  # noqa: E402
+
+from SDFCARLib.geometry import Geometry  # noqa: E402
+from SDFCARLib.metrics import cldice, component_labels, dice  # noqa: E402
+from SDFCARLib.pruning import skeleton_pieces  # noqa: E402
+
+WIDTH_RATIOS = (0.5, 0.6, 0.7)
+FRAGMENT_SHARES = (0.002, 0.005, 0.01, 0.02)
+PIECE_MM = 6.0  # the pruning's piece length (pruning.PruneSettings.max_piece_mm)
+
+
+def width_ratio(masks: np.ndarray, geometry: Geometry, points_mm: np.ndarray) -> np.ndarray:
+    """Per point: smaller / larger of the views' mask half-widths (mm at the point's depth)."""
+    half_mm = []
+    for mask, view in zip(masks, geometry.views):
+        mask = np.asarray(mask, bool)
+        inside_px = ndimage.distance_transform_edt(mask)
+        nearest = ndimage.distance_transform_edt(~skeletonize(mask), return_distances=False, return_indices=True)
+        half_px = inside_px[nearest[0], nearest[1]]
+        row, col, depth_mm = view.project(points_mm)
+        r = np.clip(np.round(np.nan_to_num(row)).astype(int), 0, mask.shape[0] - 1)
+        c = np.clip(np.round(np.nan_to_num(col)).astype(int), 0, mask.shape[1] - 1)
+        half_mm.append(half_px[r, c] * float(np.mean(view.pixel_spacing_mm)) * depth_mm / view.sid_mm)
+    half_mm = np.stack(half_mm)
+    return half_mm.min(axis=0) / np.maximum(half_mm.max(axis=0), 1e-6)
+
+
+def rules(segmentation: np.ndarray, masks: np.ndarray, geometry: Geometry) -> Dict[str, np.ndarray]:
+    voxels = np.argwhere(segmentation)
+    ratio = width_ratio(masks, geometry, geometry.volume.index_to_world(voxels.astype(float)))
+    ratio_volume = np.ones(segmentation.shape)
+    ratio_volume[tuple(voxels.T)] = ratio
+    pieces, count = skeleton_pieces(segmentation, geometry.volume.spacing_mm, PIECE_MM)
+    piece_median = np.ones(count + 1)
+    if count:
+        piece_median[1:] = ndimage.median(ratio_volume, pieces, index=np.arange(1, count + 1))
+    out = {"fast": segmentation}
+    for q in WIDTH_RATIOS:
+        kept = segmentation.copy()
+        kept[tuple(voxels[ratio < q].T)] = False
+        out[f"vox{q}"] = kept
+        out[f"piece{q}"] = segmentation & (piece_median[pieces] >= q)
+    labels, sizes = component_labels(segmentation)
+    share = sizes / max(int(sizes.sum()), 1)
+    for f in FRAGMENT_SHARES:
+        out[f"frag{f}"] = np.isin(labels, np.flatnonzero(share >= f) + 1)
+    return out
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("runs", nargs="+", help="glob(s) of saved .npz runs (each with its geometry .json)")
+    args = parser.parse_args()
+    paths = sorted({p for pattern in args.runs for p in glob.glob(pattern)})
+    if not paths:
+        parser.error(f"no saved run matches {args.runs}")
+    print(f"# {platform.processor() or platform.machine()}, {os.cpu_count()} cores; {len(paths)} saved runs")
+    scores: Dict[str, List[Tuple[float, float, int]]] = {}
+    for path in paths:
+        saved = np.load(path)
+        geometry = Geometry.load(path[:-len(".npz")] + ".json")
+        label = saved["label"]
+        line = []
+        for name, result in rules(saved["segmentation"], saved["masks"], geometry).items():
+            row = (cldice(result, label), dice(result, label), int(component_labels(result)[1].size))
+            scores.setdefault(name, []).append(row)
+            line.append(f"{name} {row[0]:.3f}/{row[2]}")
+        print("/".join(Path(path).parts[-2:]), "  ".join(line), flush=True)
+    base = np.array(scores["fast"])
+    for name, rows in scores.items():
+        rows = np.array(rows)
+        print(f"mean {name:9s} clDice {100 * rows[:, 0].mean():6.2f}  Dice {100 * rows[:, 1].mean():6.2f}  "
+              f"pieces {rows[:, 2].mean():5.1f}  better / worse clDice {int((rows[:, 0] > base[:, 0]).sum())} / "
+              f"{int((rows[:, 0] < base[:, 0]).sum())} of {len(rows)}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
