@@ -36,11 +36,11 @@ from skimage.morphology import skeletonize  # noqa: E402
 
 from SDFCARLib.geometry import Geometry  # noqa: E402
 from SDFCARLib.metrics import cldice, component_labels, dice  # noqa: E402
-from SDFCARLib.pruning import skeleton_pieces  # noqa: E402
+from SDFCARLib.pruning import PruneSettings, skeleton_pieces  # noqa: E402
 
 WIDTH_RATIOS = (0.5, 0.6, 0.7)
 FRAGMENT_SHARES = (0.002, 0.005, 0.01, 0.02)
-PIECE_MM = 6.0  # the pruning's piece length (pruning.PruneSettings.max_piece_mm)
+PIECE_MM = PruneSettings.max_piece_mm  # the pieces pruning weighs
 
 
 def width_ratio(masks: np.ndarray, geometry: Geometry, points_mm: np.ndarray) -> np.ndarray:
