@@ -453,3 +453,22 @@ def test_strands_that_run_inside_their_parents_lumen_are_told_from_side_branches
     header = analysis_summary_lines({"tree": {"branches": 3, "total_length_mm": 54.0, "strands_dropped": 2}})[0]
     assert header.startswith("3D-QCA: 3 branches, 54.0 mm") and "2 strand(s)" in header
     assert "strand" not in analysis_summary_lines({"tree": {"branches": 3, "total_length_mm": 54.0, "strands_dropped": 0}})[0]
+
+
+@pytest.mark.parametrize("stenosis_pct, voxel_mm, thin", [(50.0, 0.5, False), (70.0, 0.5, True), (70.0, 0.3, False)])
+def test_a_throat_thinner_than_the_grid_resolves_is_flagged_and_warned_about(stenosis_pct, voxel_mm, thin):
+    from SDFCARLib.analysis.pipeline import RESOLVABLE_VOXELS, analyse_volume, summary
+
+    # The 3 mm tube: a 50 % throat is 1.5 mm, a 70 % one 0.9 mm, under 2.5 voxels of 0.5 mm (1.25 mm), not of 0.3 mm.
+    phantom = stenosed_tube(length_mm=40.0, diameter_mm=3.0, stenosis_pct=stenosis_pct, lesion_length_mm=10.0,
+                            direction=(1.0, 0.5, 0.25))
+    grid = grid_around(phantom.tree, voxel_mm, margin_mm=8.0)
+    data = summary(analyse_volume(voxelize_exact(phantom.tree, grid), grid, best_view=False))
+    assert data["settings"]["voxel_mm"] == pytest.approx(voxel_mm)
+    [lesion] = data["lesions"]
+    assert lesion["mld_mm"] == pytest.approx(3.0 * (1 - stenosis_pct / 100), abs=2 * voxel_mm)
+    assert lesion["mld_below_resolution"] is (lesion["mld_mm"] < RESOLVABLE_VOXELS * voxel_mm) is thin
+    warned = [w for w in data["warnings"] if "minimal lumen under 2.5 voxels" in w]
+    assert len(warned) == int(thin)
+    if thin:  # names the lesion and the fix
+        assert "branch 0" in warned[0] and "1.25 mm on this 0.5 mm grid" in warned[0] and "--frames" in warned[0]

@@ -305,3 +305,27 @@ def test_without_frames_a_narrowing_of_the_reconstruction_that_the_masks_do_not_
     data = summary(_analyse(tube, healthy))
     assert data["lesions"][0]["seen_on_masks"] is False and data["lesions"][0]["seen_on_frames"] is False
     assert not any("not seen on the masks" in w for w in data["warnings"])
+
+
+def test_a_throat_below_the_grids_resolution_is_warned_about_only_where_the_3d_sections_grade_it(stenosed_tube_frames):
+    from SDFCARLib.analysis.phantoms import grid_around, voxelize_exact
+    from SDFCARLib.analysis.pipeline import analyse_volume, summary
+
+    tube, realistic = stenosed_tube_frames
+    grid = grid_around(tube.tree, 0.6)  # the 1.5 mm throat is under 2.5 voxels (1.5 mm)
+
+    def analysed(frames):
+        return summary(analyse_volume(voxelize_exact(tube.tree, grid).astype(np.float32), grid, views=VIEWS,
+                                      masks=realistic.masks, frames=realistic.frames if frames else None,
+                                      ostium_mm=tube.truth["ostium_mm"], best_view=False,
+                                      psf_sigma_mm=AngiogramSettings().psf_sigma_mm))
+
+    def thin_throat_warnings(data):
+        return [w for w in data["warnings"] if "minimal lumen under 2.5 voxels" in w]
+
+    with_frames, without = analysed(True), analysed(False)
+    assert [d["mld_below_resolution"] for d in with_frames["lesions"] + without["lesions"]] == [True, True]
+    assert with_frames["lesions"][0]["grade"]["source"] != "3D sections"  # graded on the frames, which resolve it
+    assert thin_throat_warnings(with_frames) == []
+    assert without["lesions"][0]["grade"]["source"] == "3D sections"
+    assert len(thin_throat_warnings(without)) == 1
