@@ -55,6 +55,7 @@ from .metrics import component_counts, component_labels
 from .projector import ConeBeamProjector, project_volume
 from .qa import qa_warnings, reprojection_qa
 from .pruning import PruneSettings, prune_redundant_branches, removal_zone, unconfirmed_fragments
+from .width_agreement import disagreeing_pieces
 from .settings import MASK_THRESHOLD_MM, TARGET_KINDS, ReconstructionError, RegionSettings, Settings, make_settings
 
 Progress = Optional[Callable[[Dict[str, Any]], None]]
@@ -403,6 +404,15 @@ def finish(problem: Problem, model: ImplicitField, history: List[Dict[str, float
         occupancy_volume[grown] = settings.region.threshold
         field_volume[grown] = field_values(np.float32(settings.region.threshold), settings.mode.field_kind, settings.field.alpha)
         segmentation = segmentation | grown
+    width_check: Optional[Dict[str, Any]] = None
+    if settings.region.width_agreement_min_ratio and segmentation.any():
+        # after growing, as measured (RESULTS §29): a ghost grown from before would come back
+        kept, width_check = disagreeing_pieces(segmentation, vessel_pixels(problem.targets, problem.target_kind), geometry,
+                                               settings.region.width_agreement_min_ratio, settings.region.prune_piece_mm)
+        zone = removal_zone(segmentation, kept, geometry.volume.spacing_mm)
+        occupancy_volume[zone] = 0.0
+        field_volume[zone] = float(field_volume.max()) if settings.mode.field_kind == "sdf" else float(field_volume.min())
+        segmentation = kept
     projected = reprojected_masks(segmentation, geometry, projectors=traced)
     references = vessel_pixels(problem.targets, problem.target_kind)
     qa = [reprojection_qa(p, m, v) for p, m, v in zip(projected, references, geometry.views)]
@@ -426,6 +436,7 @@ def finish(problem: Problem, model: ImplicitField, history: List[Dict[str, float
         "segmented_voxels": int(segmentation.sum()),
         "grown_voxels": grown_voxels,  # added below the threshold by grow_threshold (None: off)
         "pruning": pruning,
+        "width_agreement": width_check,
         "reconnection": reconnection,
         "unconfirmed_fragments": unconfirmed,
         "components": component_counts(segmentation),

@@ -142,6 +142,9 @@ class RegionSettings:
     # lowest geometric-mean occupancy along the gap; 0: none asked, the support (both views show vessel
     # there) and the gap's length decide (σ(−α·s) is nearly binary, so a gap's occupancy tells little: RESULTS §19)
     reconnect_min_occupancy: float = 0.0
+    # 0: off. Otherwise, last, the skeleton pieces (prune_piece_mm) whose views see the vessel with
+    # widths agreeing less than this (median of smaller / larger half-width, width_agreement.py) are removed
+    width_agreement_min_ratio: float = 0.0
 
 
 #: a calibration candidate's score is its mean loss over this many last steps (Adam's steps are noisy)
@@ -274,6 +277,9 @@ class Settings:
         if not 0 <= r.grow_threshold <= r.threshold:
             raise ReconstructionError(f"grow_threshold must be 0 (off) or an occupancy up to threshold ({r.threshold:g}), "
                                       f"got {r.grow_threshold}")
+        if not 0 <= r.width_agreement_min_ratio < 1:
+            raise ReconstructionError(f"width_agreement_min_ratio must be 0 (off) or an agreement of the views' widths "
+                                      f"below 1 (smaller / larger), got {r.width_agreement_min_ratio}")
         if run.device not in DEVICES and not str(run.device).startswith("cuda:"):
             raise ReconstructionError(f"device must be auto, cpu or cuda, got {run.device!r}")
         cal = self.calibration

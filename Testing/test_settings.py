@@ -90,6 +90,8 @@ def test_overrides_and_none_values():
     (dict(coarse_to_fine_fraction=1.0), "coarse_to_fine_fraction"),
     (dict(grow_threshold=0.6), "grow_threshold must be 0 (off) or an occupancy up to threshold (0.5)"),
     (dict(grow_threshold=-0.1), "grow_threshold"),
+    (dict(width_agreement_min_ratio=1.0), "width_agreement_min_ratio must be 0 (off) or an agreement"),
+    (dict(width_agreement_min_ratio=-0.2), "width_agreement_min_ratio"),
 ])
 def test_bad_settings(kwargs, fragment):
     kwargs = dict(kwargs)

@@ -1,0 +1,138 @@
+"""Width agreement of the views (SDFCARLib.width_agreement) on tubes whose projected widths are known."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from SDFCARLib.analysis.phantoms import grid_around, render_mask, straight_tube, voxelize_exact
+from SDFCARLib.geometry import Geometry, standard_geometry
+from SDFCARLib.metrics import component_counts
+from SDFCARLib.phantoms import Branch, CentrelineTree
+from SDFCARLib.width_agreement import (centreline_half_width_px, disagreeing_pieces, half_widths_mm,
+                                       width_agreement)
+
+VIEWS = standard_geometry("lao30-rao30").views  # LAO 30 / RAO 30, 512² at 0.278 mm
+AXIS = (0.2, 0.3, 1.0)  # along the patient, little foreshortened in either view
+
+
+def _tube(diameter_mm, x_mm=0.0):
+    return straight_tube(24.0, diameter_mm, direction=AXIS, center_mm=(x_mm, 0.0, 0.0))
+
+
+def _interior(tube, trim=4):
+    return tube.tree.branches[0].points[trim:-trim]
+
+
+def test_half_width_map_of_a_band_is_its_half_width_everywhere_near_it():
+    mask = np.zeros((60, 80), bool)
+    mask[20:31, 5:75] = True  # 11 pixels across: the centre row is 6 pixels from the outside
+    half = centreline_half_width_px(mask)
+    assert half[25, 40] == pytest.approx(6.0)
+    assert half[21, 40] == pytest.approx(6.0)  # read at the nearest centreline pixel, not where it stands
+    assert half[50, 40] == pytest.approx(6.0)  # outside too: the nearest vessel's width
+    assert not centreline_half_width_px(np.zeros((10, 10), bool)).any()
+
+
+@pytest.mark.parametrize("diameter_mm", [1.5, 3.0])
+def test_each_view_reads_a_tubes_radius_at_its_depth(diameter_mm):
+    tube = _tube(diameter_mm)
+    points = _interior(tube)
+    for view in VIEWS:
+        half = half_widths_mm(centreline_half_width_px(render_mask(tube.tree, view)), view, points)
+        pixel_at_depth_mm = view.pixel_spacing_mm[0] * view.sod_mm / view.sid_mm
+        # the distance map counts whole pixels from the centre pixel: within a pixel of the radius
+        assert np.abs(half - diameter_mm / 2).max() <= pixel_at_depth_mm + 1e-6
+    agreement = width_agreement([render_mask(tube.tree, v) for v in VIEWS], Geometry(grid_around(tube.tree, 0.4), VIEWS),
+                                points)
+    assert np.median(agreement) >= 0.8
+
+
+def test_a_piece_seen_with_different_widths_is_removed_and_a_true_one_kept():
+    true_tube, ghost = _tube(2.5, x_mm=-8.0), _tube(2.5, x_mm=8.0)
+    both = CentrelineTree(true_tube.tree.branches + ghost.tree.branches)
+    grid = grid_around(both, 0.4)
+    segmentation = voxelize_exact(both, grid)
+    # view 1 shows the ghost's place as a 3 mm vessel, view 2 as a 1.5 mm one: agreement 0.5 there
+    masks = [render_mask(true_tube.tree, v) | render_mask(_tube(width, x_mm=8.0).tree, v) for v, width in zip(VIEWS, (3.0, 1.5))]
+    geometry = Geometry(grid, VIEWS)
+    truth_only = voxelize_exact(true_tube.tree, grid)
+
+    kept, info = disagreeing_pieces(segmentation, masks, geometry, min_ratio=0.7)
+    assert info["removed_pieces"] >= 1 and info["removed_voxels"] == int((segmentation & ~kept).sum())
+    assert not (kept & ~truth_only).any()  # nothing of the ghost's tube left
+    assert (kept & truth_only).sum() == truth_only.sum()  # the true tube whole
+    assert min(info["median_agreement"]) == pytest.approx(0.5, abs=0.1)
+
+    unchanged, loose = disagreeing_pieces(segmentation, masks, geometry, min_ratio=0.4)
+    assert loose["removed_voxels"] == 0 and np.array_equal(unchanged, segmentation)
+
+
+def _segment(start_mm, end_mm, diameter_mm):
+    points = np.linspace(start_mm, end_mm, 13)
+    return Branch(points, np.full(len(points), diameter_mm / 2))
+
+
+def test_keep_connected_keeps_a_ghost_bridge_and_peels_a_ghost_spur():
+    left = _segment((-8.0, 0.0, -12.0), (-8.0, 0.0, 12.0), 2.5)
+    right = _segment((8.0, 0.0, -12.0), (8.0, 0.0, 12.0), 2.5)
+    bridge = _segment((-8.0, 0.0, 0.0), (8.0, 0.0, 0.0), 2.5)  # joins the two vessels: the only path between them
+    spur = _segment((-8.0, 0.0, 8.0), (-8.0, 12.0, 8.0), 2.5)  # hangs from the left vessel, along the depth
+    grid = grid_around(CentrelineTree([left, right, spur]), 0.5)
+    true_vessels = voxelize_exact(CentrelineTree([left, right]), grid)
+    segmentation = voxelize_exact(CentrelineTree([left, right, bridge, spur]), grid)
+    # the views see the two true vessels alike, the bridge and the spur at 3 mm in one and 1.5 mm in the other
+    masks = [render_mask(CentrelineTree([left, right]), v)
+             | render_mask(CentrelineTree([_segment(b.points[0], b.points[-1], w) for b in (bridge, spur)]), v)
+             for v, w in zip(VIEWS, (3.0, 1.5))]
+    geometry = Geometry(grid, VIEWS)
+
+    cut, _ = disagreeing_pieces(segmentation, masks, geometry, min_ratio=0.7)
+    joined, info = disagreeing_pieces(segmentation, masks, geometry, min_ratio=0.7, keep_connected=True)
+    assert component_counts(segmentation)["components"] == 1
+    assert component_counts(cut)["components"] >= 2  # the bridge gone: the tree in parts
+    assert component_counts(joined)["components"] == 1  # the bridge kept ...
+    assert (joined & true_vessels).sum() >= 0.99 * true_vessels.sum()  # (the junction's voxels nearest the spur go with it)
+    spur_only = voxelize_exact(CentrelineTree([spur]), grid) & ~true_vessels
+    bridge_only = voxelize_exact(CentrelineTree([bridge]), grid) & ~true_vessels
+    assert (joined & bridge_only).sum() >= 0.9 * bridge_only.sum()
+    assert (joined & spur_only).sum() <= 0.1 * spur_only.sum()  # ... and the spur peeled off, tip first
+    assert info["removed_pieces"] >= 2
+
+
+def test_bad_input_is_refused_with_the_fix():
+    tube = _tube(2.0)
+    grid = grid_around(tube.tree, 0.5)
+    segmentation = voxelize_exact(tube.tree, grid)
+    masks = [render_mask(tube.tree, v) for v in VIEWS]
+    with pytest.raises(ValueError, match="1 masks for 2 views"):
+        disagreeing_pieces(segmentation, masks[:1], Geometry(grid, VIEWS), min_ratio=0.5)
+    with pytest.raises(ValueError, match="from 0 .* to 1"):
+        disagreeing_pieces(segmentation, masks, Geometry(grid, VIEWS), min_ratio=1.5)
+    empty, info = disagreeing_pieces(np.zeros(grid.shape, bool), masks, Geometry(grid, VIEWS), min_ratio=0.5)
+    assert not empty.any() and info["pieces"] == 0
+
+
+def test_reconstruction_finished_with_the_width_check_removes_only_what_the_check_names():
+    from SDFCARLib.geometry import CArmView, VolumeGrid
+    from SDFCARLib.optimiser import fit_field
+    from SDFCARLib.phantoms import simulate_views, voxelize
+    from SDFCARLib.settings import make_settings
+
+    grid = VolumeGrid((24, 24, 24), (2.0, 2.0, 2.0))
+    views = [CArmView(a, 0.0, 1000.0, 750.0, (1.0, 1.0), (64, 64)) for a in (30.0, -30.0)]
+    tree = CentrelineTree([Branch(np.array([[-12.0, -6.0, -10.0], [0.0, 2.0, 0.0], [12.0, 6.0, 10.0]]),
+                                  np.array([3.0, 2.5, 2.0]))])
+    _, masks = simulate_views(voxelize(tree, grid), grid, views)
+    settings = make_settings("fast", steps=60, device="cpu")
+    fitted = fit_field(Geometry(grid, views), masks, settings)
+    plain = fitted.finished()
+    assert plain.report["width_agreement"] is None  # off by default
+    checked = fitted.finished(make_settings("fast", steps=60, device="cpu", width_agreement_min_ratio=0.99))
+    info = checked.report["width_agreement"]
+    removed = plain.segmentation & ~checked.segmentation
+    assert info["removed_voxels"] == int(removed.sum()) and info["pieces"] >= 1
+    assert not (checked.segmentation & ~plain.segmentation).any()  # only ever removes
+    np.testing.assert_array_equal(checked.segmentation, checked.occupancy >= 0.5)  # what the outputs read
+    assert len(info["median_agreement"]) == info["pieces"]
+    assert info["removed_pieces"] == sum(m < 0.99 for m in info["median_agreement"])
