@@ -10,7 +10,8 @@ Two families, both candidates for dropping ghosts after the fit:
            rays of two *different* vessels cross, and their widths need not agree. Each segmented
            voxel gets the ratio (smaller / larger) of the masks' half-widths at its projections (the
            distance map read at the nearest 2D centreline pixel, in mm at the voxel's depth); the rule
-           drops voxels (``vox<q>``) or whole 6 mm skeleton pieces (``piece<q>``, median ratio) below q.
+           drops voxels (``vox<q>``) or whole 6 mm skeleton pieces (``piece<q>``, median ratio) below q,
+           or only those pieces whose removal leaves the rest of their component in one part (``joined<q>``).
 ``frag``   detached components holding less than a share f of the segmented voxels are dropped.
 
 Prints one line per run (clDice / components for every rule) and the means with the number of runs
@@ -31,49 +32,27 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 import numpy as np  # noqa: E402
-from scipy import ndimage  # noqa: E402
-from skimage.morphology import skeletonize  # noqa: E402
 
 from SDFCARLib.geometry import Geometry  # noqa: E402
 from SDFCARLib.metrics import cldice, component_labels, dice  # noqa: E402
-from SDFCARLib.pruning import PruneSettings, skeleton_pieces  # noqa: E402
+from SDFCARLib.pruning import PruneSettings  # noqa: E402
+from SDFCARLib.width_agreement import disagreeing_pieces, width_agreement  # noqa: E402
 
 WIDTH_RATIOS = (0.5, 0.6, 0.7)
 FRAGMENT_SHARES = (0.002, 0.005, 0.01, 0.02)
 PIECE_MM = PruneSettings.max_piece_mm  # the pieces pruning weighs
 
 
-def width_ratio(masks: np.ndarray, geometry: Geometry, points_mm: np.ndarray) -> np.ndarray:
-    """Per point: smaller / larger of the views' mask half-widths (mm at the point's depth)."""
-    half_mm = []
-    for mask, view in zip(masks, geometry.views):
-        mask = np.asarray(mask, bool)
-        inside_px = ndimage.distance_transform_edt(mask)
-        nearest = ndimage.distance_transform_edt(~skeletonize(mask), return_distances=False, return_indices=True)
-        half_px = inside_px[nearest[0], nearest[1]]
-        row, col, depth_mm = view.project(points_mm)
-        r = np.clip(np.round(np.nan_to_num(row)).astype(int), 0, mask.shape[0] - 1)
-        c = np.clip(np.round(np.nan_to_num(col)).astype(int), 0, mask.shape[1] - 1)
-        half_mm.append(half_px[r, c] * float(np.mean(view.pixel_spacing_mm)) * depth_mm / view.sid_mm)
-    half_mm = np.stack(half_mm)
-    return half_mm.min(axis=0) / np.maximum(half_mm.max(axis=0), 1e-6)
-
-
 def rules(segmentation: np.ndarray, masks: np.ndarray, geometry: Geometry) -> Dict[str, np.ndarray]:
     voxels = np.argwhere(segmentation)
-    ratio = width_ratio(masks, geometry, geometry.volume.index_to_world(voxels.astype(float)))
-    ratio_volume = np.ones(segmentation.shape)
-    ratio_volume[tuple(voxels.T)] = ratio
-    pieces, count = skeleton_pieces(segmentation, geometry.volume.spacing_mm, PIECE_MM)
-    piece_median = np.ones(count + 1)
-    if count:
-        piece_median[1:] = ndimage.median(ratio_volume, pieces, index=np.arange(1, count + 1))
+    ratio = width_agreement(masks, geometry, geometry.volume.index_to_world(voxels.astype(float)))
     out = {"fast": segmentation}
     for q in WIDTH_RATIOS:
         kept = segmentation.copy()
         kept[tuple(voxels[ratio < q].T)] = False
         out[f"vox{q}"] = kept
-        out[f"piece{q}"] = segmentation & (piece_median[pieces] >= q)
+        out[f"piece{q}"] = disagreeing_pieces(segmentation, masks, geometry, q, PIECE_MM)[0]
+        out[f"joined{q}"] = disagreeing_pieces(segmentation, masks, geometry, q, PIECE_MM, keep_connected=True)[0]
     labels, sizes = component_labels(segmentation)
     share = sizes / max(int(sizes.sum()), 1)
     for f in FRAGMENT_SHARES:
