@@ -66,12 +66,15 @@ def width_agreement(masks: Sequence[np.ndarray], geometry: Geometry, points_mm: 
     return widths.min(axis=0) / np.maximum(widths.max(axis=0), 1e-9)
 
 
-def _splits_its_component(kept: np.ndarray, piece: np.ndarray) -> bool:
-    """Whether removing ``piece`` from ``kept`` leaves the rest of its 26-connected component in parts."""
-    labels, _ = component_labels(kept)
-    own = np.unique(labels[piece])
+def _splits_its_component(kept: np.ndarray, labels: np.ndarray, piece: np.ndarray) -> bool:
+    """Whether removing ``piece`` from ``kept`` leaves the rest of its 26-connected component in parts.
+
+    ``labels``: components of ``kept`` or of a superset from which only non-splitting pieces were
+    removed since (each component then still one part: it need not be labelled again).
+    """
+    own = np.unique(labels[piece & kept])
     own = own[own > 0]
-    component = np.isin(labels, own)
+    component = np.isin(labels, own) & kept
     rest = component & ~piece
     if not rest.any():
         return False  # the piece is a whole fragment
@@ -110,11 +113,12 @@ def disagreeing_pieces(segmentation: np.ndarray, masks: Sequence[np.ndarray], ge
         kept = segmentation.copy()
         removed_labels: List[int] = []
         changed = True
+        labels = component_labels(kept)[0]
         while changed:  # a spur is peeled from its tip: its inner piece becomes removable once the tip is gone
             changed = False
             for k in [k for k in candidates if k not in removed_labels]:
                 piece = pieces == k
-                if not _splits_its_component(kept, piece):
+                if not _splits_its_component(kept, labels, piece):
                     kept &= ~piece
                     removed_labels.append(k)
                     changed = True

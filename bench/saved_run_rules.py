@@ -12,9 +12,11 @@ Two families, both candidates for dropping ghosts after the fit:
            distance map read at the nearest 2D centreline pixel, in mm at the voxel's depth); the rule
            drops voxels (``vox<q>``) or whole 6 mm skeleton pieces (``piece<q>``, median ratio) below q,
            or only those pieces whose removal leaves the rest of their component in one part (``joined<q>``).
-``frag``   detached components holding less than a share f of the segmented voxels are dropped.
+``frag``   detached components holding less than a share f of the segmented voxels are dropped
+           (also after ``joined<q>``: ``joined<q>+frag<f>``).
 
-Prints one line per run (clDice / components for every rule) and the means with the number of runs
+Prints one line per run (clDice / components for every rule) and the means (with the largest piece's share
+of the voxels) and the number of runs
 each rule made better and worse, and the machine.
 """
 
@@ -53,11 +55,18 @@ def rules(segmentation: np.ndarray, masks: np.ndarray, geometry: Geometry) -> Di
         out[f"vox{q}"] = kept
         out[f"piece{q}"] = disagreeing_pieces(segmentation, masks, geometry, q, PIECE_MM)[0]
         out[f"joined{q}"] = disagreeing_pieces(segmentation, masks, geometry, q, PIECE_MM, keep_connected=True)[0]
+    for f in FRAGMENT_SHARES:
+        out[f"frag{f}"] = without_small_fragments(segmentation, f)
+    for q in WIDTH_RATIOS[1:]:
+        out[f"joined{q}+frag{FRAGMENT_SHARES[1]}"] = without_small_fragments(out[f"joined{q}"], FRAGMENT_SHARES[1])
+    return out
+
+
+def without_small_fragments(segmentation: np.ndarray, min_share: float) -> np.ndarray:
+    """The components holding at least ``min_share`` of the segmented voxels."""
     labels, sizes = component_labels(segmentation)
     share = sizes / max(int(sizes.sum()), 1)
-    for f in FRAGMENT_SHARES:
-        out[f"frag{f}"] = np.isin(labels, np.flatnonzero(share >= f) + 1)
-    return out
+    return np.isin(labels, np.flatnonzero(share >= min_share) + 1)
 
 
 def main() -> int:
@@ -68,14 +77,15 @@ def main() -> int:
     if not paths:
         parser.error(f"no saved run matches {args.runs}")
     print(f"# {platform.processor() or platform.machine()}, {os.cpu_count()} cores; {len(paths)} saved runs")
-    scores: Dict[str, List[Tuple[float, float, int]]] = {}
+    scores: Dict[str, List[Tuple[float, float, int, float]]] = {}
     for path in paths:
         saved = np.load(path)
         geometry = Geometry.load(path[:-len(".npz")] + ".json")
         label = saved["label"]
         line = []
         for name, result in rules(saved["segmentation"], saved["masks"], geometry).items():
-            row = (cldice(result, label), dice(result, label), int(component_labels(result)[1].size))
+            sizes = component_labels(result)[1]
+            row = (cldice(result, label), dice(result, label), int(sizes.size), float(sizes.max(initial=0) / max(sizes.sum(), 1)))
             scores.setdefault(name, []).append(row)
             line.append(f"{name} {row[0]:.3f}/{row[2]}")
         print("/".join(Path(path).parts[-2:]), "  ".join(line), flush=True)
@@ -83,7 +93,7 @@ def main() -> int:
     for name, rows in scores.items():
         rows = np.array(rows)
         print(f"mean {name:9s} clDice {100 * rows[:, 0].mean():6.2f}  Dice {100 * rows[:, 1].mean():6.2f}  "
-              f"pieces {rows[:, 2].mean():5.1f}  better / worse clDice {int((rows[:, 0] > base[:, 0]).sum())} / "
+              f"pieces {rows[:, 2].mean():5.1f}  largest {100 * rows[:, 3].mean():5.1f} %  better / worse clDice {int((rows[:, 0] > base[:, 0]).sum())} / "
               f"{int((rows[:, 0] < base[:, 0]).sum())} of {len(rows)}")
     return 0
 
