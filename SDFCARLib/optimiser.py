@@ -9,9 +9,11 @@ with the frames' evidence and the calibrations asked for, are ``fit_field``):
 2. ``optimise`` runs Adam on the field (``field.ImplicitField``) against λ2·L_occ, plus λ1·L_geo
    in the modes that use it (``settings.MODES``), reporting progress and honouring cancel;
 3. ``finish`` evaluates the field on the grid, thresholds it, prunes the pieces no mask pixel
-   needs when asked (``pruning.py``), joins fragments to the tree through the field when asked
-   (``connectivity.py``), removes the detached fragments that not every view confirms when asked
-   (``pruning.unconfirmed_fragments``), and writes the report.
+   needs when asked (``pruning.py``), removes the detached fragments that not every view confirms
+   (``pruning.unconfirmed_fragments``) and joins the rest to the tree through the field
+   (``connectivity.py``) when asked, grows into connected partial occupancy when asked, removes
+   the pieces whose views see different widths where the tree stays whole when asked
+   (``width_agreement.py``), and writes the report.
 
 Learning rates
     Adam moves every weight by about lr per step. The SDF's occupancy logit is −α·s, so a step of
@@ -406,9 +408,13 @@ def finish(problem: Problem, model: ImplicitField, history: List[Dict[str, float
         segmentation = segmentation | grown
     width_check: Optional[Dict[str, Any]] = None
     if settings.region.width_agreement_min_ratio and segmentation.any():
-        # after growing, as measured (RESULTS §29): a ghost grown from before would come back
+        if _is_cancelled(cancel):
+            raise ReconstructionCancelled("cancelled before checking the views' widths")
+        # after growing, as measured (RESULTS §29b); only where the tree stays whole: cut where a ghost
+        # joins two true vessels, the tree lost more than the ghost (the rule cutting freely scored lower)
         kept, width_check = disagreeing_pieces(segmentation, vessel_pixels(problem.targets, problem.target_kind), geometry,
-                                               settings.region.width_agreement_min_ratio, settings.region.prune_piece_mm)
+                                               settings.region.width_agreement_min_ratio, settings.region.prune_piece_mm,
+                                               keep_connected=True)
         zone = removal_zone(segmentation, kept, geometry.volume.spacing_mm)
         occupancy_volume[zone] = 0.0
         field_volume[zone] = float(field_volume.max()) if settings.mode.field_kind == "sdf" else float(field_volume.min())

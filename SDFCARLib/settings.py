@@ -143,7 +143,8 @@ class RegionSettings:
     # there) and the gap's length decide (σ(−α·s) is nearly binary, so a gap's occupancy tells little: RESULTS §19)
     reconnect_min_occupancy: float = 0.0
     # 0: off. Otherwise, last, the skeleton pieces (prune_piece_mm) whose views see the vessel with
-    # widths agreeing less than this (median of smaller / larger half-width, width_agreement.py) are removed
+    # widths agreeing less than this (median of smaller / larger half-width, width_agreement.py) are
+    # removed, each only where the rest of its component stays in one part (a ghost bridge is kept)
     width_agreement_min_ratio: float = 0.0
 
 
@@ -320,6 +321,9 @@ PRESETS: Dict[str, Dict[str, Any]] = {  # the default first: lists offer it firs
         reconnect=True,
         # then take in the partial occupancy connected to what was kept: vessels thinner than a voxel
         grow_threshold=0.3,
+        # last, drop the pieces whose two views see different widths (where two vessels' rays cross),
+        # unless that cuts the tree (bench/RESULTS.md §29b)
+        width_agreement_min_ratio=0.7,
         # where the frames come with the masks, fit the path lengths they show (ghosts add path the frame lacks)
         frame_evidence=True,
         # and correct the motion between the views that two views observe, read off the same frames
