@@ -12,7 +12,7 @@ from SDFCARLib.settings import make_settings
 from SDFCARLib.phantoms import Branch, CentrelineTree, simulate_views, voxelize
 from SDFCARLib.projector import project_volume
 from SDFCARLib.hull import visual_hull
-from SDFCARLib.optimiser import reconstruct
+from SDFCARLib.optimiser import fit_field
 from SDFCARLib.pruning import (PruneSettings, prune_redundant_branches, removal_zone, skeleton_pieces,
                                unconfirmed_fragments)
 
@@ -209,12 +209,13 @@ def test_a_vessel_missing_from_one_mask_is_not_replaced_by_a_ghost(missed_vessel
     """End to end: the reconstruction places the ghost rod when fragments are kept, not when dropped."""
     geometry, vessel_a, vessel_b, ghost, masks = missed_vessel_case
     ghost_zone = ndimage.binary_dilation(ghost, iterations=2) & ~ndimage.binary_dilation(vessel_a | vessel_b, iterations=3)
-    results = {}
-    for drop, width_ratio in ((False, 0.0), (True, 0.0), (False, 0.7)):  # the width check off: each step alone
-        settings = make_settings("fast", steps=250, seed=0, device="cpu", threads=1, drop_unconfirmed_fragments=drop,
-                                 width_agreement_min_ratio=width_ratio)
-        results[drop, width_ratio] = reconstruct(geometry, [m.astype(np.float32) for m in masks], settings)
-    kept, dropped, width_checked = results[False, 0.0], results[True, 0.0], results[False, 0.7]
+    def settings(drop, width_ratio):  # the width check off: each step alone
+        return make_settings("fast", steps=250, seed=0, device="cpu", threads=1, drop_unconfirmed_fragments=drop,
+                             width_agreement_min_ratio=width_ratio)
+
+    fitted = fit_field(geometry, [m.astype(np.float32) for m in masks], settings(False, 0.0))  # both steps come after the fit
+    kept, dropped, width_checked = (fitted.finished(settings(drop, width_ratio))
+                                    for drop, width_ratio in ((False, 0.0), (True, 0.0), (False, 0.7)))
     assert (kept.segmentation & ghost_zone).sum() >= 10  # the case does make a ghost
     # the two views read different widths along the ghost (B's shadow in AP, A's in LAO 90; median agreement 0.56)
     assert not np.any(width_checked.segmentation & ghost_zone)
