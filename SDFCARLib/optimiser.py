@@ -363,6 +363,16 @@ def optimise(problem: Problem, model: ImplicitField, progress: Progress = None, 
     return history, time.perf_counter() - t_loop
 
 
+def erase_removed(segmentation: np.ndarray, kept: np.ndarray, occupancy_volume: np.ndarray, field_volume: np.ndarray,
+                  geometry: Geometry, settings: Settings) -> np.ndarray:
+    """Empties what a finishing step removed (``pruning.removal_zone``) in the occupancy and the field, in
+    place, so that the outputs agree with the segmentation; returns the new segmentation."""
+    zone = removal_zone(segmentation, kept, geometry.volume.spacing_mm)
+    occupancy_volume[zone] = 0.0
+    field_volume[zone] = float(field_volume.max()) if settings.mode.field_kind == "sdf" else float(field_volume.min())
+    return occupancy_volume >= settings.region.threshold
+
+
 def finish(problem: Problem, model: ImplicitField, history: List[Dict[str, float]], optimise_s: float,
            t_start: float, progress: Progress = None, cancel: Cancel = None) -> Reconstruction:
     """Step 3: the field on the grid, thresholded and (when asked) pruned, with the report."""
@@ -371,32 +381,28 @@ def finish(problem: Problem, model: ImplicitField, history: List[Dict[str, float
     _report(progress, phase="output", step=steps, total=steps, elapsed_s=optimise_s, eta_s=0.0, device=str(problem.device))
     t_out = time.perf_counter()
     occupancy_volume, field_volume = evaluate_volume(model, problem)
-    threshold = settings.region.threshold
-    segmentation = occupancy_volume >= threshold
+    segmentation = occupancy_volume >= settings.region.threshold
     # The fit's projectors already traced every ray through the support, which holds every voxel the
     # steps below keep; over the whole grid (no support) their matrices are too large to reread.
     traced = problem.projectors if problem.support is not None else None
+    references = vessel_pixels(problem.targets, problem.target_kind)
     pruning: Optional[Dict[str, Any]] = None
     if settings.region.prune and segmentation.any():
         if _is_cancelled(cancel):
             raise ReconstructionCancelled("cancelled before pruning")
         _report(progress, phase="prune", step=steps, total=steps, elapsed_s=optimise_s, eta_s=None, device=str(problem.device))
         kept, pruning = prune_redundant_branches(
-            segmentation, vessel_pixels(problem.targets, problem.target_kind), geometry,
+            segmentation, references, geometry,
             PruneSettings(max_piece_mm=settings.region.prune_piece_mm, tolerance=settings.region.prune_tolerance),
             projectors=traced)
-        zone = removal_zone(segmentation, kept, geometry.volume.spacing_mm)
-        occupancy_volume[zone] = 0.0
-        field_volume[zone] = float(field_volume.max()) if settings.mode.field_kind == "sdf" else float(field_volume.min())
-        segmentation = occupancy_volume >= threshold
+        segmentation = erase_removed(segmentation, kept, occupancy_volume, field_volume, geometry, settings)
     unconfirmed: Optional[Dict[str, Any]] = None
     reconnection: Optional[Dict[str, Any]] = None
     if (settings.region.drop_unconfirmed_fragments or settings.region.reconnect) and segmentation.any():
         if _is_cancelled(cancel):
             raise ReconstructionCancelled("cancelled before checking and joining the fragments")
         segmentation, unconfirmed, reconnection = drop_then_join_fragments(
-            segmentation, occupancy_volume, field_volume, vessel_pixels(problem.targets, problem.target_kind), geometry,
-            problem.support, settings, projectors=traced)
+            segmentation, occupancy_volume, field_volume, references, geometry, problem.support, settings, projectors=traced)
     # last: grown only from what pruning and the fragment checks kept (before them it grows ghosts too);
     # the grown voxels' occupancy is raised to the threshold, as bridges are filled, so that occupancy.nrrd,
     # the surface and `analyse` keep reading the segmentation as occupancy ≥ threshold
@@ -412,15 +418,11 @@ def finish(problem: Problem, model: ImplicitField, history: List[Dict[str, float
             raise ReconstructionCancelled("cancelled before checking the views' widths")
         # after growing, as measured (RESULTS §29b); only where the tree stays whole: cut where a ghost
         # joins two true vessels, the tree lost more than the ghost (the rule cutting freely scored lower)
-        kept, width_check = disagreeing_pieces(segmentation, vessel_pixels(problem.targets, problem.target_kind), geometry,
+        kept, width_check = disagreeing_pieces(segmentation, references, geometry,
                                                settings.region.width_agreement_min_ratio, settings.region.prune_piece_mm,
                                                keep_connected=True)
-        zone = removal_zone(segmentation, kept, geometry.volume.spacing_mm)
-        occupancy_volume[zone] = 0.0
-        field_volume[zone] = float(field_volume.max()) if settings.mode.field_kind == "sdf" else float(field_volume.min())
-        segmentation = kept
+        segmentation = erase_removed(segmentation, kept, occupancy_volume, field_volume, geometry, settings)
     projected = reprojected_masks(segmentation, geometry, projectors=traced)
-    references = vessel_pixels(problem.targets, problem.target_kind)
     qa = [reprojection_qa(p, m, v) for p, m, v in zip(projected, references, geometry.views)]
     qa_warned = qa_warnings(qa)
     for message in qa_warned:
@@ -491,10 +493,8 @@ def drop_then_join_fragments(
     if region.drop_unconfirmed_fragments and segmentation.any():
         removed, unconfirmed = unconfirmed_fragments(segmentation, masks, geometry, projectors=projectors)
         if removed.any():
-            zone = removal_zone(segmentation, segmentation & ~removed, geometry.volume.spacing_mm)
-            occupancy_volume[zone] = 0.0
-            field_volume[zone] = float(field_volume.max()) if settings.mode.field_kind == "sdf" else float(field_volume.min())
-            segmentation = occupancy_volume >= threshold
+            segmentation = erase_removed(segmentation, segmentation & ~removed, occupancy_volume, field_volume, geometry,
+                                         settings)
     reconnection: Optional[Dict[str, Any]] = None
     if region.reconnect and segmentation.any():
         segmentation, joined_occupancy, changed, reconnection = reconnect_fragments(
