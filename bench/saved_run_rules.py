@@ -15,9 +15,8 @@ Two families, both candidates for dropping ghosts after the fit:
 ``frag``   detached components holding less than a share f of the segmented voxels are dropped
            (also after ``joined<q>``: ``joined<q>+frag<f>``).
 
-Prints one line per run (clDice / components for every rule) and the means (with the largest piece's share
-of the voxels) and the number of runs
-each rule made better and worse, and the machine.
+Prints one line per run (clDice / components for every rule), the means (with the largest piece's
+share of the voxels) and the number of runs each rule made better and worse, and the machine.
 """
 
 from __future__ import annotations
