@@ -44,20 +44,33 @@ FRAGMENT_SHARES = (0.002, 0.005, 0.01, 0.02)
 PIECE_MM = PruneSettings.max_piece_mm  # the pieces pruning weighs
 
 
-def rules(segmentation: np.ndarray, masks: np.ndarray, geometry: Geometry) -> Dict[str, np.ndarray]:
+def rules(segmentation: np.ndarray, masks: np.ndarray, geometry: Geometry,
+          width_ratios=WIDTH_RATIOS, only=None) -> Dict[str, np.ndarray]:
+    """Each rule's result by name; ``only`` (name prefixes) skips computing the others."""
+    def wanted(name: str) -> bool:
+        return not only or name.startswith(tuple(only))
+
     voxels = np.argwhere(segmentation)
     ratio = width_agreement(masks, geometry, geometry.volume.index_to_world(voxels.astype(float)))
     out = {"fast": segmentation}
-    for q in WIDTH_RATIOS:
-        kept = segmentation.copy()
-        kept[tuple(voxels[ratio < q].T)] = False
-        out[f"vox{q}"] = kept
-        out[f"piece{q}"] = disagreeing_pieces(segmentation, masks, geometry, q, PIECE_MM)[0]
-        out[f"joined{q}"] = disagreeing_pieces(segmentation, masks, geometry, q, PIECE_MM, keep_connected=True)[0]
+    joined = {}
+    for q in width_ratios:
+        if wanted(f"vox{q}"):
+            kept = segmentation.copy()
+            kept[tuple(voxels[ratio < q].T)] = False
+            out[f"vox{q}"] = kept
+        if wanted(f"piece{q}"):
+            out[f"piece{q}"] = disagreeing_pieces(segmentation, masks, geometry, q, PIECE_MM)[0]
+        if wanted(f"joined{q}"):
+            joined[q] = out[f"joined{q}"] = disagreeing_pieces(segmentation, masks, geometry, q, PIECE_MM,
+                                                              keep_connected=True)[0]
     for f in FRAGMENT_SHARES:
-        out[f"frag{f}"] = without_small_fragments(segmentation, f)
-    for q in WIDTH_RATIOS[1:]:
-        out[f"joined{q}+frag{FRAGMENT_SHARES[1]}"] = without_small_fragments(out[f"joined{q}"], FRAGMENT_SHARES[1])
+        if wanted(f"frag{f}"):
+            out[f"frag{f}"] = without_small_fragments(segmentation, f)
+    for q in width_ratios[1:]:
+        name = f"joined{q}+frag{FRAGMENT_SHARES[1]}"
+        if q in joined and wanted(name):
+            out[name] = without_small_fragments(joined[q], FRAGMENT_SHARES[1])
     return out
 
 
@@ -71,6 +84,10 @@ def without_small_fragments(segmentation: np.ndarray, min_share: float) -> np.nd
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("runs", nargs="+", help="glob(s) of saved .npz runs (each with its geometry .json)")
+    parser.add_argument("--width-ratios", type=float, nargs="+", default=list(WIDTH_RATIOS),
+                        help=f"the ratios q the width rules are tried at (default {' '.join(map(str, WIDTH_RATIOS))})")
+    parser.add_argument("--only", nargs="+", default=None, metavar="PREFIX",
+                        help="keep only the rules whose names start with one of these (e.g. joined); 'fast' is always kept")
     args = parser.parse_args()
     paths = sorted({p for pattern in args.runs for p in glob.glob(pattern)})
     if not paths:
@@ -82,7 +99,8 @@ def main() -> int:
         geometry = Geometry.load(path[:-len(".npz")] + ".json")
         label = saved["label"]
         line = []
-        for name, result in rules(saved["segmentation"], saved["masks"], geometry).items():
+        for name, result in rules(saved["segmentation"], saved["masks"], geometry, tuple(args.width_ratios),
+                                  args.only).items():
             sizes = component_labels(result)[1]
             row = (cldice(result, label), dice(result, label), int(sizes.size), float(sizes.max(initial=0) / max(sizes.sum(), 1)))
             scores.setdefault(name, []).append(row)

@@ -49,6 +49,8 @@ def main() -> int:
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--save", type=Path, default=None,
                         help="folder: one .npz per case and variant (occupancy, result, truth label, masks) and its geometry .json, to study offline")
+    parser.add_argument("--skip-default", action="store_true",
+                        help="run only the variants (the preset's own runs already saved; deterministic on one thread)")
     parser.add_argument("variants", nargs="*", help="JSON objects of setting overrides")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
@@ -63,6 +65,8 @@ def main() -> int:
         spec = build_cases(config)[index]
         case = prepare_case(spec, args.protocol, grid)
         for number, variant in enumerate(variants):
+            if number == 0 and args.skip_default:
+                continue
             t0 = time.perf_counter()
             result = reconstruct(case.geometry, case.targets, make_settings("fast", seed=spec.seed, **variant),
                                  case.target_kind, frames=case.frames)
@@ -73,7 +77,7 @@ def main() -> int:
             print(f"{spec.name:7s} {json.dumps(variant):40s} clDice {m['cldice']:.3f}  Dice {m['dice']:.3f}  components "
                   f"{m.get('components')}/{m.get('components_label')}  support {result.report['support_voxels']}  "
                   f"{time.perf_counter() - t0:.0f} s", flush=True)
-    if len(args.case) > 1:
+    if len(args.case) > 1 and not args.skip_default:
         default = np.array(scores[json.dumps({})])
         for key, rows in scores.items():
             rows = np.array(rows)
