@@ -137,9 +137,10 @@ def pose_score(geometry: Geometry, targets: Sequence[np.ndarray], settings, targ
     from .optimiser import fitted_loss
 
     # every level of the encoding from the first step: a candidate is scored by its last steps' loss, and
-    # a short fit still fading its finer levels in scores a coarser field, which blurs the shift's minimum
+    # a short fit still fading its finer levels in scores a coarser field, which blurs the shift's minimum;
+    # and nothing taken out of a candidate's field part way (its score is how well the whole field explains the views)
     short = settings.replace(steps=settings.calibration.calibration_steps, prune=False, reconnect=False,
-                             coarse_to_fine_fraction=0.0)
+                             coarse_to_fine_fraction=0.0, width_exclusion_fraction=0.0)
     return fitted_loss(geometry, targets, short, target_kind, CALIBRATION_SCORE_STEPS, cancel)
 
 

@@ -7,7 +7,9 @@ with the frames' evidence and the calibrations asked for, are ``fit_field``):
    masks' visual hull widened by a margin), estimates the memory and picks the device, and builds
    the projectors and the view targets;
 2. ``optimise`` runs Adam on the field (``field.ImplicitField``) against λ2·L_occ, plus λ1·L_geo
-   in the modes that use it (``settings.MODES``), reporting progress and honouring cancel;
+   in the modes that use it (``settings.MODES``), reporting progress and honouring cancel; when
+   asked (``width_exclusion_fraction``), part way through it takes the pieces whose views see
+   different widths out of the field, and the rest of the fit explains their pixels elsewhere;
 3. ``finish`` evaluates the field on the grid, thresholds it, prunes the pieces no mask pixel
    needs when asked (``pruning.py``), removes the detached fragments that not every view confirms
    (``pruning.unconfirmed_fragments``) and joins the rest to the tree through the field
@@ -152,6 +154,9 @@ class Problem:
     warnings: List[str] = field(default_factory=list)  # for report.json (mask checks, support, consistency)
     consistency: List[float] = field(default_factory=list)  # per view: centreline with a partner (consistency.py)
     evidence: Optional[Dict[str, Any]] = None  # the frames' line-integral evidence, when used (evidence.py)
+    # bool volume: voxels taken out of the field during the fit (width_exclusion_fraction), None: none
+    excluded: Optional[np.ndarray] = None
+    exclusion: Optional[Dict[str, Any]] = None  # what was taken out, for report.json
 
 
 def _normalised_points(geometry: Geometry, flat: np.ndarray, device: torch.device) -> torch.Tensor:
@@ -323,6 +328,8 @@ def optimise(problem: Problem, model: ImplicitField, progress: Progress = None, 
         optimiser, lambda n: min(1.0, (n + 1) / o.warmup_steps) if o.warmup_steps > 0 else 1.0)
     history: List[Dict[str, float]] = []
     fade_steps = o.coarse_to_fine_fraction * o.steps
+    exclusion_step = round(settings.region.width_exclusion_fraction * o.steps) if settings.region.width_agreement_min_ratio else 0
+    allowed: Optional[torch.Tensor] = None
     lambda_occ = problem.evidence.get("lambda_occ", settings.loss.lambda_occ)
     t_loop = time.perf_counter()
     last_report = -math.inf
@@ -334,7 +341,13 @@ def optimise(problem: Problem, model: ImplicitField, progress: Progress = None, 
             # two levels from the start, the rest faded in one after another over the first fade_steps
             levels = model.encoding.levels
             model.encoding.fade_in_levels(COARSE_START_LEVELS + (levels - COARSE_START_LEVELS) * (step - 1) / fade_steps)
+        if exclusion_step and step == exclusion_step + 1:
+            paused = time.perf_counter()
+            allowed = _exclude_disagreeing_pieces(problem, model, step - 1)
+            t_loop += time.perf_counter() - paused
         occupancy = model(encoded, checkpoint_points=o.checkpoint_points)
+        if allowed is not None:
+            occupancy = occupancy * allowed
         line_integrals = [projector.render(occupancy) for projector in problem.projectors]
         l_occ = sum(occupancy_loss(t.rendered(li), t.image)
                     for li, t in zip(line_integrals, problem.view_targets)) / len(problem.projectors)
@@ -361,6 +374,25 @@ def optimise(problem: Problem, model: ImplicitField, progress: Progress = None, 
                     eta_s=elapsed / step * (o.steps - step), device=str(device), **losses)
             last_report = now
     return history, time.perf_counter() - t_loop
+
+
+def _exclude_disagreeing_pieces(problem: Problem, model: ImplicitField, step: int) -> torch.Tensor:
+    """The width check (``disagreeing_pieces``, keeping the tree whole) on the fit so far; what it would
+    remove is taken out of the field for the rest of the fit (``problem.excluded``). Returns the support
+    voxels' weights, 0 where excluded."""
+    t0 = time.perf_counter()
+    settings, geometry = problem.settings, problem.geometry
+    occupancy_volume, _ = evaluate_volume(model, problem)
+    segmentation = occupancy_volume >= settings.region.threshold
+    kept, record = disagreeing_pieces(segmentation, vessel_pixels(problem.targets, problem.target_kind), geometry,
+                                      settings.region.width_agreement_min_ratio, settings.region.prune_piece_mm,
+                                      keep_connected=True)
+    zone = removal_zone(segmentation, kept, geometry.volume.spacing_mm)
+    problem.excluded = zone if problem.excluded is None else problem.excluded | zone
+    problem.exclusion = {"step": step, "removed_pieces": record.get("removed_pieces"),
+                         "excluded_voxels": int(problem.excluded.sum()), "seconds": round(time.perf_counter() - t0, 3)}
+    keep = ~problem.excluded.reshape(-1)[problem.voxels]
+    return torch.as_tensor(keep, dtype=torch.float32, device=problem.device)
 
 
 def erase_removed(segmentation: np.ndarray, kept: np.ndarray, occupancy_volume: np.ndarray, field_volume: np.ndarray,
@@ -445,6 +477,7 @@ def finish(problem: Problem, model: ImplicitField, history: List[Dict[str, float
         "grown_voxels": grown_voxels,  # added below the threshold by grow_threshold (None: off)
         "pruning": pruning,
         "width_agreement": width_check,
+        "width_exclusion": problem.exclusion,
         "reconnection": reconnection,
         "unconfirmed_fragments": unconfirmed,
         "components": component_counts(segmentation),
@@ -632,6 +665,9 @@ def evaluate_volume(model: ImplicitField, problem: Problem, chunk: int = 262144)
         outside = min(float(raw.min()) if raw.numel() else -10.0, -10.0)
     field_volume = np.full(grid.num_voxels, outside, dtype=np.float32)
     field_volume[voxels] = raw.numpy()
+    if problem.excluded is not None:  # taken out during the fit (width_exclusion_fraction)
+        occ_volume[problem.excluded.reshape(-1)] = 0.0
+        field_volume[problem.excluded.reshape(-1)] = outside
     return occ_volume.reshape(grid.shape), field_volume.reshape(grid.shape)
 
 

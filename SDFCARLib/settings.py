@@ -146,6 +146,10 @@ class RegionSettings:
     # widths agreeing less than this (median of smaller / larger half-width, width_agreement.py) are
     # removed, each only where the rest of its component stays in one part (a ghost bridge is kept)
     width_agreement_min_ratio: float = 0.0
+    # 0: off. Otherwise, at this share of the steps, the pieces that width check would remove from the
+    # fit's segmentation so far are taken out of the field for the rest of the fit, so that the fit may
+    # explain their mask pixels elsewhere (needs width_agreement_min_ratio)
+    width_exclusion_fraction: float = 0.0
 
 
 #: a calibration candidate's score is its mean loss over this many last steps (Adam's steps are noisy)
@@ -281,6 +285,13 @@ class Settings:
         if not 0 <= r.width_agreement_min_ratio < 1:
             raise ReconstructionError(f"width_agreement_min_ratio must be 0 (off) or an agreement of the views' widths "
                                       f"below 1 (smaller / larger), got {r.width_agreement_min_ratio}")
+        if not 0 <= r.width_exclusion_fraction < 1:
+            raise ReconstructionError(f"width_exclusion_fraction is the share of the steps after which the pieces the "
+                                      f"views' widths disagree on are taken out of the fit: 0 (off) up to below 1, got "
+                                      f"{r.width_exclusion_fraction}")
+        if r.width_exclusion_fraction and not r.width_agreement_min_ratio:
+            raise ReconstructionError("width_exclusion_fraction needs width_agreement_min_ratio (the ratio below which "
+                                      "a piece's views disagree): set it, e.g. 0.7, or set width_exclusion_fraction to 0")
         if run.device not in DEVICES and not str(run.device).startswith("cuda:"):
             raise ReconstructionError(f"device must be auto, cpu or cuda, got {run.device!r}")
         cal = self.calibration

@@ -231,6 +231,22 @@ def test_a_vessel_missing_from_one_mask_is_not_replaced_by_a_ghost(missed_vessel
     np.testing.assert_array_equal(dropped.segmentation & near_a, kept.segmentation & near_a)
 
 
+def test_pieces_the_views_widths_disagree_on_are_taken_out_of_the_fit(missed_vessel_case):
+    """width_exclusion_fraction: part way through, the width check's pieces leave the field for good."""
+    geometry, vessel_a, vessel_b, ghost, masks = missed_vessel_case
+    ghost_zone = ndimage.binary_dilation(ghost, iterations=2) & ~ndimage.binary_dilation(vessel_a | vessel_b, iterations=3)
+    settings = make_settings("fast", steps=250, seed=0, device="cpu", threads=1, width_exclusion_fraction=0.6)
+    fitted = fit_field(geometry, [m.astype(np.float32) for m in masks], settings)
+    excluded = fitted.problem.excluded
+    assert fitted.problem.exclusion["step"] == 150 and fitted.problem.exclusion["removed_pieces"] >= 1
+    assert np.any(excluded & ghost_zone) and not np.any(excluded & vessel_a)  # the ghost went, vessel A stayed
+    result = fitted.finished()
+    assert result.report["width_exclusion"]["excluded_voxels"] == int(excluded.sum())
+    assert not np.any(result.occupancy[excluded]) and not np.any(result.segmentation & ghost_zone)
+    assert (result.segmentation & vessel_a).sum() / vessel_a.sum() > 0.9
+    assert fitted.history[-1]["step"] == 250  # the fit went on after the exclusion
+
+
 def test_presets_drop_unconfirmed_fragments_only_in_fast():
     assert make_settings("fast").region.drop_unconfirmed_fragments is True
     assert make_settings("paper").region.drop_unconfirmed_fragments is False
