@@ -328,7 +328,7 @@ def optimise(problem: Problem, model: ImplicitField, progress: Progress = None, 
         optimiser, lambda n: min(1.0, (n + 1) / o.warmup_steps) if o.warmup_steps > 0 else 1.0)
     history: List[Dict[str, float]] = []
     fade_steps = o.coarse_to_fine_fraction * o.steps
-    exclusion_step = round(settings.region.width_exclusion_fraction * o.steps) if settings.region.width_agreement_min_ratio else 0
+    exclusion_steps = exclusion_schedule(settings)
     allowed: Optional[torch.Tensor] = None
     lambda_occ = problem.evidence.get("lambda_occ", settings.loss.lambda_occ)
     t_loop = time.perf_counter()
@@ -341,7 +341,7 @@ def optimise(problem: Problem, model: ImplicitField, progress: Progress = None, 
             # two levels from the start, the rest faded in one after another over the first fade_steps
             levels = model.encoding.levels
             model.encoding.fade_in_levels(COARSE_START_LEVELS + (levels - COARSE_START_LEVELS) * (step - 1) / fade_steps)
-        if exclusion_step and step == exclusion_step + 1:
+        if step - 1 in exclusion_steps:
             paused = time.perf_counter()
             allowed = _exclude_disagreeing_pieces(problem, model, step - 1)
             t_loop += time.perf_counter() - paused
@@ -376,6 +376,17 @@ def optimise(problem: Problem, model: ImplicitField, progress: Progress = None, 
     return history, time.perf_counter() - t_loop
 
 
+def exclusion_schedule(settings: Settings) -> List[int]:
+    """The steps after which the width check's pieces are taken out of the field: the first at
+    ``width_exclusion_fraction`` of the steps, ``width_exclusion_repeats`` in all, evenly spaced to the end."""
+    region, steps = settings.region, settings.optimisation.steps
+    if not region.width_exclusion_fraction or not region.width_agreement_min_ratio:
+        return []
+    first = region.width_exclusion_fraction
+    return sorted({round((first + k * (1.0 - first) / region.width_exclusion_repeats) * steps)
+                   for k in range(region.width_exclusion_repeats)})
+
+
 def _exclude_disagreeing_pieces(problem: Problem, model: ImplicitField, step: int) -> torch.Tensor:
     """The width check (``disagreeing_pieces``, keeping the tree whole) on the fit so far; what it would
     remove is taken out of the field for the rest of the fit (``problem.excluded``). Returns the support
@@ -389,8 +400,11 @@ def _exclude_disagreeing_pieces(problem: Problem, model: ImplicitField, step: in
                                       keep_connected=True)
     zone = removal_zone(segmentation, kept, geometry.volume.spacing_mm)
     problem.excluded = zone if problem.excluded is None else problem.excluded | zone
-    problem.exclusion = {"step": step, "removed_pieces": record.get("removed_pieces"),
-                         "excluded_voxels": int(problem.excluded.sum()), "seconds": round(time.perf_counter() - t0, 3)}
+    problem.exclusion = problem.exclusion or {"exclusions": []}
+    problem.exclusion["exclusions"].append({"step": step, "removed_pieces": record["removed_pieces"],
+                                            "removed_voxels": record["removed_voxels"],
+                                            "seconds": round(time.perf_counter() - t0, 3)})
+    problem.exclusion["excluded_voxels"] = int(problem.excluded.sum())
     keep = ~problem.excluded.reshape(-1)[problem.voxels]
     return torch.as_tensor(keep, dtype=torch.float32, device=problem.device)
 

@@ -150,6 +150,7 @@ class RegionSettings:
     # fit's segmentation so far are taken out of the field for the rest of the fit, so that the fit may
     # explain their mask pixels elsewhere (needs width_agreement_min_ratio)
     width_exclusion_fraction: float = 0.0
+    width_exclusion_repeats: int = 1  # how many times, the later ones evenly spaced between it and the end
 
 
 #: a calibration candidate's score is its mean loss over this many last steps (Adam's steps are noisy)
@@ -289,6 +290,8 @@ class Settings:
             raise ReconstructionError(f"width_exclusion_fraction is the share of the steps after which the pieces the "
                                       f"views' widths disagree on are taken out of the fit: 0 (off) up to below 1, got "
                                       f"{r.width_exclusion_fraction}")
+        if r.width_exclusion_repeats < 1:
+            raise ReconstructionError(f"width_exclusion_repeats must be at least 1, got {r.width_exclusion_repeats}")
         if r.width_exclusion_fraction and not r.width_agreement_min_ratio:
             raise ReconstructionError("width_exclusion_fraction needs width_agreement_min_ratio (the ratio below which "
                                       "a piece's views disagree): set it, e.g. 0.7, or set width_exclusion_fraction to 0")

@@ -12,7 +12,7 @@ from SDFCARLib.settings import make_settings
 from SDFCARLib.phantoms import Branch, CentrelineTree, simulate_views, voxelize
 from SDFCARLib.projector import project_volume
 from SDFCARLib.hull import visual_hull
-from SDFCARLib.optimiser import fit_field
+from SDFCARLib.optimiser import exclusion_schedule, fit_field
 from SDFCARLib.pruning import (PruneSettings, prune_redundant_branches, removal_zone, skeleton_pieces,
                                unconfirmed_fragments)
 
@@ -238,13 +238,21 @@ def test_pieces_the_views_widths_disagree_on_are_taken_out_of_the_fit(missed_ves
     settings = make_settings("fast", steps=250, seed=0, device="cpu", threads=1, width_exclusion_fraction=0.6)
     fitted = fit_field(geometry, [m.astype(np.float32) for m in masks], settings)
     excluded = fitted.problem.excluded
-    assert fitted.problem.exclusion["step"] == 150 and fitted.problem.exclusion["removed_pieces"] >= 1
+    (exclusion,) = fitted.problem.exclusion["exclusions"]
+    assert exclusion["step"] == 150 and exclusion["removed_pieces"] >= 1 and exclusion["removed_voxels"] >= 10
     assert np.any(excluded & ghost_zone) and not np.any(excluded & vessel_a)  # the ghost went, vessel A stayed
     result = fitted.finished()
     assert result.report["width_exclusion"]["excluded_voxels"] == int(excluded.sum())
     assert not np.any(result.occupancy[excluded]) and not np.any(result.segmentation & ghost_zone)
     assert (result.segmentation & vessel_a).sum() / vessel_a.sum() > 0.9
     assert fitted.history[-1]["step"] == 250  # the fit went on after the exclusion
+
+
+def test_exclusion_schedule_spaces_the_repeats_to_the_end():
+    assert exclusion_schedule(make_settings("fast", steps=400)) == []  # off
+    assert exclusion_schedule(make_settings("fast", steps=400, width_exclusion_fraction=0.6)) == [240]
+    assert exclusion_schedule(make_settings("fast", steps=400, width_exclusion_fraction=0.6, width_exclusion_repeats=2)) == [240, 320]
+    assert exclusion_schedule(make_settings("fast", steps=100, width_exclusion_fraction=0.5, width_exclusion_repeats=4)) == [50, 62, 75, 88]
 
 
 def test_presets_drop_unconfirmed_fragments_only_in_fast():
