@@ -148,7 +148,7 @@ class RegionSettings:
     width_agreement_min_ratio: float = 0.0
     # 0: off. Otherwise, at this share of the steps, the pieces that width check would remove from the
     # fit's segmentation so far are taken out of the field for the rest of the fit, so that the fit may
-    # explain their mask pixels elsewhere (needs width_agreement_min_ratio)
+    # explain their mask pixels elsewhere (with width_agreement_min_ratio 0, the check off, nothing is taken out)
     width_exclusion_fraction: float = 0.0
     width_exclusion_repeats: int = 1  # how many times, the later ones evenly spaced between it and the end
 
@@ -292,9 +292,6 @@ class Settings:
                                       f"{r.width_exclusion_fraction}")
         if r.width_exclusion_repeats < 1:
             raise ReconstructionError(f"width_exclusion_repeats must be at least 1, got {r.width_exclusion_repeats}")
-        if r.width_exclusion_fraction and not r.width_agreement_min_ratio:
-            raise ReconstructionError("width_exclusion_fraction needs width_agreement_min_ratio (the ratio below which "
-                                      "a piece's views disagree): set it, e.g. 0.7, or set width_exclusion_fraction to 0")
         if run.device not in DEVICES and not str(run.device).startswith("cuda:"):
             raise ReconstructionError(f"device must be auto, cpu or cuda, got {run.device!r}")
         cal = self.calibration

@@ -95,7 +95,6 @@ def test_overrides_and_none_values():
     (dict(width_exclusion_fraction=1.0), "width_exclusion_fraction is the share of the steps"),
     (dict(width_exclusion_fraction=-0.1), "width_exclusion_fraction"),
     (dict(width_exclusion_repeats=0), "width_exclusion_repeats must be at least 1"),
-    (dict(width_exclusion_fraction=0.6, width_agreement_min_ratio=0.0), "width_exclusion_fraction needs width_agreement_min_ratio"),
 ])
 def test_bad_settings(kwargs, fragment):
     kwargs = dict(kwargs)
