@@ -335,6 +335,10 @@ PRESETS: Dict[str, Dict[str, Any]] = {  # the default first: lists offer it firs
         # last, drop the pieces whose two views see different widths (where two vessels' rays cross),
         # unless that cuts the tree (bench/RESULTS.md §29b)
         width_agreement_min_ratio=0.7,
+        # and already at 60 % of the steps, so that the rest of the fit explains those pieces' mask pixels
+        # elsewhere: a ghost removed at the end leaves its vessel missing, removed here it is often re-placed
+        # on its true course (bench/RESULTS.md §30)
+        width_exclusion_fraction=0.6,
         # where the frames come with the masks, fit the path lengths they show (ghosts add path the frame lacks)
         frame_evidence=True,
         # and correct the motion between the views that two views observe, read off the same frames

@@ -249,7 +249,7 @@ def test_pieces_the_views_widths_disagree_on_are_taken_out_of_the_fit(missed_ves
 
 
 def test_exclusion_schedule_spaces_the_repeats_to_the_end():
-    assert exclusion_schedule(make_settings("fast", steps=400)) == []  # off
+    assert exclusion_schedule(make_settings("fast", steps=400, width_exclusion_fraction=0.0)) == []  # off
     assert exclusion_schedule(make_settings("fast", steps=400, width_exclusion_fraction=0.6)) == [240]
     # the width check off: nothing to take out
     assert exclusion_schedule(make_settings("fast", steps=400, width_exclusion_fraction=0.6, width_agreement_min_ratio=0.0)) == []

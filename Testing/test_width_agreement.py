@@ -140,8 +140,12 @@ def test_reconstruction_finished_with_the_width_check_removes_only_what_the_chec
     assert component_counts(checked.segmentation)["components"] <= component_counts(plain.segmentation)["components"]
 
 
-def test_fast_checks_the_views_widths_at_0_7():
+def test_fast_checks_the_views_widths_at_0_7_and_takes_them_out_of_the_fit_at_60_percent():
+    from SDFCARLib.optimiser import exclusion_schedule
     from SDFCARLib.settings import make_settings
 
     assert make_settings("fast").region.width_agreement_min_ratio == 0.7
+    assert make_settings("fast").region.width_exclusion_fraction == 0.6
+    assert exclusion_schedule(make_settings("fast")) == [240]  # of 400 steps
     assert make_settings("paper").region.width_agreement_min_ratio == 0.0  # the published recipe has no such step
+    assert exclusion_schedule(make_settings("paper")) == []
