@@ -14,6 +14,8 @@ STAMP      := $(VENV)/.sdfcar-installed
 # Override, e.g.: make test TORCH_SPEC="torch==2.13.0 --index-url https://download.pytorch.org/whl/cpu"
 TORCH_SPEC ?= "torch==2.13.0"
 EXTRAS     ?= headless,dicom,bench,test
+# test processes (pytest-xdist); whole test files go to one process, so a module's fixtures are built once
+TEST_WORKERS ?= 2
 
 .PHONY: all install test demo clean distclean
 
@@ -30,7 +32,7 @@ $(STAMP): pyproject.toml | $(PY)
 	touch $@
 
 test: $(STAMP)
-	$(PY) -m pytest -q
+	$(PY) -m pytest -q -n $(TEST_WORKERS) --dist loadfile
 
 demo: $(STAMP)
 	$(PY) -m SDFCARLib demo --out demo-output --overwrite
