@@ -393,20 +393,43 @@ def _exclude_disagreeing_pieces(problem: Problem, model: ImplicitField, step: in
     voxels' weights, 0 where excluded."""
     t0 = time.perf_counter()
     settings, geometry = problem.settings, problem.geometry
+    region = settings.region
     occupancy_volume, _ = evaluate_volume(model, problem)
-    segmentation = occupancy_volume >= settings.region.threshold
-    kept, record = disagreeing_pieces(segmentation, vessel_pixels(problem.targets, problem.target_kind), geometry,
-                                      settings.region.width_agreement_min_ratio, settings.region.prune_piece_mm,
-                                      keep_connected=True)
+    segmentation = occupancy_volume >= region.threshold
+    references = vessel_pixels(problem.targets, problem.target_kind)
+    checked, finishing = segmentation, {}
+    if region.exclusion_takes_finishing_removals and segmentation.any():
+        traced = problem.projectors if problem.support is not None else None  # as in finish
+        checked, finishing = finishing_removals(segmentation, references, geometry, region, traced)
+    kept, record = disagreeing_pieces(checked, references, geometry, region.width_agreement_min_ratio,
+                                      region.prune_piece_mm, keep_connected=True)
     zone = removal_zone(segmentation, kept, geometry.volume.spacing_mm)
     problem.excluded = zone if problem.excluded is None else problem.excluded | zone
     problem.exclusion = problem.exclusion or {"exclusions": []}
     problem.exclusion["exclusions"].append({"step": step, "removed_pieces": record["removed_pieces"],
-                                            "removed_voxels": record["removed_voxels"],
+                                            "removed_voxels": record["removed_voxels"], **finishing,
                                             "seconds": round(time.perf_counter() - t0, 3)})
     problem.exclusion["excluded_voxels"] = int(problem.excluded.sum())
     keep = ~problem.excluded.reshape(-1)[problem.voxels]
     return torch.as_tensor(keep, dtype=torch.float32, device=problem.device)
+
+
+def finishing_removals(segmentation: np.ndarray, references: Sequence[np.ndarray], geometry: Geometry,
+                       region: RegionSettings, projectors: Optional[Sequence[ConeBeamProjector]]) -> Tuple[np.ndarray, Dict[str, int]]:
+    """The segmentation less what ``finish``'s pruning and fragment check (as ``region`` asks) would remove,
+    and how many voxels each removed. ``projectors``: the fit's own (they hold every voxel of the support), or None."""
+    counts: Dict[str, int] = {}
+    if region.prune:
+        kept, _ = prune_redundant_branches(segmentation, references, geometry,
+                                           PruneSettings(max_piece_mm=region.prune_piece_mm, tolerance=region.prune_tolerance),
+                                           projectors=projectors)
+        counts["pruned_voxels"] = int((segmentation & ~kept).sum())
+        segmentation = segmentation & kept
+    if region.drop_unconfirmed_fragments and segmentation.any():
+        removed, _ = unconfirmed_fragments(segmentation, references, geometry, projectors=projectors)
+        counts["unconfirmed_voxels"] = int(removed.sum())
+        segmentation = segmentation & ~removed
+    return segmentation, counts
 
 
 def erase_removed(segmentation: np.ndarray, kept: np.ndarray, occupancy_volume: np.ndarray, field_volume: np.ndarray,

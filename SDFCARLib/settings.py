@@ -151,6 +151,9 @@ class RegionSettings:
     # explain their mask pixels elsewhere (with width_agreement_min_ratio 0, the check off, nothing is taken out)
     width_exclusion_fraction: float = 0.0
     width_exclusion_repeats: int = 1  # how many times, the later ones evenly spaced between it and the end
+    # at those steps, also take out what pruning and the fragment check (prune, drop_unconfirmed_fragments)
+    # would remove from the fit's segmentation, so the fit may re-place their pixels too; false: the width check's alone
+    exclusion_takes_finishing_removals: bool = False
 
 
 #: a calibration candidate's score is its mean loss over this many last steps (Adam's steps are noisy)

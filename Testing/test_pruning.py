@@ -328,3 +328,21 @@ def test_a_confirmed_piece_of_a_broken_vessel_is_joined_through_the_support():
                       .reshape(GRID.shape) & ~broken)
     _, _, reconnection = _post_process(broken, masks, Geometry(GRID, VIEWS), cut, reconnect_max_gap_mm=8.0)
     assert reconnection["joined"] == 0 and reconnection["components_after"] == 2
+
+
+@pytest.mark.parametrize("prune, drop_unconfirmed, removed_by", [
+    (True, True, "pruned_voxels"), (False, True, "unconfirmed_voxels"), (False, False, None)])
+def test_the_exclusion_can_take_what_pruning_and_the_fragment_check_would_remove(ghost_case, prune, drop_unconfirmed,
+                                                                                  removed_by):
+    """exclusion_takes_finishing_removals: the mid-fit exclusion reads finish's removals on the fit so far."""
+    from SDFCARLib.optimiser import finishing_removals
+
+    geometry, truth, ghost, masks = ghost_case
+    region = make_settings("fast", prune=prune, drop_unconfirmed_fragments=drop_unconfirmed).region
+    kept, counts = finishing_removals(truth | ghost, masks, geometry, region, projectors=None)
+    if removed_by is None:  # neither step asked: nothing goes
+        np.testing.assert_array_equal(kept, truth | ghost)
+        assert counts == {}
+    else:  # the hidden ghost goes, whichever step takes it, and the vessels stay whole
+        np.testing.assert_array_equal(kept, truth)
+        assert counts[removed_by] == int(ghost.sum())
