@@ -52,6 +52,7 @@ from SDFCARLib.analysis.views import foreshortening, foreshortening_map  # noqa:
 from SDFCARLib.angiogram import AngiogramSettings  # noqa: E402
 from SDFCARLib.geometry import Geometry, VolumeGrid, standard_geometry  # noqa: E402
 from SDFCARLib.phantoms import lad_tree, rca_tree  # noqa: E402
+from SDFCARLib.settings import parse_setting_overrides  # noqa: E402
 
 VIEWS = standard_geometry("lao30-rao30").views
 
@@ -244,10 +245,10 @@ def tube_direction(seed: int, max_foreshortening_pct=None) -> np.ndarray:
 
 
 def run_recon(n_cases, view_step_deg, steps=None, save_dir=None, first=0, mask_source="clean", max_foreshortening_pct=None,
-              load_dir=None, grow_thresholds=None):
+              load_dir=None, grow_thresholds=None, overrides=None):
     """Reconstruct and analyse each case. ``grow_thresholds``: fit the field once per case and finish it once
     per grow threshold (``RegionSettings.grow_threshold``), so the rows of a case differ only in that rule;
-    each row then carries its ``grow_threshold``."""
+    each row then carries its ``grow_threshold``. ``overrides``: settings that differ from ``fast`` (``--set``)."""
     from SDFCARLib.io import read_volume, write_volume_nrrd
     from SDFCARLib.masks import MaskError
     from SDFCARLib.optimiser import fit_field, make_settings, reconstruct
@@ -280,7 +281,7 @@ def run_recon(n_cases, view_step_deg, steps=None, save_dir=None, first=0, mask_s
                 continue
         else:
             masks, frames = [render_mask(ph.tree, v) for v in VIEWS], None
-        settings = make_settings("fast", **({"steps": steps} if steps else {}))
+        settings = make_settings("fast", **({"steps": steps} if steps else {}), **(overrides or {}))
 
         def add_row(occupancy, views, threshold, reconstruct_s, **rule):
             try:
@@ -296,7 +297,7 @@ def run_recon(n_cases, view_step_deg, steps=None, save_dir=None, first=0, mask_s
             fitted = fit_field(geometry, masks, settings, "mask", frames=frames)
             t_fit = time.perf_counter() - fitted.t_start
             for grow in grow_thresholds:
-                variant = make_settings("fast", grow_threshold=grow, **({"steps": steps} if steps else {}))
+                variant = settings.replace(grow_threshold=grow)
                 result = fitted.finished(variant)
                 add_row(result.occupancy, result.geometry.views, variant.region.threshold, t_fit, grow_threshold=grow)
             continue
@@ -406,11 +407,15 @@ def main(argv=None) -> int:
     ap.add_argument("--grow", type=float, nargs="+", default=None,
                     help="recon suite: fit each case once and analyse it finished with each of these grow thresholds "
                          "(0 = the threshold alone; the fast preset grows into 0.3), side by side")
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                    help="recon suite: a setting of the reconstructions other than fast's, repeatable")
     ap.add_argument("--view-step-deg", type=float, default=2.0)
     ap.add_argument("--csv", help="write the case rows here")
     args = ap.parse_args(argv)
     if args.grow and (args.suite != "recon" or args.save or args.load):
         ap.error("--grow compares finishing rules of fresh reconstructions: it needs --suite recon, without --save or --load")
+    if args.set and (args.suite != "recon" or args.load):
+        ap.error("--set changes the reconstructions' settings: it needs --suite recon, without --load")
     if args.masks == "segmented-moving" and args.suite != "recon":
         ap.error("--masks segmented-moving needs --suite recon (a motion between the views matters to a reconstruction)")
     t0 = time.perf_counter()
@@ -420,7 +425,7 @@ def main(argv=None) -> int:
         rows = run_truth(tree_cases(), args.spacing, args.view_step_deg, args.masks)
     else:
         rows = run_recon(args.cases, args.view_step_deg, args.steps, args.save, args.first, args.masks,
-                         args.max_foreshortening_pct, args.load, args.grow)
+                         args.max_foreshortening_pct, args.load, args.grow, parse_setting_overrides(args.set))
     print()
     if args.grow:
         for grow in args.grow:
