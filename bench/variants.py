@@ -4,7 +4,7 @@
         --grid80 '{"prune": false}' '{"dt_downsample": 4}'
 
 Each variant is a JSON object of setting overrides (``settings.py`` keys) on the ``fast`` preset;
-the first row is always the unchanged preset. ``--save DIR`` keeps each run's occupancy, result,
+the first row is always the unchanged preset. ``--save DIR`` keeps each run's report.json, occupancy, result,
 truth and masks for offline study. The realistic protocols' angiograms are given as the
 benchmark gives them (``frames``: evidence and motion read off them). Prints clDice, Dice, components (result / truth),
 support voxels and wall time per variant, and the machine.
@@ -38,6 +38,8 @@ def save_run(folder: Path, stem: str, case, result) -> None:
                         segmentation=result.segmentation.astype(bool), label=case.label.astype(bool),
                         masks=np.stack([np.asarray(m, bool) for m in case.masks]))
     case.geometry.save(folder / f"{stem}.json")
+    # what each step removed, joined and found (width_exclusion, pruning, …), to read the run's why
+    (folder / f"{stem}-report.json").write_text(json.dumps(result.report, indent=1, default=str))
 
 
 def main() -> int:
@@ -48,7 +50,7 @@ def main() -> int:
     parser.add_argument("--grid80", action="store_true", help="80³ at 1.3 mm, 192² at 0.8 mm (section 1's coarse grid)")
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--save", type=Path, default=None,
-                        help="folder: one .npz per case and variant (occupancy, result, truth label, masks) and its geometry .json, to study offline")
+                        help="folder: one .npz per case and variant (occupancy, result, truth label, masks), its geometry .json and its report, to study offline")
     parser.add_argument("--skip-default", action="store_true",
                         help="run only the variants (the preset's own runs already saved; deterministic on one thread)")
     parser.add_argument("variants", nargs="*", help="JSON objects of setting overrides")
