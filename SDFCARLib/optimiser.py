@@ -491,6 +491,12 @@ def finish(problem: Problem, model: ImplicitField, history: List[Dict[str, float
                                                settings.region.width_agreement_min_ratio, settings.region.prune_piece_mm,
                                                keep_connected=True)
         segmentation = erase_removed(segmentation, kept, occupancy_volume, field_volume, geometry, settings)
+    final_reconnection: Optional[Dict[str, Any]] = None
+    if settings.region.final_reconnect_max_gap_mm and segmentation.any():
+        if _is_cancelled(cancel):
+            raise ReconstructionCancelled("cancelled before joining the fragments again")
+        segmentation, final_reconnection = join_fragments(segmentation, occupancy_volume, field_volume, geometry, problem.support,
+                                                          settings, settings.region.final_reconnect_max_gap_mm)
     projected = reprojected_masks(segmentation, geometry, projectors=traced)
     qa = [reprojection_qa(p, m, v) for p, m, v in zip(projected, references, geometry.views)]
     qa_warned = qa_warnings(qa)
@@ -516,6 +522,7 @@ def finish(problem: Problem, model: ImplicitField, history: List[Dict[str, float
         "width_agreement": width_check,
         "width_exclusion": problem.exclusion,
         "reconnection": reconnection,
+        "final_reconnection": final_reconnection,
         "unconfirmed_fragments": unconfirmed,
         "components": component_counts(segmentation),
         "projector_nonzeros": [p.nnz for p in problem.projectors],
@@ -558,7 +565,7 @@ def drop_then_join_fragments(
     in place (removed voxels emptied, bridges filled); returns the new segmentation and the two steps'
     reports (None for a step that is off). Bridges carry their gap's points in LPS mm.
     """
-    region, threshold = settings.region, settings.region.threshold
+    region = settings.region
     unconfirmed: Optional[Dict[str, Any]] = None
     if region.drop_unconfirmed_fragments and segmentation.any():
         removed, unconfirmed = unconfirmed_fragments(segmentation, masks, geometry, projectors=projectors)
@@ -567,15 +574,26 @@ def drop_then_join_fragments(
                                          settings)
     reconnection: Optional[Dict[str, Any]] = None
     if region.reconnect and segmentation.any():
-        segmentation, joined_occupancy, changed, reconnection = reconnect_fragments(
-            segmentation, occupancy_volume, geometry.volume.spacing_mm, support,
-            ReconnectSettings(region.reconnect_max_gap_mm, region.reconnect_min_occupancy, threshold))
-        occupancy_volume[changed] = joined_occupancy[changed]
-        field_volume[changed] = field_values(joined_occupancy[changed], settings.mode.field_kind, settings.field.alpha)
-        for bridge in reconnection["bridges"]:  # where the vessel was broken, in LPS mm for the 3D-QCA
-            ijk = np.asarray(bridge.pop("voxels_ijk"), dtype=np.float64).reshape(-1, 3)
-            bridge["points_mm"] = np.round(geometry.volume.index_to_world(ijk), 3).tolist()
+        segmentation, reconnection = join_fragments(segmentation, occupancy_volume, field_volume, geometry, support, settings,
+                                                    region.reconnect_max_gap_mm)
     return segmentation, unconfirmed, reconnection
+
+
+def join_fragments(segmentation: np.ndarray, occupancy_volume: np.ndarray, field_volume: np.ndarray, geometry: Geometry,
+                   support: Optional[np.ndarray], settings: Settings, max_gap_mm: float) -> Tuple[np.ndarray, Dict[str, Any]]:
+    """The fragments joined to the tree across gaps up to ``max_gap_mm`` (``connectivity.reconnect_fragments``);
+    ``occupancy_volume`` and ``field_volume`` are filled along the bridges in place. Returns the new segmentation
+    and the report, whose bridges carry their gap's points in LPS mm."""
+    region = settings.region
+    segmentation, joined_occupancy, changed, reconnection = reconnect_fragments(
+        segmentation, occupancy_volume, geometry.volume.spacing_mm, support,
+        ReconnectSettings(max_gap_mm, region.reconnect_min_occupancy, region.threshold))
+    occupancy_volume[changed] = joined_occupancy[changed]
+    field_volume[changed] = field_values(joined_occupancy[changed], settings.mode.field_kind, settings.field.alpha)
+    for bridge in reconnection["bridges"]:  # where the vessel was broken, in LPS mm for the 3D-QCA
+        ijk = np.asarray(bridge.pop("voxels_ijk"), dtype=np.float64).reshape(-1, 3)
+        bridge["points_mm"] = np.round(geometry.volume.index_to_world(ijk), 3).tolist()
+    return segmentation, reconnection
 
 
 def fitted_loss(geometry: Geometry, targets: Sequence[np.ndarray], settings: Settings, target_kind: str,

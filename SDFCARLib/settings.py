@@ -146,6 +146,9 @@ class RegionSettings:
     # widths agreeing less than this (median of smaller / larger half-width, width_agreement.py) are
     # removed, each only where the rest of its component stays in one part (a ghost bridge is kept)
     width_agreement_min_ratio: float = 0.0
+    # 0: off. Otherwise, after everything above, the fragments still apart are joined to the tree once more
+    # (as reconnect does, inside the support) across gaps up to this many mm: growing brings fragments closer
+    final_reconnect_max_gap_mm: float = 0.0
     # 0: off. Otherwise, at this share of the steps, the pieces that width check would remove from the
     # fit's segmentation so far are taken out of the field for the rest of the fit, so that the fit may
     # explain their mask pixels elsewhere (with width_agreement_min_ratio 0, the check off, nothing is taken out)
@@ -277,6 +280,8 @@ class Settings:
         if not r.reconnect_max_gap_mm > 0:
             raise ReconstructionError(f"reconnect_max_gap_mm must be a positive length in mm (default 8), got "
                                       f"{r.reconnect_max_gap_mm}; or turn reconnection off with reconnect=false")
+        if not r.final_reconnect_max_gap_mm >= 0:
+            raise ReconstructionError(f"final_reconnect_max_gap_mm must be 0 (off) or a gap in mm, got {r.final_reconnect_max_gap_mm}")
         if not 0 <= r.reconnect_min_occupancy < 1:
             raise ReconstructionError(
                 f"reconnect_min_occupancy must be an occupancy in [0, 1) (default 0: the support and the gap's length "

@@ -472,3 +472,20 @@ def test_a_throat_thinner_than_the_grid_resolves_is_flagged_and_warned_about(ste
     assert len(warned) == int(thin)
     if thin:  # names the lesion and the fix
         assert "branch 0" in warned[0] and "1.25 mm on this 0.5 mm grid" in warned[0] and "--frames" in warned[0]
+
+
+@pytest.mark.parametrize("step", ["reconnection", "final_reconnection"])
+def test_analyse_reads_the_bridges_of_either_reconnection_from_report_json(tmp_path, capsys, step):
+    from SDFCARLib.cli import main
+    from SDFCARLib.io import write_json, write_volume_nrrd
+
+    _, grid, label, _ = _tube_phantom(50.0)
+    folder = tmp_path / "result"
+    folder.mkdir()
+    write_volume_nrrd(folder / "occupancy.nrrd", label.astype(np.float32), grid)
+    bridge = {"gap_mm": 1.9, "radius_mm": 0.7, "points_mm": [[0.0, 0.0, 0.0]]}  # at the throat
+    write_json(folder / "report.json", {"settings": {"threshold": 0.5}, step: {"joined": 1, "bridges": [bridge]}})
+    assert main(["analyse", str(folder), "--view-step-deg", "10"]) == 0
+    assert "but not where" not in capsys.readouterr().err
+    data = json.loads((folder / "analysis" / "analysis.json").read_text())
+    assert data["lesions"] == [] and data["unreliable_lesions"][0]["reasons"][0].startswith("bridge:")

@@ -217,3 +217,46 @@ def test_growing_the_segmentation_takes_partial_occupancy_connected_to_it_and_no
     assert grown_segmentation(segmentation, occupancy, RegionSettings()) is segmentation  # 0: off
     # what was removed (occupancy zeroed) is not grown back, and an empty result stays empty
     assert not grown_segmentation(np.zeros_like(segmentation), occupancy, RegionSettings(grow_threshold=0.3)).any()
+
+
+def test_joining_fragments_fills_the_occupancy_and_field_in_place_up_to_the_gap_asked():
+    """optimiser.join_fragments, which reconnect and the final reconnection both call."""
+    from SDFCARLib.optimiser import join_fragments
+
+    occupancy = _cut(_tube(), 14, 34, 0.3)  # a 10 mm gap: beyond reconnect's 8 mm, within 12
+    grid = VolumeGrid(occupancy.shape, (H, H, H))
+    geometry = Geometry(grid, [CArmView(0.0, 0.0, 1000.0, 750.0, (0.5, 0.5), (64, 64))])
+    settings = make_settings("fast")
+    for gap_mm, pieces in ((8.0, 2), (12.0, 1)):
+        occ = occupancy.copy()
+        field = field_values(occ, "sdf", settings.field.alpha)
+        joined, info = join_fragments(occ >= 0.5, occ, field, geometry, None, settings, gap_mm)
+        assert component_counts(joined)["components"] == pieces == info["components_after"]
+        np.testing.assert_array_equal(joined, occ >= 0.5)  # the occupancy was raised along the bridge, in place
+        np.testing.assert_allclose(field[joined], field_values(occ[joined], "sdf", settings.field.alpha), atol=1e-5)
+        for bridge in info["bridges"]:  # in LPS mm, along the cut
+            z = np.asarray(bridge["points_mm"])[:, 0]
+            assert grid.index_to_world(np.array([[13.0, 0, 0]]))[0, 0] <= z.min() and z.max() <= grid.index_to_world(
+                np.array([[34.0, 0, 0]]))[0, 0]
+
+
+def test_the_final_reconnection_is_wired_into_the_finish_and_reported():
+    """final_reconnect_max_gap_mm: after the width check, the fragments still apart are joined once more."""
+    grid = VolumeGrid((24, 24, 24), (2.0, 2.0, 2.0))
+    views = [CArmView(a, 0.0, 1000.0, 750.0, (1.0, 1.0), (64, 64)) for a in (30.0, -30.0)]
+    tree = CentrelineTree([Branch(np.array([[-12.0, -6.0, -10.0], [0.0, 2.0, 0.0], [12.0, 6.0, 10.0]]),
+                                  np.array([3.0, 2.5, 2.0]))])
+    _, masks = simulate_views(voxelize(tree, grid), grid, views)
+    geometry = Geometry(grid, views)
+    # the first reconnection off, so that what the fit leaves apart reaches the last step
+    base = dict(steps=60, reconnect=False, device="cpu")
+    plain = reconstruct(geometry, masks, make_settings("fast", **base))
+    joined = reconstruct(geometry, masks, make_settings("fast", final_reconnect_max_gap_mm=40.0, **base))
+    assert plain.report["final_reconnection"] is None  # 0: off
+    info = joined.report["final_reconnection"]
+    assert info["components_before"] == plain.report["components"]["components"]  # the same fit, finished alike
+    assert info["components_after"] == joined.report["components"]["components"] <= info["components_before"]
+    assert len(info["bridges"]) == info["joined"] == info["components_before"] - info["components_after"]
+    assert info["max_gap_mm"] == 40.0
+    assert not (plain.segmentation & ~joined.segmentation).any()  # it only adds
+    np.testing.assert_array_equal(joined.segmentation, joined.occupancy >= 0.5)  # what the outputs read

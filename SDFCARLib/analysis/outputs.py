@@ -313,7 +313,8 @@ def analyse_result_dir(result_dir: PathLike, out_dir: Optional[PathLike] = None,
     view_masks, mask_note = _masks_for(report, geometry, masks)
     view_frames = _frames_for(geometry, view_masks, frames, psf_sigma_mm)
     reconnection = report.get("reconnection") or {}
-    bridges = reconnection.get("bridges") or []
+    # both reconnections lay bridges (the last one when final_reconnect_max_gap_mm asks for it)
+    bridges = list(reconnection.get("bridges") or []) + list((report.get("final_reconnection") or {}).get("bridges") or [])
     result = analyse_volume(volume, grid, level=level, views=geometry.views if geometry else (), masks=view_masks,
                             ostium_mm=ostium_mm, view_step_deg=view_step_deg, min_stenosis_pct=min_stenosis_pct,
                             bridges=bridges, frames=view_frames, psf_sigma_mm=psf_sigma_mm,
@@ -323,7 +324,7 @@ def analyse_result_dir(result_dir: PathLike, out_dir: Optional[PathLike] = None,
     data["source"] = {"result_dir": str(result_dir.absolute()), "volume": source, "level": level,
                       "report": report_path.name if report else None}
     notes = [mask_note] if mask_note else []
-    if reconnection.get("joined") and not bridges:
+    if reconnection.get("joined") and not reconnection.get("bridges"):
         notes.append(f"report.json says reconnection bridged {reconnection['joined']} gap(s) but not where (a result "
                      "from before bridges were recorded): lesions on them cannot be flagged; reconstruct again to check")
     csv_names = [f"profile_branch{p.branch.branch_id:02d}.csv" for p in result.profiles]
