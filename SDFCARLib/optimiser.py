@@ -15,7 +15,8 @@ with the frames' evidence and the calibrations asked for, are ``fit_field``):
    (``pruning.unconfirmed_fragments``) and joins the rest to the tree through the field
    (``connectivity.py``) when asked, grows into connected partial occupancy when asked, removes
    the pieces whose views see different widths where the tree stays whole when asked
-   (``width_agreement.py``), and writes the report.
+   (``width_agreement.py``), joins what is still apart once more when asked
+   (``final_reconnect_max_gap_mm``), and writes the report.
 
 Learning rates
     Adam moves every weight by about lr per step. The SDF's occupancy logit is −α·s, so a step of
