@@ -147,7 +147,8 @@ class RegionSettings:
     # removed, each only where the rest of its component stays in one part (a ghost bridge is kept)
     width_agreement_min_ratio: float = 0.0
     # 0: off. Otherwise, after everything above, the fragments still apart are joined to the tree once more
-    # (as reconnect does, inside the support) across gaps up to this many mm: growing brings fragments closer
+    # (as reconnect does, inside the support) across gaps up to this many mm: growing brings fragments closer.
+    # Fewer pieces for less clDice (bridges take the shortest supported path, not a missed vessel's: RESULTS §32c)
     final_reconnect_max_gap_mm: float = 0.0
     # 0: off. Otherwise, at this share of the steps, the pieces that width check would remove from the
     # fit's segmentation so far are taken out of the field for the rest of the fit, so that the fit may
@@ -155,7 +156,8 @@ class RegionSettings:
     width_exclusion_fraction: float = 0.0
     width_exclusion_repeats: int = 1  # how many times, the later ones evenly spaced between it and the end
     # at those steps, also take out what pruning and the fragment check (prune, drop_unconfirmed_fragments)
-    # would remove from the fit's segmentation, so the fit may re-place their pixels too; false: the width check's alone
+    # would remove from the fit's segmentation, so the fit may re-place their pixels too; false: the width check's
+    # alone (taken out so early, thin true stretches are lost: RESULTS §32a)
     exclusion_takes_finishing_removals: bool = False
 
 
