@@ -142,13 +142,21 @@ def test_reconnect_settings_from_the_command_line():
     assert make_settings("fast").region.reconnect and not make_settings("paper").region.reconnect
 
 
-def test_reconstruct_reports_components():
+@pytest.fixture(scope="module")
+def small_tree_case():
+    """A two-view case small enough to reconstruct in seconds: (geometry, masks)."""
     grid = VolumeGrid((24, 24, 24), (2.0, 2.0, 2.0))
     views = [CArmView(a, 0.0, 1000.0, 750.0, (1.0, 1.0), (64, 64)) for a in (30.0, -30.0)]
     tree = CentrelineTree([Branch(np.array([[-12.0, -6.0, -10.0], [0.0, 2.0, 0.0], [12.0, 6.0, 10.0]]),
                                   np.array([3.0, 2.5, 2.0]))])
     _, masks = simulate_views(voxelize(tree, grid), grid, views)
     geometry = Geometry(grid, views)
+    return geometry, masks
+
+
+def test_reconstruct_reports_components(small_tree_case):
+    geometry, masks = small_tree_case
+    grid = geometry.volume
     for reconnect in (False, True):
         result = reconstruct(geometry, masks, make_settings("fast", steps=60, reconnect=reconnect, device="cpu"))
         assert result.report["grown_voxels"] is not None  # fast grows by default
@@ -240,18 +248,16 @@ def test_joining_fragments_fills_the_occupancy_and_field_in_place_up_to_the_gap_
                 np.array([[34.0, 0, 0]]))[0, 0]
 
 
-def test_the_final_reconnection_is_wired_into_the_finish_and_reported():
+def test_the_final_reconnection_is_wired_into_the_finish_and_reported(small_tree_case):
     """final_reconnect_max_gap_mm: after the width check, the fragments still apart are joined once more."""
-    grid = VolumeGrid((24, 24, 24), (2.0, 2.0, 2.0))
-    views = [CArmView(a, 0.0, 1000.0, 750.0, (1.0, 1.0), (64, 64)) for a in (30.0, -30.0)]
-    tree = CentrelineTree([Branch(np.array([[-12.0, -6.0, -10.0], [0.0, 2.0, 0.0], [12.0, 6.0, 10.0]]),
-                                  np.array([3.0, 2.5, 2.0]))])
-    _, masks = simulate_views(voxelize(tree, grid), grid, views)
-    geometry = Geometry(grid, views)
-    # the first reconnection off, so that what the fit leaves apart reaches the last step
-    base = dict(steps=60, reconnect=False, device="cpu")
-    plain = reconstruct(geometry, masks, make_settings("fast", **base))
-    joined = reconstruct(geometry, masks, make_settings("fast", final_reconnect_max_gap_mm=40.0, **base))
+    from SDFCARLib.optimiser import fit_field
+
+    geometry, masks = small_tree_case
+    # the first reconnection off, so that what the fit leaves apart reaches the last step; one fit, finished both ways
+    plain_settings = make_settings("fast", steps=60, reconnect=False, device="cpu")
+    fitted = fit_field(geometry, masks, plain_settings)
+    plain = fitted.finished()
+    joined = fitted.finished(plain_settings.replace(final_reconnect_max_gap_mm=40.0))
     assert plain.report["final_reconnection"] is None  # 0: off
     info = joined.report["final_reconnection"]
     assert info["components_before"] == plain.report["components"]["components"]  # the same fit, finished alike
