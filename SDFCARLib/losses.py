@@ -66,6 +66,21 @@ def silhouette(line_integral: torch.Tensor, length_mm: float) -> torch.Tensor:
     return 1.0 - torch.exp(-line_integral / length_mm)
 
 
+def gaussian_blur(image: torch.Tensor, sigma_px: Tuple[float, float]) -> torch.Tensor:
+    """``image`` (H, W) convolved with a normalised Gaussian of σ (rows, columns) pixels, zero outside
+    the image, cut at 3σ; σ 0 along an axis leaves it as it is."""
+    out = image[None, None]
+    for axis, sigma in enumerate(sigma_px):
+        if sigma <= 0:
+            continue
+        radius = max(int(math.ceil(3.0 * sigma)), 1)
+        x = torch.arange(-radius, radius + 1, dtype=image.dtype, device=image.device)
+        kernel = torch.exp(-0.5 * (x / sigma) ** 2)
+        kernel = (kernel / kernel.sum()).reshape((1, 1, -1, 1) if axis == 0 else (1, 1, 1, -1))
+        out = F.conv2d(out, kernel, padding=(radius, 0) if axis == 0 else (0, radius))
+    return out[0, 0]
+
+
 def occupancy_loss(image: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
     return torch.mean((target - image) ** 2)
 
@@ -233,6 +248,8 @@ class ViewTarget:
     kind: str  # "mask" | "line_integral"
     reference_mm: float  # L_ref for line-integral targets (1 for masks)
     silhouette_length_mm: float  # τ
+    # frames' path lengths carry the detector's blur: the rendering is blurred alike (σ rows, columns px) for L_occ
+    blur_sigma_px: Tuple[float, float] = (0.0, 0.0)
 
     def silhouette_of(self, line_integral: torch.Tensor) -> torch.Tensor:
         return silhouette(line_integral, self.silhouette_length_mm)
@@ -241,23 +258,28 @@ class ViewTarget:
         """The rendering in this target's image model (silhouette for masks, L / L_ref otherwise)."""
         if self.kind == "mask":
             return self.silhouette_of(line_integral)
+        if any(self.blur_sigma_px):
+            line_integral = gaussian_blur(line_integral, self.blur_sigma_px)
         return line_integral / self.reference_mm
 
 
-def frame_target(line_integral_mm: torch.Tensor, mask_target: ViewTarget) -> ViewTarget:
+def frame_target(line_integral_mm: torch.Tensor, mask_target: ViewTarget,
+                 blur_sigma_px: Tuple[float, float] = (0.0, 0.0)) -> ViewTarget:
     """A mask's view with L_occ on path lengths read off its frame (``evidence.py``): L / L_ref against
     the evidence / L_ref; the silhouette for L_geo stays the mask.
 
     L_ref is the median evidence over the mask's vessel pixels, so a typical vessel pixel reads 1
     as it does in a mask and λ_occ keeps its meaning: scaled by the maximum instead (as for
     simulated line integrals), a thin vessel's pixels weighed a few per cent of a mask pixel and
-    were lost (bench/RESULTS.md §15)."""
+    were lost (bench/RESULTS.md §15). ``blur_sigma_px``: the detector's blur, which the frame's path
+    lengths carry and a rendering does not; L_occ then compares the rendering blurred by it."""
     values = line_integral_mm[(line_integral_mm > 0) & (mask_target.silhouette > 0)]
     if values.numel() == 0:
         raise ValueError("the frame shows no vessel inside the mask: no evidence to fit")
     reference = float(torch.median(values.float()))
     image = (line_integral_mm.to(torch.float32) / reference)
-    return ViewTarget(image, mask_target.silhouette, "line_integral", reference, mask_target.silhouette_length_mm)
+    return ViewTarget(image, mask_target.silhouette, "line_integral", reference, mask_target.silhouette_length_mm,
+                      (float(blur_sigma_px[0]), float(blur_sigma_px[1])))
 
 
 def make_target(data: torch.Tensor, kind: str, silhouette_length_mm: float) -> ViewTarget:

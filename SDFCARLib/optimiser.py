@@ -293,7 +293,10 @@ def build_problem(geometry: Geometry, targets: Sequence[np.ndarray], settings: S
                     for a in arrays]
     if evidence_images is not None:
         # L_occ on the frames' path lengths; L_geo and the support stay on the masks.
-        view_targets = [frame_target(torch.as_tensor(e, device=device), t) for e, t in zip(evidence_images, view_targets)]
+        blur_mm = settings.loss.frame_blur_sigma_mm
+        view_targets = [frame_target(torch.as_tensor(e, device=device), t,
+                                     (blur_mm / v.pixel_spacing_mm[0], blur_mm / v.pixel_spacing_mm[1]))
+                        for e, t, v in zip(evidence_images, view_targets, geometry.views)]
     geometric: Optional[GeometricLoss] = None
     if settings.mode.geometric_loss:
         loss = settings.loss

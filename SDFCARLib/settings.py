@@ -116,6 +116,9 @@ class LossSettings:
     # λ2 when L_occ fits the frames' path lengths (they say how much vessel a ray crossed, which a mask
     # does not); 0.5 was better on static realistic cases but worse on moving LAD ones (RESULTS §18b)
     lambda_occ_frames: float = 0.25
+    # >0: the detector's blur (Gaussian σ, detector mm) that the frames' path lengths carry; L_occ on the frames
+    # then compares the rendering blurred alike (0: unblurred, as before)
+    frame_blur_sigma_mm: float = 0.0
     # weight of L_bin (losses.partial_occupancy_loss), the field's mass at partial occupancy; 0: off
     lambda_binary: float = 0.0
 
@@ -268,6 +271,8 @@ class Settings:
                             ("lambda_occ_frames", l.lambda_occ_frames), ("lambda_binary", l.lambda_binary)):
             if not value >= 0:
                 raise ReconstructionError(f"{name} is a loss weight and must not be negative, got {value}")
+        if not l.frame_blur_sigma_mm >= 0:
+            raise ReconstructionError(f"frame_blur_sigma_mm is a detector blur in mm (0: off), got {l.frame_blur_sigma_mm}")
         if o.table_learning_rate is not None and not o.table_learning_rate > 0:
             raise ReconstructionError(f"table_learning_rate must be positive or none, got {o.table_learning_rate}")
         if l.dt_downsample < 1:

@@ -10,9 +10,9 @@ from SDFCARLib.angiogram import AngiogramSettings, simulate_angiogram
 from SDFCARLib.evidence import (EvidenceError, absorbance_above_background, estimate_attenuation_per_mm,
                                 view_evidence)
 from SDFCARLib.geometry import CArmView, Geometry, VolumeGrid
-from SDFCARLib.losses import make_target, frame_target
+from SDFCARLib.losses import make_target, frame_target, occupancy_loss
 from SDFCARLib.masks import segment_angiogram
-from SDFCARLib.optimiser import reconstruct
+from SDFCARLib.optimiser import build_problem, reconstruct
 from SDFCARLib.phantoms import Branch, CentrelineTree, simulate_views, voxelize
 from SDFCARLib.settings import ReconstructionError, make_settings
 
@@ -108,6 +108,22 @@ def test_frame_target_fits_path_lengths_and_keeps_the_mask_silhouette():
         frame_target(torch.zeros(8, 8), make_target(mask, "mask", 0.3))
 
 
+def test_a_frame_target_with_the_detectors_blur_compares_the_blurred_rendering():
+    import torch
+    from SDFCARLib.losses import gaussian_blur
+
+    mask = torch.zeros(16, 16)
+    mask[4:12, 7:9] = 1.0
+    evidence = gaussian_blur(mask * 2.0, (1.2, 0.8))  # a frame's path lengths are blurred by the detector
+    target = frame_target(evidence, make_target(mask, "mask", 0.3), (1.2, 0.8))
+    assert target.blur_sigma_px == (1.2, 0.8)
+    # the unblurred vessel is now the perfect rendering; without the blur its rendering is off
+    assert torch.allclose(target.rendered(mask * 2.0), target.image, atol=1e-6)
+    unblurred = frame_target(evidence, make_target(mask, "mask", 0.3))
+    assert float(occupancy_loss(unblurred.rendered(mask * 2.0), unblurred.image)) > 1e-3
+    assert torch.equal(target.silhouette, mask)  # L_geo keeps the mask
+
+
 # --- in the reconstruction ---------------------------------------------------------------------------
 GRID = VolumeGrid((32, 32, 32), (1.0, 1.0, 1.0))
 VIEWS = [CArmView(30.0, 0.0, 1000.0, 750.0, (0.4, 0.4), (128, 128)),
@@ -141,6 +157,14 @@ def test_reconstruction_fits_the_frames_when_asked(angiogram_case):
         assert view["attenuation_per_mm"] == pytest.approx(0.25, rel=0.2)
     overlap = np.sum(result.segmentation & label) / np.sum(label)
     assert overlap > 0.6 and result.segmentation.sum() < 2.0 * label.sum()
+
+
+def test_the_detectors_blur_reaches_each_frame_target_in_its_pixels(angiogram_case):
+    geometry, _, frames, masks = angiogram_case
+    blurred = build_problem(geometry, masks, make_settings("fast", frame_blur_sigma_mm=0.3), "mask", frames=frames)
+    assert [t.blur_sigma_px for t in blurred.view_targets] == [pytest.approx((0.75, 0.75))] * 2  # 0.3 mm / 0.4 mm
+    plain = build_problem(geometry, masks, make_settings("fast"), "mask", frames=frames)
+    assert [t.blur_sigma_px for t in plain.view_targets] == [(0.0, 0.0)] * 2
 
 
 def test_frames_are_ignored_unless_asked_and_checked_when_used(angiogram_case):

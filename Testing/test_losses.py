@@ -15,6 +15,7 @@ from SDFCARLib.losses import (
     DistanceSettings,
     GeometricLoss,
     cascaded_distance,
+    gaussian_blur,
     make_target,
     occupancy_loss,
     partial_occupancy_loss,
@@ -77,6 +78,24 @@ def test_make_target():
         make_target(torch.zeros(3, 3), "line_integral", TAU)
     with pytest.raises(ValueError, match="kind"):
         make_target(data, "probability", TAU)
+
+
+def test_gaussian_blur_of_a_line_is_a_normalised_gaussian_across_it():
+    image = torch.zeros(41, 33)
+    image[20, :] = 1.0  # a line along the columns: blurring along them changes nothing away from the ends
+    blurred = gaussian_blur(image, (2.0, 1.5))
+    across = blurred[:, 16]
+    x = torch.arange(41.0) - 20
+    expected = torch.exp(-0.5 * (x / 2.0) ** 2)
+    expected[x.abs() > 6] = 0.0  # cut at 3σ
+    torch.testing.assert_close(across, expected / expected.sum())
+    assert float(across.sum()) == pytest.approx(1.0, abs=1e-6)  # the mass is kept (the line's path length)
+    assert float((x ** 2 * across).sum()) == pytest.approx(4.0, rel=0.03)  # variance σ² (3σ cut: 2.7 % low)
+    assert torch.equal(gaussian_blur(image, (0.0, 0.0)), image)
+    # along the columns only: the line stays a line, its ends soften
+    along = gaussian_blur(image, (0.0, 1.5))
+    assert torch.equal(along[19], image[19]) and float(along[20, 16]) == pytest.approx(1.0)
+    assert 0.4 < float(along[20, 0]) < 0.7
 
 
 # --- signed distance ---------------------------------------------------------------------------------------

@@ -86,6 +86,7 @@ def test_overrides_and_none_values():
     (dict(threads=0), "threads"),
     (dict(lambda_occ_frames=-0.5), "lambda_occ_frames is a loss weight"),
     (dict(lambda_binary=-0.01), "lambda_binary is a loss weight"),
+    (dict(frame_blur_sigma_mm=-0.3), "frame_blur_sigma_mm is a detector blur in mm"),
     (dict(coarse_to_fine_fraction=-0.1), "coarse_to_fine_fraction is the share of the steps"),
     (dict(coarse_to_fine_fraction=1.0), "coarse_to_fine_fraction"),
     (dict(grow_threshold=0.6), "grow_threshold must be 0 (off) or an occupancy up to threshold (0.5)"),
