@@ -117,7 +117,7 @@ class LossSettings:
     # does not); 0.5 was better on static realistic cases but worse on moving LAD ones (RESULTS §18b)
     lambda_occ_frames: float = 0.25
     # >0: the detector's blur (Gaussian σ, detector mm) that the frames' path lengths carry; L_occ on the frames
-    # then compares the rendering blurred alike (0: unblurred, as before)
+    # then compares the rendering blurred alike (0: off; 0.3 was far worse on realistic trees: RESULTS §33d)
     frame_blur_sigma_mm: float = 0.0
     # weight of L_bin (losses.partial_occupancy_loss), the field's mass at partial occupancy; 0: off
     lambda_binary: float = 0.0
