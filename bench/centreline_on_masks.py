@@ -47,16 +47,7 @@ def on_masks(points: np.ndarray, masks, views, radius_mm: float, max_shift_mm: f
     tangents = np.gradient(points, axis=0)
     tangents /= np.linalg.norm(tangents, axis=1, keepdims=True)
     measured = [mask_midlines.measure_view(m, v, points, tangents, np.full(len(points), radius_mm)) for m, v in zip(masks, views)]
-    shift = np.full((len(points), 3), np.nan)
-    for i, (p, t) in enumerate(zip(points, tangents)):
-        offsets = np.array([m["off_px"][i] for m in measured])
-        if not np.all(np.isfinite(offsets)):
-            continue
-        e1 = np.cross(t, [1.0, 0, 0] if abs(t[0]) < 0.9 else [0, 1.0, 0])
-        e1 /= np.linalg.norm(e1)
-        across = np.stack([e1, np.cross(t, e1)], 1)
-        rows = np.stack([m["nrm"][i] @ mask_midlines.jacobian(v, p) @ across for m, v in zip(measured, views)])
-        shift[i] = across @ np.linalg.lstsq(rows, offsets, rcond=1e-6)[0]
+    shift = mask_midlines.triangulate(points, tangents, measured, views)
     ok = np.isfinite(shift).all(axis=1)
     ok[ok] = np.linalg.norm(shift[ok], axis=1) <= max_shift_mm
     if ok.sum() < 5:

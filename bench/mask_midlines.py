@@ -145,8 +145,9 @@ def boxcar(x, seg, width_mm=2.0):
     return out
 
 
-def triangulate(P, T, meas):
-    """Least 3D displacement ⊥ axis whose projections move by the views' signed normal offsets."""
+def triangulate(P, T, meas, views=VIEWS):
+    """Least 3D displacement ⊥ axis whose projections move by the views' signed normal offsets (NaN where a
+    view has none)."""
     D = np.full((len(P), 3), np.nan)
     for i in range(len(P)):
         o = np.array([m["off_px"][i] for m in meas])
@@ -157,7 +158,7 @@ def triangulate(P, T, meas):
         e1 /= np.linalg.norm(e1)
         e2 = np.cross(t, e1)
         E = np.stack([e1, e2], 1)
-        A = np.stack([m["nrm"][i] @ jacobian(v, P[i]) @ E for m, v in zip(meas, VIEWS)])
+        A = np.stack([m["nrm"][i] @ jacobian(v, P[i]) @ E for m, v in zip(meas, views)])
         x, *_ = np.linalg.lstsq(A, o, rcond=1e-6)
         D[i] = E @ x
     return D
