@@ -68,7 +68,8 @@ def silhouette(line_integral: torch.Tensor, length_mm: float) -> torch.Tensor:
 
 def gaussian_blur(image: torch.Tensor, sigma_px: Tuple[float, float]) -> torch.Tensor:
     """``image`` (H, W) convolved with a normalised Gaussian of σ (rows, columns) pixels, zero outside
-    the image, cut at 3σ; σ 0 along an axis leaves it as it is."""
+    the image, cut at 3σ; σ 0 along an axis leaves it as it is. Two 1D convolutions of torch itself: kornia's
+    blur would serve too, but kornia is a test dependency only, and Slicer's Python does not bundle it."""
     out = image[None, None]
     for axis, sigma in enumerate(sigma_px):
         if sigma <= 0:
