@@ -8,10 +8,22 @@ instead of re-deriving gather/scatter indices every step.
 
 from __future__ import annotations
 
+import contextlib
 import warnings
 from typing import Tuple
 
 import torch
+
+
+@contextlib.contextmanager
+def _deliberate_sparse_construction():
+    """Silences torch's notes on building sparse tensors the way this module does on purpose."""
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message="Sparse CSR tensor support is in beta")
+        # valid by construction (sorted rows, counted offsets), so the invariant check is skipped on
+        # purpose; some torch versions (2.11 with CUDA, seen on an H200) warn that it was
+        warnings.filterwarnings("ignore", message="Sparse invariant checks are implicitly disabled")
+        yield
 
 
 def csr_from_sorted(rows: torch.Tensor, cols: torch.Tensor, values: torch.Tensor, shape: Tuple[int, int]) -> torch.Tensor:
@@ -19,8 +31,7 @@ def csr_from_sorted(rows: torch.Tensor, cols: torch.Tensor, values: torch.Tensor
     counts = torch.bincount(rows, minlength=shape[0])
     crow = torch.zeros(shape[0] + 1, dtype=torch.int64, device=rows.device)
     torch.cumsum(counts, 0, out=crow[1:])
-    with warnings.catch_warnings():
-        warnings.filterwarnings("ignore", message="Sparse CSR tensor support is in beta")
+    with _deliberate_sparse_construction():
         return torch.sparse_csr_tensor(crow, cols, values, size=shape, check_invariants=False)
 
 
@@ -43,7 +54,8 @@ class SparseOperator:
                  sorted_by_row: bool = False, coalesce: bool = False) -> None:
         rows, cols = rows.long(), cols.long()
         if coalesce:
-            coo = torch.sparse_coo_tensor(torch.stack([rows, cols]), values, shape, check_invariants=False).coalesce()
+            with _deliberate_sparse_construction():
+                coo = torch.sparse_coo_tensor(torch.stack([rows, cols]), values, shape, check_invariants=False).coalesce()
             rows, cols = coo.indices()
             values = coo.values()
             sorted_by_row = True
