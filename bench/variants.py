@@ -75,10 +75,13 @@ def main() -> int:
             m = evaluate(result.segmentation, case.label, case.geometry.volume, case.geometry.views, case.masks)
             if args.save is not None:
                 save_run(args.save, f"{spec.name}-v{number}", case, result)
+            timings = result.report["timings_s"]
             scores[json.dumps(variant)].append((m["cldice"], m["dice"], m.get("components")))
             print(f"{spec.name:7s} {json.dumps(variant):40s} clDice {m['cldice']:.3f}  Dice {m['dice']:.3f}  components "
                   f"{m.get('components')}/{m.get('components_label')}  support {result.report['support_voxels']}  "
-                  f"{time.perf_counter() - t0:.0f} s", flush=True)
+                  f"{time.perf_counter() - t0:.0f} s (setup {timings['setup']:.0f}, optimise {timings['optimise']:.0f}, "
+                  f"{1000 * timings['per_step']:.0f} ms/step, output {timings['output']:.0f}; {result.report['device']})",
+                  flush=True)
     if len(args.case) > 1 and not args.skip_default:
         default = np.array(scores[json.dumps({})])
         for key, rows in scores.items():
