@@ -171,25 +171,47 @@ def project_centreline(points_mm: np.ndarray, tangents: np.ndarray, view: CArmVi
     return ProjectedCentreline(row, col, mag, 1.0 - norm / (0.5 * mag), np.stack([tr, tc]), np.stack([-tc, tr]))
 
 
-def projected_widths(points_mm: np.ndarray, tangents: np.ndarray, mask: np.ndarray, view: CArmView,
-                     max_width_mm: float = 8.0, max_foreshortening: float = 0.7) -> np.ndarray:
-    """Width (mm at each point's depth) of the vessel in one view's mask, perpendicular to its projection."""
+def projected_edges(points_mm: np.ndarray, tangents: np.ndarray, mask: np.ndarray, view: CArmView,
+                    max_width_mm: float = 8.0, edgeless: Optional[float] = None):
+    """The mask's two edges on either side of each projected centreline point, along the image normal.
+
+    Returns (plus_mm, minus_mm, projected): detector-mm distances from the projection to the first 0.5
+    crossing of the bilinearly interpolated mask along +normal and −normal; NaN where the projection
+    lies outside the mask. Where no edge lies within half of ``max_width_mm`` (magnified), the distance
+    searched (``edgeless`` None), or ``edgeless``.
+    """
     projected = project_centreline(points_mm, tangents, view)
-    row, col, mag, fore = projected.row, projected.col, projected.magnification, projected.foreshortening
+    row, col, mag = projected.row, projected.col, projected.magnification
     nr, nc = projected.normal_rc
     spacing = np.asarray(view.pixel_spacing_mm, float)
-    half_px = max_width_mm * float(np.max(mag)) / float(np.min(spacing)) / 2
+    half_px = edge_cap_px(max_width_mm, mag, spacing)
     step_px = 0.1
     offs = np.arange(0.0, half_px + step_px, step_px)
     image = np.asarray(mask, np.float32)
-    widths_px_mm = np.zeros(len(row))
+    sides = []
     for sign in (1.0, -1.0):
         rr = row[:, None] + sign * offs[None, :] * nr[:, None] * (np.min(spacing) / spacing[0])
         cc = col[:, None] + sign * offs[None, :] * nc[:, None] * (np.min(spacing) / spacing[1])
         values = ndimage.map_coordinates(image, [rr.ravel(), cc.ravel()], order=1, mode="constant", cval=0.0)
-        widths_px_mm = widths_px_mm + first_crossing(values.reshape(rr.shape), step_px, 0.5) * np.min(spacing)
-    width_mm = widths_px_mm / mag
-    return np.where(fore > max_foreshortening, np.nan, width_mm)
+        values = values.reshape(rr.shape)
+        side = first_crossing(values, step_px, 0.5) * np.min(spacing)
+        if edgeless is not None:
+            side = np.where((values >= 0.5).all(axis=-1), edgeless, side)
+        sides.append(side)
+    return sides[0], sides[1], projected
+
+
+def edge_cap_px(max_width_mm: float, magnification: np.ndarray, spacing_mm: np.ndarray) -> float:
+    """How far (px) ``projected_edges`` looks for an edge on each side: half the widest vessel, magnified."""
+    return max_width_mm * float(np.max(magnification)) / float(np.min(spacing_mm)) / 2
+
+
+def projected_widths(points_mm: np.ndarray, tangents: np.ndarray, mask: np.ndarray, view: CArmView,
+                     max_width_mm: float = 8.0, max_foreshortening: float = 0.7) -> np.ndarray:
+    """Width (mm at each point's depth) of the vessel in one view's mask, perpendicular to its projection."""
+    plus, minus, projected = projected_edges(points_mm, tangents, mask, view, max_width_mm)
+    width_mm = (plus + minus) / projected.magnification
+    return np.where(projected.foreshortening > max_foreshortening, np.nan, width_mm)
 
 
 def mask_diameters(points_mm: np.ndarray, tangents: np.ndarray, masks: Sequence[np.ndarray],
@@ -210,12 +232,13 @@ def ellipse_diameter(view_widths_mm: np.ndarray) -> np.ndarray:
         return np.exp(np.nanmean(np.log(np.where(widths > 0, widths, np.nan)), axis=0))
 
 
-def junction_zones(tree: CentrelineTree, branch: CentrelineBranch, margin: float = 1.0) -> np.ndarray:
+def junction_zones(tree: CentrelineTree, branch: CentrelineBranch, margin: float = 1.0,
+                   side_branch_mouths: bool = True) -> np.ndarray:
     """Points of ``branch`` whose cross-section is not its own lumen's: near a junction or a free end.
 
     A side branch's first (parent radius · (1 + margin)) mm lie inside or against the parent; a
-    parent's section at a junction includes the side branch's mouth; a free end's last radius
-    is the rounded end cap.
+    parent's section at a junction includes the side branch's mouth (left out with
+    ``side_branch_mouths`` False); a free end's last radius is the rounded end cap.
     """
     s = branch.arc_length_mm
     flags = np.zeros(len(s), bool)
@@ -228,7 +251,7 @@ def junction_zones(tree: CentrelineTree, branch: CentrelineBranch, margin: float
         flags |= s < (1 + margin) * float(np.max(r[: max(1, len(r) // 10)]))
     end_r = float(np.max(r[-max(1, len(r) // 10):]))
     flags |= s > s[-1] - (1 + margin) * end_r
-    for child in tree.children(branch.branch_id):
+    for child in (tree.children(branch.branch_id) if side_branch_mouths else ()):
         at = s[child.parent_index]
         r_child = float(np.max(child.inscribed_radius_mm[: max(2, len(child.points_mm) // 5)]))
         flags |= np.abs(s - at) < (1 + margin) * r_child + float(r[child.parent_index])
