@@ -1,0 +1,197 @@
+"""The centreline re-placed on the views' mask midlines: 3D-QCA's centreline from the 2D edges.
+
+Why
+    A reconstruction from segmented masks puts its lumen's centre about 0.45 mm off the vessel's
+    axis, wandering over a few millimetres (the frames' path lengths bend it), while the masks'
+    midlines lie within 0.1 mm of the projected axis (bench/RESULTS.md §33a–b). The wander lengthens
+    the 3D centreline and skews its foreshortening; clinical 3D-QCA takes the centreline from the 2D
+    edges for the same reason.
+
+Method (``place_on_masks``)
+    At each centreline point p (unit tangent t), in each view: the mask's edges on either side of
+    p's projection, along the image normal n of the projected centreline (``diameter.projected_edges``,
+    detector mm a₊, a₋); the midline lies o = (a₊ − a₋) / 2 along n. The displacement δ ⟂ t that
+    moves p's projection onto every view's midline solves  nᵥᵀ Jᵥ δ = oᵥ  (Jᵥ: the derivative of
+    view v's detector position, mm, with respect to p; two views, two unknowns in the plane ⟂ t;
+    least squares for more).
+    A point is measured only where every view finds both edges, foreshortens the tangent by at most
+    ``max_foreshortening``, and shows the vessel within a factor ``MAX_WIDTH_CHANGE`` of that view's
+    running median width (another vessel overlapping in one view, or a side branch's mouth, widens
+    that view's mask there; a lesion narrows it, and its lumen may lie off the axis, which would bend
+    the centreline), outside the branch's own start inside its parent and its free-end cap
+    (``diameter.junction_zones``), and where |δ| ≤ ``max_shift_mm``. The
+    other points take δ interpolated along the arc (the nearest measured value beyond the ends); a
+    side branch's first point keeps its parent's junction point. δ is then smoothed along the arc
+    (Gaussian, ``smoothing_mm``) and added. A branch with fewer than ``min_measured`` measured
+    points keeps its shape: a root stays, a side branch moves with its junction point.
+    The normals are taken across the centreline smoothed over ``TANGENT_SMOOTHING_MM``: a wandering
+    centreline's own tangent tilts with the wander, and across it the edges give only part of the
+    offset (a second pass across the corrected line's tangents only adds the edges' pixel noise).
+    Only the points move: their number, the branch ids and the junction indices stay, so sections
+    taken at the volume's own centreline still belong to the same points.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+from typing import Dict, List, Sequence, Tuple
+
+import numpy as np
+from scipy import ndimage
+
+from ..geometry import CArmView
+from .centreline import CentrelineBranch, CentrelineTree
+from .diameter import junction_zones, projected_edges
+
+#: the defaults measured on the QCA suites (bench/RESULTS.md §33f, §35)
+MAX_SHIFT_MM = 1.5
+SMOOTHING_MM = 1.0
+TANGENT_SMOOTHING_MM = 3.0
+MAX_WIDTH_CHANGE = 1.25  # a view's width over (an overlap) or under (a lesion) its running median
+WIDTH_WINDOW_MM = 10.0
+ANOMALY_MARGIN_MM = 1.0
+
+
+@dataclass
+class MaskPlacement:
+    """What ``place_on_masks`` did to one branch."""
+
+    branch_id: int
+    measured_share: float  # of the branch's points, measured in every view
+    mean_shift_mm: float  # |δ| after smoothing, mean over the branch
+    moved: bool
+
+    def to_dict(self) -> Dict[str, object]:
+        return {"branch_id": self.branch_id, "measured_share": round(self.measured_share, 3),
+                "mean_shift_mm": round(self.mean_shift_mm, 3), "moved": self.moved}
+
+
+def detector_jacobian(view: CArmView, points_mm: np.ndarray, step_mm: float = 1e-3) -> np.ndarray:
+    """(N, 2, 3): d(row mm, column mm on the detector) / d(world mm) at each point (central differences)."""
+    points = np.asarray(points_mm, float)
+    spacing = np.asarray(view.pixel_spacing_mm, float)
+    jac = np.zeros((len(points), 2, 3))
+    for axis in range(3):
+        e = np.zeros(3)
+        e[axis] = step_mm
+        r1, c1, _ = view.project(points + e)
+        r0, c0, _ = view.project(points - e)
+        jac[:, 0, axis] = (r1 - r0) * spacing[0] / (2 * step_mm)
+        jac[:, 1, axis] = (c1 - c0) * spacing[1] / (2 * step_mm)
+    return jac
+
+
+def smooth_tangents(points_mm: np.ndarray, smoothing_mm: float) -> np.ndarray:
+    """Unit tangents of the polyline smoothed along its arc (Gaussian σ ``smoothing_mm``)."""
+    points = np.asarray(points_mm, float)
+    arc = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(points, axis=0), axis=1))]
+    step = float(np.median(np.diff(arc))) if len(arc) > 1 else 0.0
+    if smoothing_mm > 0 and step > 0:
+        points = ndimage.gaussian_filter1d(points, smoothing_mm / step, axis=0, mode="nearest")
+    t = np.gradient(points, axis=0)
+    return t / np.maximum(np.linalg.norm(t, axis=1, keepdims=True), 1e-12)
+
+
+def midline_shifts(points_mm: np.ndarray, tangents: np.ndarray, masks: Sequence[np.ndarray], views: Sequence[CArmView],
+                   max_foreshortening: float = 0.7, max_width_change: float = MAX_WIDTH_CHANGE) -> np.ndarray:
+    """(N, 3) displacement ⟂ tangent putting each point's projections on the masks' midlines; NaN where a
+    view gives no clean edge pair (module docstring, without the junction and shift limits)."""
+    points = np.asarray(points_mm, float)
+    t = np.asarray(tangents, float)
+    arc = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(points, axis=0), axis=1))]
+    offsets, rows = [], []
+    for mask, view in zip(masks, views):
+        plus, minus, projected = projected_edges(points, t, mask, view, edgeless=np.nan)
+        width_mm = (plus + minus) / projected.magnification
+        usable = (projected.foreshortening <= max_foreshortening) & ~width_anomalies(width_mm, arc, max_width_change)
+        offsets.append(np.where(usable, 0.5 * (plus - minus), np.nan))
+        # the displacement's effect on the offset along n: nᵀ J, (N, 3)
+        rows.append(np.einsum("nk,nkj->nj", projected.normal_rc.T, detector_jacobian(view, points)))
+    offsets = np.stack(offsets)
+    valid = np.isfinite(offsets).all(axis=0)
+    shifts = np.full((len(points), 3), np.nan)
+    helper = np.where(np.abs(t[:, 2:3]) < 0.9, [[0.0, 0.0, 1.0]], [[1.0, 0.0, 0.0]])
+    e1 = np.cross(t, helper)
+    e1 /= np.linalg.norm(e1, axis=1, keepdims=True)
+    e2 = np.cross(t, e1)
+    for i in np.flatnonzero(valid):
+        basis = np.stack([e1[i], e2[i]], axis=1)  # (3, 2): the plane ⟂ t
+        system = np.stack([r[i] @ basis for r in rows])  # (views, 2)
+        solution, *_ = np.linalg.lstsq(system, offsets[:, i], rcond=1e-6)
+        shifts[i] = basis @ solution
+    return shifts
+
+
+def running_median(values: np.ndarray, arc_mm: np.ndarray, window_mm: float) -> np.ndarray:
+    """Median of the finite values within ``window_mm`` / 2 along the arc of each point (NaN where none)."""
+    values = np.asarray(values, float)
+    out = np.full(len(values), np.nan)
+    for i, centre in enumerate(arc_mm):
+        near = values[np.abs(arc_mm - centre) <= window_mm / 2]
+        near = near[np.isfinite(near)]
+        if near.size:
+            out[i] = np.median(near)
+    return out
+
+
+def width_anomalies(widths: np.ndarray, arc_mm: np.ndarray, max_change: float, window_mm: float = WIDTH_WINDOW_MM,
+                    margin_mm: float = ANOMALY_MARGIN_MM) -> np.ndarray:
+    """Points where one view's mask is wider than ``max_change`` × its running median width (over
+    ``window_mm``: another vessel overlapping there, or a junction) or narrower than 1 / ``max_change``
+    of it (a lesion, whose lumen may lie off the vessel's axis), and ``margin_mm`` either side."""
+    widths = np.asarray(widths, float)
+    median = running_median(widths, arc_mm, window_mm)
+    with np.errstate(invalid="ignore"):
+        wide = (widths > max_change * median) | (widths < median / max_change)
+    out = wide.copy()
+    for centre in arc_mm[wide]:
+        out |= np.abs(arc_mm - centre) <= margin_mm
+    return out
+
+
+def place_on_masks(tree: CentrelineTree, masks: Sequence[np.ndarray], views: Sequence[CArmView],
+                   max_shift_mm: float = MAX_SHIFT_MM, smoothing_mm: float = SMOOTHING_MM, min_measured: int = 5,
+                   **kwargs) -> Tuple[CentrelineTree, List[MaskPlacement]]:
+    """The tree with every branch re-placed on the masks' midlines (module docstring), and what moved."""
+    if len(masks) != len(views):
+        raise ValueError(f"{len(masks)} masks for {len(views)} views: give one mask per view, in the views' order")
+    if len(views) < 2:
+        raise ValueError("placing a centreline on the masks' midlines needs two views or more (one view cannot "
+                         "tell the displacement in depth)")
+    moved: Dict[int, CentrelineBranch] = {}
+    report: List[MaskPlacement] = []
+    for branch in sorted(tree.branches, key=lambda b: b.branch_id):  # parents first: ids grow with the generation
+        points = branch.points_mm
+        if len(points) < 2:
+            moved[branch.branch_id] = branch
+            report.append(MaskPlacement(branch.branch_id, 0.0, 0.0, False))
+            continue
+        arc = branch.arc_length_mm
+        shifts = midline_shifts(points, smooth_tangents(points, TANGENT_SMOOTHING_MM), masks, views, **kwargs)
+        # a side branch's mouth on this branch widens the masks there (``width_anomalies``); its own start,
+        # inside its parent, and a free end's cap have no edges of their own
+        ok = np.isfinite(shifts).all(axis=1) & ~junction_zones(tree, branch, side_branch_mouths=False)
+        ok[ok] = np.linalg.norm(shifts[ok], axis=1) <= max_shift_mm
+        anchors_arc, anchors = list(arc[ok]), list(shifts[ok])
+        parent = moved.get(branch.parent_id) if branch.parent_id is not None else None
+        if parent is not None:  # the side branch stays on its parent's (moved) junction point
+            original_parent = tree.branch(branch.parent_id)
+            anchors_arc.insert(0, 0.0)
+            anchors.insert(0, parent.points_mm[branch.parent_index] - original_parent.points_mm[branch.parent_index])
+        if int(ok.sum()) < min_measured:  # unmeasured: kept as it is, moved with its junction (its length stays)
+            delta = np.zeros_like(points) if parent is None else np.tile(anchors[0], (len(points), 1))
+            moved[branch.branch_id] = replace(branch, points_mm=points + delta)
+            report.append(MaskPlacement(branch.branch_id, float(ok.mean()), float(np.linalg.norm(delta, axis=1).mean()),
+                                        bool(np.any(delta))))
+            continue
+        anchors_arc, anchors = np.asarray(anchors_arc), np.asarray(anchors)
+        order = np.argsort(anchors_arc, kind="stable")
+        delta = np.stack([np.interp(arc, anchors_arc[order], anchors[order, a]) for a in range(3)], axis=1)
+        step = float(np.median(np.diff(arc)))
+        if smoothing_mm > 0 and step > 0:
+            delta = ndimage.gaussian_filter1d(delta, smoothing_mm / step, axis=0, mode="nearest")
+        if parent is not None:
+            delta[0] = anchors[order][0]  # exactly on the junction point, after the smoothing too
+        moved[branch.branch_id] = replace(branch, points_mm=points + delta)
+        report.append(MaskPlacement(branch.branch_id, float(ok.mean()), float(np.linalg.norm(delta, axis=1).mean()), True))
+    return CentrelineTree([moved[b.branch_id] for b in tree.branches]), report
