@@ -239,6 +239,28 @@ def test_analyse_command_writes_every_output(tmp_path, capsys):
     assert "--overwrite" in capsys.readouterr().err
 
 
+def test_analyse_places_the_centreline_on_the_masks_unless_told_otherwise(tmp_path, capsys):
+    import json
+
+    from SDFCARLib.cli import main
+
+    folder, phantom = _result_folder(tmp_path)
+    for choice, expected in (("auto", True), ("volume", False)):
+        out = tmp_path / choice
+        assert main(["analyse", str(folder), "--out", str(out), "--view-step-deg", "10", "--centreline", choice]) == 0
+        settings = json.loads((out / "analysis.json").read_text())["settings"]
+        assert settings["centreline_on_masks"] is expected
+        assert (settings["centreline_placement"] is not None) is expected
+    # asked for without masks: a clear error, nothing written
+    report = json.loads((folder / "report.json").read_text())
+    report["inputs"]["targets"] = []
+    (folder / "report.json").write_text(json.dumps(report))
+    capsys.readouterr()
+    assert main(["analyse", str(folder), "--out", str(tmp_path / "none"), "--centreline", "masks"]) == 2
+    assert "needs the masks of two views or more" in capsys.readouterr().err
+    assert not (tmp_path / "none").exists()
+
+
 def test_centrelines_vtk_reads_back_with_radii(tmp_path):
     pytest.importorskip("vtk")
     from SDFCARLib.analysis.outputs import centrelines_vtk_text

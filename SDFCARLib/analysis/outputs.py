@@ -290,13 +290,14 @@ def analyse_result_dir(result_dir: PathLike, out_dir: Optional[PathLike] = None,
                        masks: Optional[Sequence[PathLike]] = None, ostium_mm: Optional[Sequence[float]] = None,
                        view_step_deg: float = 2.0, min_stenosis_pct: float = 20.0,
                        min_component_share: Optional[float] = None, frames: Optional[Sequence[PathLike]] = None,
-                       psf_sigma_mm: Optional[float] = 0.3) -> Dict[str, Path]:
+                       psf_sigma_mm: Optional[float] = 0.3, centreline_on_masks: Optional[bool] = None) -> Dict[str, Path]:
     """Analyse a reconstruction's result folder and write the QCA files (module docstring); return their paths.
 
     ``frames``: the views' intensity images (vessels dark), one per view: the widths are then also
     fitted to their profiles (``frame_widths.py``; needs the masks, which give the first guess) and the
     lumen area read from their absorbance (``frame_density.py``);
-    ``psf_sigma_mm`` None estimates the detector blur from the frames."""
+    ``psf_sigma_mm`` None estimates the detector blur from the frames; ``centreline_on_masks``: see
+    ``pipeline.analyse_volume`` (None: on where the masks of two views or more are found)."""
     result_dir = Path(result_dir)
     if not result_dir.is_dir():
         raise InputError(f"{result_dir} is not a folder; give the result folder of `reconstruct`")
@@ -312,12 +313,16 @@ def analyse_result_dir(result_dir: PathLike, out_dir: Optional[PathLike] = None,
     geometry = Geometry.from_dict(report["geometry"]) if isinstance(report.get("geometry"), dict) else None
     view_masks, mask_note = _masks_for(report, geometry, masks)
     view_frames = _frames_for(geometry, view_masks, frames, psf_sigma_mm)
+    if centreline_on_masks and (view_masks is None or len(view_masks) < 2):
+        raise InputError(f"the centreline on the masks needs the masks of two views or more ({mask_note or 'one view'}); "
+                         "give --masks, or analyse with the volume's centreline (--centreline volume)")
     reconnection = report.get("reconnection") or {}
     # both reconnections lay bridges (the last one when final_reconnect_max_gap_mm asks for it)
     bridges = list(reconnection.get("bridges") or []) + list((report.get("final_reconnection") or {}).get("bridges") or [])
     result = analyse_volume(volume, grid, level=level, views=geometry.views if geometry else (), masks=view_masks,
                             ostium_mm=ostium_mm, view_step_deg=view_step_deg, min_stenosis_pct=min_stenosis_pct,
                             bridges=bridges, frames=view_frames, psf_sigma_mm=psf_sigma_mm,
+                            centreline_on_masks=centreline_on_masks,
                             **({} if min_component_share is None
                                                 else {"min_component_share": min_component_share}))
     data = summary(result)

@@ -110,6 +110,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--psf-sigma-mm", type=_blur_sigma, default=0.3, metavar="MM|auto",
                    help="detector blur assumed by the --frames fit: Gaussian σ in mm at the detector (default 0.3), "
                         "or 'auto' to estimate it from the frames (analysis.json settings say what was used)")
+    p.add_argument("--centreline", choices=("auto", "masks", "volume"), default="auto",
+                   help="masks: the centreline re-placed on the masks' midlines for lengths, positions, angles and "
+                        "foreshortening (the 3D sections and widths stay on the volume's); volume: the volume's own; "
+                        "auto (default): masks where the masks of two views or more are found")
     p.add_argument("--ostium", type=float, nargs=3, metavar=("X", "Y", "Z"),
                    help="ostium in LPS mm (default: the thickest end of the tree)")
     p.add_argument("--view-step-deg", type=float, default=2.0, help="angle step of the best-view map (default 2)")
