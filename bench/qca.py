@@ -74,10 +74,11 @@ def _truth_samples(phantom):
     return np.concatenate(pts), np.concatenate(dia), np.concatenate(w), np.asarray(names), np.concatenate(arcs)
 
 
-def score(phantom, volume, grid, level, masks, ostium, view_step_deg, frames=None, views=VIEWS) -> Dict[str, float]:
+def score(phantom, volume, grid, level, masks, ostium, view_step_deg, frames=None, views=VIEWS,
+          centreline_on_masks=False) -> Dict[str, float]:
     t0 = time.perf_counter()
     r = analyse_volume(volume, grid, level=level, views=views, masks=masks, ostium_mm=ostium, view_step_deg=view_step_deg,
-                       frames=frames, psf_sigma_mm=AngiogramSettings().psf_sigma_mm)
+                       frames=frames, psf_sigma_mm=AngiogramSettings().psf_sigma_mm, centreline_on_masks=centreline_on_masks)
     elapsed = time.perf_counter() - t0
     tp, td, tw, tnames, tarc = _truth_samples(phantom)
     kd = cKDTree(tp)
@@ -210,10 +211,12 @@ def run_truth(cases, spacing, view_step_deg, mask_source="clean"):
         else:
             masks = [render_mask(ph.tree, v) for v in VIEWS]
         ostium = ph.truth.get("ostium_mm") or ph.tree.branches[0].points[0]
-        row = score(ph, label.astype(np.float32), grid, 0.5, masks, ostium, view_step_deg, frames)
-        rows.append(dict(case=name, **extra, **row))
-        print(f"{name}: " + ", ".join(f"{k}={v:.3g}" if isinstance(v, float) else f"{k}={v}" for k, v in rows[-1].items()),
-              flush=True)
+        for centreline in CENTRELINES:
+            row = score(ph, label.astype(np.float32), grid, 0.5, masks, ostium, view_step_deg, frames,
+                        centreline_on_masks=centreline == "masks")
+            rows.append(dict(case=name, centreline=centreline, **extra, **row))
+            print(f"{name}: " + ", ".join(f"{k}={v:.3g}" if isinstance(v, float) else f"{k}={v}" for k, v in rows[-1].items()),
+                  flush=True)
     return rows
 
 
@@ -247,6 +250,8 @@ def tube_direction(seed: int, max_foreshortening_pct=None) -> np.ndarray:
         if max_foreshortening_pct is None or max(axis_foreshortening_pct(direction)) <= max_foreshortening_pct:
             return direction
 
+
+CENTRELINES = ["volume"]  # the analysis' centreline: "volume", "masks" (main's --centreline)
 
 RECON_TUBES = [  # the recon suite's ten tubes: name, stenosed_tube's parameters
     ("50%/10mm/3mm/con", dict(stenosis_pct=50, lesion_length_mm=10, diameter_mm=3.0, eccentric=False)),
@@ -292,14 +297,15 @@ def run_recon(n_cases, view_step_deg, steps=None, save_dir=None, first=0, mask_s
         settings = make_settings("fast", **({"steps": steps} if steps else {}), **(overrides or {}))
 
         def add_row(occupancy, views, threshold, reconstruct_s, **rule):
-            try:
-                row = score(ph, occupancy, geometry.volume, float(threshold), masks, ph.truth["ostium_mm"],
-                            view_step_deg, frames, views)
-            except CentrelineError as exc:  # e.g. nothing above the level: a failed case, not a failed run
-                row = {"error": str(exc)}
-            rows.append(dict(case=name, **rule, reconstruct_s=reconstruct_s, **extra, **row))
-            print(f"{name}: " + ", ".join(f"{k}={v:.3g}" if isinstance(v, float) else f"{k}={v}"
-                                          for k, v in rows[-1].items()), flush=True)
+            for centreline in CENTRELINES:
+                try:
+                    row = score(ph, occupancy, geometry.volume, float(threshold), masks, ph.truth["ostium_mm"],
+                                view_step_deg, frames, views, centreline_on_masks=centreline == "masks")
+                except CentrelineError as exc:  # e.g. nothing above the level: a failed case, not a failed run
+                    row = {"error": str(exc)}
+                rows.append(dict(case=name, centreline=centreline, **rule, reconstruct_s=reconstruct_s, **extra, **row))
+                print(f"{name}: " + ", ".join(f"{k}={v:.3g}" if isinstance(v, float) else f"{k}={v}"
+                                              for k, v in rows[-1].items()), flush=True)
 
         if grow_thresholds:
             fitted = fit_field(geometry, masks, settings, "mask", frames=frames)
@@ -418,6 +424,9 @@ def main(argv=None) -> int:
                          "(0 = the threshold alone; the fast preset grows into 0.3), side by side")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                     help="recon suite: a setting of the reconstructions other than fast's, repeatable")
+    ap.add_argument("--centreline", choices=("volume", "masks"), nargs="+", default=["volume"],
+                    help="analyse with the volume's centreline, or re-placed on the masks' midlines "
+                         "(analyse_volume's centreline_on_masks), or both side by side on the same volumes")
     ap.add_argument("--view-step-deg", type=float, default=2.0)
     ap.add_argument("--csv", help="write the case rows here")
     args = ap.parse_args(argv)
@@ -427,6 +436,7 @@ def main(argv=None) -> int:
         ap.error("--set changes the reconstructions' settings: it needs --suite recon, without --load")
     if args.masks == "segmented-moving" and args.suite != "recon":
         ap.error("--masks segmented-moving needs --suite recon (a motion between the views matters to a reconstruction)")
+    CENTRELINES[:] = args.centreline
     t0 = time.perf_counter()
     if args.suite == "tubes":
         rows = run_truth(tube_cases(), args.spacing, args.view_step_deg, args.masks)
@@ -436,13 +446,17 @@ def main(argv=None) -> int:
         rows = run_recon(args.cases, args.view_step_deg, args.steps, args.save, args.first, args.masks,
                          args.max_foreshortening_pct, args.load, args.grow, parse_setting_overrides(args.set))
     print()
-    if args.grow:
-        for grow in args.grow:
-            print(f"## grow_threshold {grow:g}\n")
-            # a case whose masks could not be made has one row, without a rule: it counts under every rule
-            print(summarise([r for r in rows if r.get("grow_threshold", grow) == grow]) + "\n")
-    else:
-        print(summarise(rows))
+    for centreline in CENTRELINES:
+        chosen = [r for r in rows if r.get("centreline", centreline) == centreline]
+        if len(CENTRELINES) > 1:
+            print(f"# centreline: {centreline}\n")
+        if args.grow:
+            for grow in args.grow:
+                print(f"## grow_threshold {grow:g}\n")
+                # a case whose masks could not be made has one row, without a rule: it counts under every rule
+                print(summarise([r for r in chosen if r.get("grow_threshold", grow) == grow]) + "\n")
+        else:
+            print(summarise(chosen) + "\n")
     print(f"\n{len(rows)} cases in {time.perf_counter() - t0:.0f} s")
     if args.csv:
         keys = sorted({k for r in rows for k in r}, key=lambda k: (k != "case", k))
