@@ -366,6 +366,16 @@ def test_demo_reconstructs_the_sample_case_and_compares_with_the_hull(tmp_path, 
     assert "reconstruction" in stdout and "visual hull (baseline)" in stdout and "clDice" in stdout
     report = json.loads((tmp_path / "demo" / "report.json").read_text())
     assert report["settings"]["preset"] == "fast" and "visual_hull" in report["metrics"]
+    # the case's masks are named as reconstruct names its inputs, so that `analyse demo-output` finds them
+    from SDFCARLib.analysis.outputs import _masks_for
+    from SDFCARLib.io import write_mask_png
+    from SDFCARLib.sample_data import FILES
+
+    assert report["inputs"]["targets"] == [str(tmp_path / FILES["mask1"]), str(tmp_path / FILES["mask2"])]
+    for n, mask in enumerate(tiny_case.masks):
+        write_mask_png(tmp_path / FILES[f"mask{n + 1}"], mask)
+    masks, note = _masks_for(report, Geometry.from_dict(report["geometry"]), None)
+    assert note is None and all(np.array_equal(a, b) for a, b in zip(masks, tiny_case.masks))
 
 
 def test_bundled_sample_case_equals_a_fresh_regeneration(tmp_path):

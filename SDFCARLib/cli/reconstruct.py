@@ -275,7 +275,7 @@ def cmd_analyse(args: argparse.Namespace) -> int:
 
 def cmd_demo(args: argparse.Namespace) -> int:
     from ..outputs import check_destination, result_file_names, write_reconstruction
-    from ..sample_data import load_sample_case
+    from ..sample_data import FILES, load_sample_case
 
     case = load_sample_case()
     check_destination(args.out, result_file_names(len(case.geometry.views)), args.overwrite)
@@ -285,7 +285,10 @@ def cmd_demo(args: argparse.Namespace) -> int:
     started = time.perf_counter()
     result = run_reconstruction(case.geometry, case.masks, settings, "mask", not args.no_progress)
     files = write_reconstruction(result, args.out, name=args.name or "SDFCAR demo", label=case.label, masks=case.masks,
-                                 overwrite=args.overwrite, extra={"inputs": {"sample_case": str(case.directory)}})
+                                 overwrite=args.overwrite,
+                                 # the masks named as reconstruct names its inputs: `analyse` then finds them
+                                 extra={"inputs": {"sample_case": str(case.directory), "targets": [
+                                     str(case.directory / FILES[f"mask{n + 1}"]) for n in range(len(case.masks))]}})
     print_summary(files)
     print(f"demo finished in {time.perf_counter() - started:.0f} s")
     return EXIT_OK
