@@ -1,9 +1,9 @@
 """The centreline re-placed on the views' mask midlines: 3D-QCA's centreline from the 2D edges.
 
 Why
-    A reconstruction from segmented masks puts its lumen's centre about 0.45 mm off the vessel's
-    axis, wandering over a few millimetres (the frames' path lengths bend it), while the masks'
-    midlines lie within 0.1 mm of the projected axis (bench/RESULTS.md §33a–b). The wander lengthens
+    A reconstruction from segmented masks puts its lumen's centre a fraction of a millimetre off the
+    vessel's axis, wandering over a few millimetres (the frames' path lengths bend it), while the
+    masks' midlines lie several times nearer the projected axis (bench/RESULTS.md §33a–b). The wander lengthens
     the 3D centreline and skews its foreshortening; clinical 3D-QCA takes the centreline from the 2D
     edges for the same reason.
 

@@ -168,8 +168,8 @@ def analyse_volume(volume: np.ndarray, grid: VolumeGrid, level: float = 0.5, vie
     ``centreline_on_masks``: the centreline is re-placed on the masks' midlines (``mask_centreline.py``)
     for the lengths, positions, angles, foreshortening and views, while the 3D sections and the 2D
     widths stay on the volume's own centreline (through the lumen, lesions too); None: where masks of
-    two views or more are given (bench/RESULTS.md §35: on segmented masks the 3D length error falls
-    from +2.5 to +0.7 %).
+    two views or more are given (the lumen of a fit to segmented masks wanders about the axis: the
+    comparison is in bench/RESULTS.md §35).
     """
     if frames is not None and (masks is None or len(frames) != len(views)):
         raise ValueError(f"{len(frames)} frames for {len(views)} views and {'no' if masks is None else len(masks)} masks: "
