@@ -184,7 +184,7 @@ def projected_edges(points_mm: np.ndarray, tangents: np.ndarray, mask: np.ndarra
     row, col, mag = projected.row, projected.col, projected.magnification
     nr, nc = projected.normal_rc
     spacing = np.asarray(view.pixel_spacing_mm, float)
-    half_px = edge_cap_px(max_width_mm, mag, spacing)
+    half_px = max_width_mm * float(np.max(mag)) / float(np.min(spacing)) / 2  # half the widest vessel, magnified
     step_px = 0.1
     offs = np.arange(0.0, half_px + step_px, step_px)
     image = np.asarray(mask, np.float32)
@@ -199,11 +199,6 @@ def projected_edges(points_mm: np.ndarray, tangents: np.ndarray, mask: np.ndarra
             side = np.where((values >= 0.5).all(axis=-1), edgeless, side)
         sides.append(side)
     return sides[0], sides[1], projected
-
-
-def edge_cap_px(max_width_mm: float, magnification: np.ndarray, spacing_mm: np.ndarray) -> float:
-    """How far (px) ``projected_edges`` looks for an edge on each side: half the widest vessel, magnified."""
-    return max_width_mm * float(np.max(magnification)) / float(np.min(spacing_mm)) / 2
 
 
 def projected_widths(points_mm: np.ndarray, tangents: np.ndarray, mask: np.ndarray, view: CArmView,

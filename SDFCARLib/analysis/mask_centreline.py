@@ -41,7 +41,7 @@ from scipy import ndimage
 
 from ..geometry import CArmView
 from .centreline import CentrelineBranch, CentrelineTree
-from .diameter import junction_zones, projected_edges
+from .diameter import junction_zones, plane_basis, projected_edges
 
 #: the defaults measured on the QCA suites (bench/RESULTS.md §33f, §35)
 MAX_SHIFT_MM = 1.5
@@ -110,10 +110,7 @@ def midline_shifts(points_mm: np.ndarray, tangents: np.ndarray, masks: Sequence[
     offsets = np.stack(offsets)
     valid = np.isfinite(offsets).all(axis=0)
     shifts = np.full((len(points), 3), np.nan)
-    helper = np.where(np.abs(t[:, 2:3]) < 0.9, [[0.0, 0.0, 1.0]], [[1.0, 0.0, 0.0]])
-    e1 = np.cross(t, helper)
-    e1 /= np.linalg.norm(e1, axis=1, keepdims=True)
-    e2 = np.cross(t, e1)
+    e1, e2 = plane_basis(t)
     for i in np.flatnonzero(valid):
         basis = np.stack([e1[i], e2[i]], axis=1)  # (3, 2): the plane ⟂ t
         system = np.stack([r[i] @ basis for r in rows])  # (views, 2)
