@@ -28,6 +28,8 @@ sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(REPO / "bench"))
 
 import qca  # noqa: E402
+from SDFCARLib.analysis.diameter import plane_basis  # noqa: E402
+from SDFCARLib.analysis.mask_centreline import detector_jacobian  # noqa: E402
 from SDFCARLib.analysis.phantoms import branch_arc_length_mm, render_mask, stenosed_tube  # noqa: E402
 from SDFCARLib.masks import MaskError  # noqa: E402
 from SDFCARLib.phantoms import Branch, CentrelineTree  # noqa: E402
@@ -41,14 +43,9 @@ def proj(view, p):
     return np.stack([r, c], axis=-1), d
 
 
-def jacobian(view, p, h=1e-3):
-    """d(row, col)/dp, 2x3, central finite differences."""
-    J = np.zeros((2, 3))
-    for a in range(3):
-        e = np.zeros(3)
-        e[a] = h
-        J[:, a] = (proj(view, p + e)[0] - proj(view, p - e)[0]) / (2 * h)
-    return J
+def jacobian(view, p):
+    """d(row, col)/dp in pixels, 2x3 (the product's detector-mm Jacobian over the pixel spacing)."""
+    return detector_jacobian(view, np.asarray(p, float)[None])[0] / np.asarray(view.pixel_spacing_mm, float)[:, None]
 
 
 def axis_samples(ph):
@@ -153,11 +150,7 @@ def triangulate(P, T, meas, views=VIEWS):
         o = np.array([m["off_px"][i] for m in meas])
         if not np.all(np.isfinite(o)):
             continue
-        t = T[i]
-        e1 = np.cross(t, [1.0, 0, 0] if abs(t[0]) < 0.9 else [0, 1.0, 0])
-        e1 /= np.linalg.norm(e1)
-        e2 = np.cross(t, e1)
-        E = np.stack([e1, e2], 1)
+        E = np.stack([a[0] for a in plane_basis(T[i][None])], 1)
         A = np.stack([m["nrm"][i] @ jacobian(v, P[i]) @ E for m, v in zip(meas, views)])
         x, *_ = np.linalg.lstsq(A, o, rcond=1e-6)
         D[i] = E @ x
