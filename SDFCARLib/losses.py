@@ -105,6 +105,25 @@ class DistanceSettings:
 CASCADE_H = 0.35
 
 
+def _correlate(padded: torch.Tensor, kernel: torch.Tensor) -> torch.Tensor:
+    """Valid correlation of (B, 1, H, W) with a small (1, 1, k, k) kernel.
+
+    On CPU as k² shifted, weighted sums: mkldnn's one-channel convolution takes about twice as long
+    (bench/RESULTS.md §36); on other devices one convolution, which launches one kernel instead of k².
+    """
+    if padded.device.type != "cpu":
+        return F.conv2d(padded, kernel)
+    size = kernel.shape[-1]
+    height, width = padded.shape[2] - size + 1, padded.shape[3] - size + 1
+    weights = kernel[0, 0].tolist()
+    out = padded[:, :, :height, :width] * weights[0][0]
+    for i in range(size):
+        for j in range(size):
+            if i or j:
+                out.add_(padded[:, :, i:i + height, j:j + width], alpha=weights[i][j])
+    return out
+
+
 class _SymmetricFilter(torch.autograd.Function):
     """Valid correlation with a fixed kernel that equals itself rotated by 180°.
 
@@ -116,12 +135,12 @@ class _SymmetricFilter(torch.autograd.Function):
     @staticmethod
     def forward(ctx, padded: torch.Tensor, kernel: torch.Tensor) -> torch.Tensor:  # type: ignore[override]
         ctx.kernel = kernel
-        return F.conv2d(padded, kernel)
+        return _correlate(padded, kernel)
 
     @staticmethod
     def backward(ctx, grad: torch.Tensor):  # type: ignore[override]
         width = ctx.kernel.shape[-1] - 1  # the "full" correlation: zero margins of kernel size − 1
-        return F.conv2d(F.pad(grad, (width, width, width, width)), ctx.kernel), None
+        return _correlate(F.pad(grad, (width, width, width, width)), ctx.kernel), None
 
 
 def cascaded_distance(sources: torch.Tensor, kernel_size: int = 3, max_distance_px: Optional[float] = None,

@@ -52,6 +52,11 @@ def pixels_reached(view: CArmView, grid: VolumeGrid, voxels: np.ndarray) -> np.n
     return np.flatnonzero(hit)
 
 
+#: rays traced at a time: each holds (slices × 4) entries in float64 and int64, so 2048 rays keep the
+#: trace's temporaries near 10 MB; 8192 took twice as long to build (bench/RESULTS.md §36)
+RAYS_PER_CHUNK = 2048
+
+
 class ConeBeamProjector:
     """Line integrals (mm) through a volume for the rays of one view (see module docstring).
 
@@ -72,7 +77,7 @@ class ConeBeamProjector:
         pixels: Optional[np.ndarray] = None,
         device: str = "cpu",
         dtype: torch.dtype = torch.float32,
-        rays_per_chunk: int = 8192,
+        rays_per_chunk: int = RAYS_PER_CHUNK,
     ) -> None:
         self.view = view
         self.grid = grid

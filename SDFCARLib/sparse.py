@@ -26,13 +26,31 @@ def _deliberate_sparse_construction():
         yield
 
 
+def index_dtype(device: torch.device, nnz: int, shape: Tuple[int, int]) -> torch.dtype:
+    """The CSR index type: 32-bit on CPU where the matrix fits, because MKL's sparse products take
+    32-bit indices and torch converts 64-bit ones on every product (a copy of all the column indices,
+    a third of the product's time: bench/RESULTS.md §36); 64-bit elsewhere."""
+    fits = max(nnz, shape[0] + 1, shape[1]) < 2**31
+    return torch.int32 if torch.device(device).type == "cpu" and fits else torch.int64
+
+
+def _csr(crow: torch.Tensor, cols: torch.Tensor, values: torch.Tensor, shape: Tuple[int, int]) -> torch.Tensor:
+    dtype = index_dtype(values.device, int(values.numel()), shape)
+    with _deliberate_sparse_construction():
+        return torch.sparse_csr_tensor(crow.to(dtype), cols.to(dtype), values, size=shape, check_invariants=False)
+
+
 def csr_from_sorted(rows: torch.Tensor, cols: torch.Tensor, values: torch.Tensor, shape: Tuple[int, int]) -> torch.Tensor:
     """CSR matrix from COO entries already sorted by row (no duplicates)."""
     counts = torch.bincount(rows, minlength=shape[0])
     crow = torch.zeros(shape[0] + 1, dtype=torch.int64, device=rows.device)
     torch.cumsum(counts, 0, out=crow[1:])
-    with _deliberate_sparse_construction():
-        return torch.sparse_csr_tensor(crow, cols, values, size=shape, check_invariants=False)
+    return _csr(crow, cols, values, shape)
+
+
+def _moved(matrix: torch.Tensor, device) -> torch.Tensor:
+    return _csr(matrix.crow_indices().to(device), matrix.col_indices().to(device), matrix.values().to(device),
+                tuple(matrix.shape))
 
 
 class _Apply(torch.autograd.Function):
@@ -77,6 +95,6 @@ class SparseOperator:
         return _Apply.apply(x.to(self.matrix.dtype), self.matrix, self.matrix_t)
 
     def to(self, device) -> "SparseOperator":
-        self.matrix = self.matrix.to(device)
-        self.matrix_t = self.matrix_t.to(device)
+        self.matrix = _moved(self.matrix, device)
+        self.matrix_t = _moved(self.matrix_t, device)
         return self

@@ -58,6 +58,23 @@ def test_paper_mlp_has_eight_linear_layers_and_residual_hidden_layers():
         ResidualMLP(32, width=8, depth=1)
 
 
+def test_mlp_in_chunks_on_cpu_gives_the_whole_batch_values_and_gradients(monkeypatch):
+    from SDFCARLib import field
+
+    torch.manual_seed(0)
+    mlp = ResidualMLP(8, width=16, depth=4)
+    x = torch.randn(1000, 8, requires_grad=True)
+    whole = mlp(x)
+    grads_whole = torch.autograd.grad(whole.square().sum(), [x, mlp.input.weight])
+    monkeypatch.setattr(field, "CPU_CHUNK_ROWS", 300)  # 4 chunks, the last one short
+    chunked = mlp(x)
+    grads_chunked = torch.autograd.grad(chunked.square().sum(), [x, mlp.input.weight])
+    assert chunked.shape == (1000, 1)
+    torch.testing.assert_close(chunked, whole)
+    for a, b in zip(grads_chunked, grads_whole):
+        torch.testing.assert_close(a, b)
+
+
 def _all_vertices(n: int) -> torch.Tensor:
     k = torch.arange(n + 1, dtype=torch.float64) / n
     return torch.stack(torch.meshgrid(k, k, k, indexing="ij"), dim=-1).reshape(-1, 3)

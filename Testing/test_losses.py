@@ -134,12 +134,17 @@ def test_cascaded_distance_equals_kornia_values_and_gradients(kernel_size):
     torch.testing.assert_close(x_ours.grad, x_ref.grad, rtol=1e-4, atol=1e-5)
 
 
-def test_symmetric_filter_gradient():
+@pytest.mark.parametrize("kernel_size", [3, 5])
+def test_symmetric_filter_equals_the_convolution_and_its_gradient(kernel_size):
     from SDFCARLib.losses import _SymmetricFilter
 
-    offsets = torch.arange(-1, 2, dtype=torch.float64)
+    half = kernel_size // 2
+    offsets = torch.arange(-half, half + 1, dtype=torch.float64)
     kernel = torch.exp(-torch.sqrt(offsets[:, None] ** 2 + offsets[None, :] ** 2) / 0.35)[None, None]
-    padded = torch.rand(2, 1, 7, 9, dtype=torch.float64, requires_grad=True)
+    padded = torch.rand(2, 1, 7 + 2 * half, 9 + 2 * half, dtype=torch.float64, requires_grad=True)
+    out = _SymmetricFilter.apply(padded, kernel)
+    assert out.shape == (2, 1, 7, 9)
+    torch.testing.assert_close(out, torch.nn.functional.conv2d(padded, kernel))
     assert torch.autograd.gradcheck(lambda x: _SymmetricFilter.apply(x, kernel), (padded,))
 
 
@@ -163,20 +168,20 @@ def test_signed_distance_memory_does_not_grow_with_the_image_beyond_the_truncati
     from SDFCARLib import losses
 
     rounds = []
-    original = losses.F.conv2d
+    original = losses._correlate
 
-    def counting_conv2d(*args, **kwargs):
+    def counting_correlate(*args, **kwargs):
         rounds.append(1)
         return original(*args, **kwargs)
 
     settings = DistanceSettings(truncation_mm=5.0)
     for size in (64, 256):
         rounds.clear()
-        losses.F.conv2d = counting_conv2d
+        losses._correlate = counting_correlate
         try:
             signed_distance(torch.rand(1, 1, size, size), torch.tensor([1.0]), settings)
         finally:
-            losses.F.conv2d = original
+            losses._correlate = original
         assert len(rounds) == 6  # ceil(5 mm / 1 mm) + 1
 
 

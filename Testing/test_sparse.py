@@ -71,3 +71,20 @@ def test_torch_notes_on_the_deliberately_unchecked_construction_do_not_reach_the
         warnings.simplefilter("error")
         operator = SparseOperator(r, c, v, shape, coalesce=True)
     torch.testing.assert_close(operator(torch.ones(shape[1], dtype=v.dtype)), _dense(r, c, v, shape).sum(1))
+
+
+def test_cpu_matrices_take_32_bit_indices_where_they_fit_and_give_the_same_products():
+    from SDFCARLib.sparse import index_dtype
+
+    assert index_dtype(torch.device("cpu"), 10, (5, 7)) == torch.int32
+    assert index_dtype(torch.device("cpu"), 2**31, (5, 7)) == torch.int64  # more entries than int32 counts
+    assert index_dtype(torch.device("cpu"), 10, (5, 2**31)) == torch.int64
+    assert index_dtype(torch.device("meta"), 10, (5, 7)) == torch.int64  # off the CPU: 64-bit, as before
+    r, c, v, shape = _entries(nnz=30)
+    operator = SparseOperator(r, c, v, shape, coalesce=True).to("cpu")
+    assert operator.matrix.col_indices().dtype == torch.int32 and operator.matrix_t.crow_indices().dtype == torch.int32
+    x = torch.rand(shape[1], 3, dtype=v.dtype, requires_grad=True)
+    y = operator(x)
+    torch.testing.assert_close(y, _dense(r, c, v, shape) @ x.detach())
+    y.sum().backward()
+    torch.testing.assert_close(x.grad, _dense(r, c, v, shape).T @ torch.ones_like(y))
