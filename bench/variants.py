@@ -7,7 +7,8 @@ Each variant is a JSON object of setting overrides (``settings.py`` keys) on the
 the first row is always the unchanged preset. ``--save DIR`` keeps each run's report.json, occupancy, result,
 truth and masks for offline study. The realistic protocols' angiograms are given as the
 benchmark gives them (``frames``: evidence and motion read off them). Prints clDice, Dice, components (result / truth),
-support voxels and wall time per variant, and the machine.
+support voxels and wall time per variant (with the scoring; the reconstruction's own and its phases in
+brackets), and the machine.
 """
 
 from __future__ import annotations
@@ -79,7 +80,7 @@ def main() -> int:
             scores[json.dumps(variant)].append((m["cldice"], m["dice"], m.get("components")))
             print(f"{spec.name:7s} {json.dumps(variant):40s} clDice {m['cldice']:.3f}  Dice {m['dice']:.3f}  components "
                   f"{m.get('components')}/{m.get('components_label')}  support {result.report['support_voxels']}  "
-                  f"{time.perf_counter() - t0:.0f} s (setup {timings['setup']:.0f}, optimise {timings['optimise']:.0f}, "
+                  f"{time.perf_counter() - t0:.0f} s (reconstruction {timings['total']:.0f}: setup {timings['setup']:.0f}, optimise {timings['optimise']:.0f}, "
                   f"{1000 * timings['per_step']:.0f} ms/step, output {timings['output']:.0f}; {result.report['device']})",
                   flush=True)
     if len(args.case) > 1 and not args.skip_default:
