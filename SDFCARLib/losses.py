@@ -128,8 +128,9 @@ class _SymmetricFilter(torch.autograd.Function):
     """Valid correlation with a fixed kernel that equals itself rotated by 180°.
 
     Its input gradient is the same correlation of the output gradient zero-padded by kernel size
-    − 1. Written out because the CPU (mkldnn) backward of a one-channel convolution takes several
-    times its forward (bench/RESULTS.md), which made it the largest cost of L_geo.
+    − 1. Written out because the CPU (mkldnn) backward of a one-channel convolution took several
+    times its forward (bench/RESULTS.md §3), which made it the largest cost of L_geo; both directions
+    now go through ``_correlate``.
     """
 
     @staticmethod
