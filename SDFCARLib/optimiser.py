@@ -335,6 +335,9 @@ def optimise(problem: Problem, model: ImplicitField, progress: Progress = None, 
     exclusion_steps = exclusion_schedule(settings)
     allowed: Optional[torch.Tensor] = None
     lambda_occ = problem.evidence.get("lambda_occ", settings.loss.lambda_occ)
+    averaging_from = averaging_start(settings)
+    parameters = [model.encoding.table] + list(model.mlp.parameters())
+    averaged: List[torch.Tensor] = []
     t_loop = time.perf_counter()
     last_report = -math.inf
     for step in range(1, o.steps + 1):
@@ -365,6 +368,13 @@ def optimise(problem: Problem, model: ImplicitField, progress: Progress = None, 
         loss.backward()
         optimiser.step()
         scheduler.step()
+        if averaging_from is not None and step > averaging_from:
+            with torch.no_grad():
+                if not averaged:
+                    averaged = [p.detach().clone() for p in parameters]
+                else:
+                    for mean, p in zip(averaged, parameters):
+                        mean.lerp_(p, 1.0 / (step - averaging_from))
         losses = {"loss": float(loss.detach()), "l_occ": float(l_occ.detach()), "l_geo": float(l_geo.detach())}
         history.append({"step": step, **losses})
         if snapshot is not None and snapshot_every > 0 and step % snapshot_every == 0:
@@ -377,7 +387,21 @@ def optimise(problem: Problem, model: ImplicitField, progress: Progress = None, 
             _report(progress, phase="optimise", step=step, total=o.steps, elapsed_s=elapsed,
                     eta_s=elapsed / step * (o.steps - step), device=str(device), **losses)
             last_report = now
+    if averaged:
+        with torch.no_grad():
+            for p, mean in zip(parameters, averaged):
+                p.copy_(mean)
     return history, time.perf_counter() - t_loop
+
+
+def averaging_start(settings: Settings) -> Optional[int]:
+    """The step after which the parameters are averaged into the result (``average_last_fraction``; never
+    before the last exclusion, which changes what the field fits), or None when off."""
+    o = settings.optimisation
+    if not o.average_last_fraction:
+        return None
+    start = o.steps - max(1, round(o.average_last_fraction * o.steps))
+    return max([start] + exclusion_schedule(settings))
 
 
 def exclusion_schedule(settings: Settings) -> List[int]:

@@ -96,6 +96,9 @@ class OptimisationSettings:
     warmup_steps: int = 0  # linear warm-up of both learning rates
     # >0: the encoding's finer levels are faded in over this share of the steps, coarse to fine (0: all from the start)
     coarse_to_fine_fraction: float = 0.0
+    # >0: the parameters averaged over this last share of the steps (after any exclusion) become the result,
+    # against Adam's jitter about the minimum at a constant rate (0: off; level on the realistic suites, RESULTS §37b)
+    average_last_fraction: float = 0.0
     checkpoint_points: int = 262144  # >0: the MLP in checkpointed chunks of this many points (memory)
 
 
@@ -279,6 +282,9 @@ class Settings:
             raise ReconstructionError("dt_downsample must be at least 1")
         if o.warmup_steps < 0 or o.checkpoint_points < 0:
             raise ReconstructionError("warmup_steps and checkpoint_points must not be negative")
+        if not 0 <= o.average_last_fraction < 1:
+            raise ReconstructionError(f"average_last_fraction is the share of the last steps whose parameters are averaged "
+                                      f"into the result: 0 (off) up to below 1, got {o.average_last_fraction}")
         if not 0 <= o.coarse_to_fine_fraction < 1:
             raise ReconstructionError(f"coarse_to_fine_fraction is the share of the steps over which the finer levels "
                                       f"fade in: 0 (off) up to below 1, got {o.coarse_to_fine_fraction}")

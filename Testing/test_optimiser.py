@@ -8,7 +8,9 @@ import torch
 
 from SDFCARLib.geometry import CArmView, Geometry, VolumeGrid
 from SDFCARLib.losses import partial_occupancy_loss, silhouette
-from SDFCARLib.optimiser import ReconstructionCancelled, reconstruct, validate_targets
+from SDFCARLib.field import ImplicitField
+from SDFCARLib.optimiser import (ReconstructionCancelled, averaging_start, build_problem, field_config, optimise,
+                                   reconstruct, validate_targets)
 from SDFCARLib.settings import MODES, ReconstructionError, make_settings
 from SDFCARLib.phantoms import Branch, CentrelineTree, simulate_views, voxelize
 from SDFCARLib.projector import project_volume
@@ -213,6 +215,41 @@ def test_a_coarse_to_fine_fit_differs_from_one_with_every_level_from_the_start_a
     assert not np.array_equal(every_level.field, coarse_first.field)
     assert coarse_first.segmentation.sum() > 0.5 * case[1].sum()
     assert every_level.segmentation.sum() > 0.5 * case[1].sum()
+
+
+def test_averaging_starts_after_the_last_exclusion_and_is_off_by_default():
+    assert averaging_start(make_settings("fast", steps=400)) is None
+    assert averaging_start(make_settings("fast", steps=400, average_last_fraction=0.1)) == 360
+    # the field fits something else before the exclusion at 60 %: the average starts after it
+    assert averaging_start(make_settings("fast", steps=400, average_last_fraction=0.5)) == 240
+    assert averaging_start(make_settings("fast", steps=400, average_last_fraction=0.5, width_exclusion_fraction=0.0)) == 200
+    assert averaging_start(make_settings("fast", steps=10, average_last_fraction=0.01, width_exclusion_fraction=0.0)) == 9
+
+
+def test_the_averaged_fit_holds_the_mean_of_the_last_iterates(case, monkeypatch):
+    """average_last_fraction: the parameters the fit ends with are the mean of those after each of the
+    averaged steps (Adam's own iterates, recorded as it makes them), not the last iterate."""
+    settings = make_settings("fast", steps=8, seed=3, device="cpu", average_last_fraction=0.5,
+                             width_exclusion_fraction=0.0)
+    problem = build_problem(case[0], _masks(case), settings, "mask")
+    torch.manual_seed(3)
+    model = ImplicitField(field_config(settings))
+    iterates = []
+    adam_step = torch.optim.Adam.step
+
+    def recording_step(self, *args, **kwargs):
+        out = adam_step(self, *args, **kwargs)
+        iterates.append([p.detach().clone() for group in self.param_groups for p in group["params"]])
+        return out
+
+    monkeypatch.setattr(torch.optim.Adam, "step", recording_step)
+    optimise(problem, model)
+    assert len(iterates) == 8
+    parameters = [model.encoding.table] + list(model.mlp.parameters())
+    for n, parameter in enumerate(parameters):
+        mean = torch.stack([step[n] for step in iterates[4:]]).mean(dim=0)
+        torch.testing.assert_close(parameter.detach(), mean, rtol=1e-5, atol=1e-6)
+    assert not torch.allclose(parameters[0].detach(), iterates[-1][0])  # the table moved over those steps
 
 
 def test_partial_occupancy_term_makes_the_fitted_field_more_binary(case):

@@ -89,6 +89,8 @@ def test_overrides_and_none_values():
     (dict(frame_blur_sigma_mm=-0.3), "frame_blur_sigma_mm is a detector blur in mm"),
     (dict(coarse_to_fine_fraction=-0.1), "coarse_to_fine_fraction is the share of the steps"),
     (dict(coarse_to_fine_fraction=1.0), "coarse_to_fine_fraction"),
+    (dict(average_last_fraction=1.0), "average_last_fraction is the share of the last steps"),
+    (dict(average_last_fraction=-0.1), "average_last_fraction"),
     (dict(grow_threshold=0.6), "grow_threshold must be 0 (off) or an occupancy up to threshold (0.5)"),
     (dict(grow_threshold=-0.1), "grow_threshold"),
     (dict(width_agreement_min_ratio=1.0), "width_agreement_min_ratio must be 0 (off) or an agreement"),
