@@ -71,7 +71,8 @@ def main() -> int:
             if number == 0 and args.skip_default:
                 continue
             t0 = time.perf_counter()
-            result = reconstruct(case.geometry, case.targets, make_settings("fast", seed=spec.seed, **variant),
+            # the fit's seed is the case's unless the variant sets it (another draw of the same case)
+            result = reconstruct(case.geometry, case.targets, make_settings("fast", **{"seed": spec.seed, **variant}),
                                  case.target_kind, frames=case.frames)
             m = evaluate(result.segmentation, case.label, case.geometry.volume, case.geometry.views, case.masks)
             if args.save is not None:
