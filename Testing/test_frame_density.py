@@ -84,6 +84,20 @@ def test_same_lesion_on_another_profile_is_the_one_inside_the_lesions_extent():
     assert same_lesion_on(s[:2], diameter[:2], usable[:2], at_20) is None  # too few points for a reference
 
 
+def test_a_short_bump_of_the_reconstruction_inside_a_long_lesion_of_the_frames_is_that_lesion():
+    from SDFCARLib.analysis.lesion import Lesion, same_lesion_on
+    from SDFCARLib.analysis.phantoms import lesion_weight
+
+    s = np.arange(0.0, 40.0, 0.25)
+    frames = 3.0 * (1 - 0.5 * lesion_weight(s - 12.5, 15.0))  # 50 % over 12.5–27.5 mm
+    bump = Lesion(2.2, 14.0, 3.0, 27.0, 46.0, 13.5, 14.5, 1.0)  # the 3D sections' reading, near one end
+    same = same_lesion_on(s, frames, np.ones(s.shape, bool), bump)
+    assert same is not None and same.diameter_stenosis_pct == pytest.approx(50.0, abs=2.0)
+    assert same.start_mm < 14.0 < same.end_mm and same.length_mm == pytest.approx(15.0, abs=2.0)
+    apart = Lesion(2.2, 6.0, 3.0, 27.0, 46.0, 5.5, 6.5, 1.0)  # a bump outside it is another lesion
+    assert same_lesion_on(s, frames, np.ones(s.shape, bool), apart) is None
+
+
 def _tube_frames(stenosis_pct: float, seed: int = 4):
     """A 3 mm tube (50 % lesion over 8 mm, or healthy), its simulated angiograms and segmented masks."""
     from SDFCARLib.analysis.phantoms import grid_around, stenosed_tube, straight_tube, voxelize_exact
@@ -191,6 +205,58 @@ def test_a_lesion_is_graded_on_the_density_else_the_edges_else_the_3d_sections()
     assert grade.source == "3D sections" and grade.measure is lesion and grade.seen_on_frames is False
 
 
+def test_one_lesion_of_the_frames_is_reported_once_as_the_3d_bump_that_narrows_most():
+    from SDFCARLib.analysis.lesion import Lesion, ReferenceFit
+    from SDFCARLib.analysis.pipeline import frames_lesions, lesion_grade
+
+    s, profile, _, narrowed, _ = _straight_branch_with_a_lesion()
+    profile.frame_diameter_mm, profile.frame_density_diameter_mm = narrowed, narrowed
+    profile.reference = ReferenceFit(3.0, 0.0, np.ones(len(s), bool))
+    before = Lesion(2.2, 17.0, 3.0, 27.0, 46.0, 16.5, 17.5, 1.0)  # two bumps of a rough reconstruction
+    after = Lesion(2.0, 23.0, 3.0, 33.0, 55.0, 22.5, 23.5, 1.0)  # inside the frames' 60 % lesion at 20 mm
+    elsewhere = Lesion(2.1, 33.0, 3.0, 30.0, 51.0, 32.0, 34.0, 2.0)  # the frames show nothing there
+    profile.lesions = [before, after, elsewhere]
+    frames_lesions(profile, 20.0)
+    assert profile.lesions == [after, elsewhere] and profile.frames_only == []
+    assert lesion_grade(profile, after).measure.mld_position_mm == pytest.approx(20.0, abs=0.5)
+    assert lesion_grade(profile, elsewhere).source == "3D sections"
+
+
+def test_a_lesion_the_frames_show_and_the_reconstruction_does_not_is_reported_from_the_frames(tmp_path, stenosed_tube_frames):
+    import importlib.util
+
+    from SDFCARLib.analysis.outputs import analysis_summary_lines
+    from SDFCARLib.analysis.phantoms import grid_around, straight_tube, voxelize_exact
+    from SDFCARLib.analysis.pipeline import analyse_volume, summary
+
+    # The frames and masks of a tube with a 50 % lesion over 8 mm; a reconstruction too coarse to narrow there.
+    stenosed, realistic = stenosed_tube_frames
+    healthy = straight_tube(30.0, 3.0, (0.2, 0.25, 1.0))
+    grid = grid_around(healthy.tree, 0.3)
+
+    def analysed(frames):
+        return analyse_volume(voxelize_exact(healthy.tree, grid).astype(np.float32), grid, views=VIEWS,
+                              masks=realistic.masks, frames=realistic.frames if frames else None,
+                              ostium_mm=stenosed.truth["ostium_mm"], best_view=False,
+                              psf_sigma_mm=AngiogramSettings().psf_sigma_mm)
+
+    assert summary(analysed(False))["lesions"] == []  # the 3D sections alone find none
+    result = analysed(True)
+    data = summary(result)
+    assert len(data["lesions"]) == 1
+    lesion = data["lesions"][0]
+    grade = lesion["grade"]
+    assert lesion["found_on"] == "frames" and grade["source"] == "frames (density)"
+    assert grade["diameter_stenosis_pct"] == pytest.approx(50.0, abs=8.0)
+    assert grade["length_mm"] == pytest.approx(stenosed.truth["lesion_length_mm"], abs=2.0)
+    assert lesion["diameter_stenosis_pct"] < 20.0  # the 3D sections over the frames' extent
+    assert (lesion["start_mm"], lesion["end_mm"]) == (grade["start_mm"], grade["end_mm"])
+    assert any("found on the frames only" in w and "branch 0" in w for w in data["warnings"])
+    assert "found on the frames only" in analysis_summary_lines(data)[1]
+    if importlib.util.find_spec("slicer") is not None:
+        assert _qca_table(tmp_path / "frames", result, data).GetColumnByName("found_on").GetValue(0) == "frames"
+
+
 def _qca_table(folder, result, data):
     """The Slicer "… QCA" table of an analysis written to ``folder``."""
     import json
@@ -217,6 +283,7 @@ def test_the_slicer_qca_table_carries_the_grade_and_the_3d_measure(tmp_path, ste
     assert [table.GetColumnName(i) for i in range(table.GetNumberOfColumns())] == list(QCA_TABLE_COLUMNS)
     lesion = data["lesions"][0]
     assert table.GetColumnByName("graded_on").GetValue(0) == "frames (density)"
+    assert table.GetColumnByName("found_on").GetValue(0) == "3D sections"
     assert table.GetColumnByName("seen_on_frames").GetValue(0) == "yes"
     assert table.GetColumnByName("seen_on_masks").GetValue(0) == "yes"
     assert table.GetColumnByName("diameter_stenosis_pct").GetValue(0) == pytest.approx(lesion["grade"]["diameter_stenosis_pct"])

@@ -23,10 +23,16 @@ Lesion (``find_lesions``)
     After a lesion is found its extent is masked and the next worst point is examined, up to
     ``max_lesions`` with %DS >= ``min_stenosis_pct``.
 
-The same lesion on another profile (``same_lesion_on``)
+The same lesion on another profile (``same_lesion_on``, ``is_same_lesion``)
     The 3D sections find a lesion; the frames' diameters of the same centreline are searched the
-    same way, and the worst of their lesions whose MLD lies in the 3D lesion's extent (widened by
-    half its length each side) is that lesion as the frames measure it.
+    same way, and the worst of their lesions that is the same lesion is that lesion as the frames
+    measure it. Same: its MLD lies in the 3D lesion's extent widened by half its length each side,
+    or the 3D lesion's MLD lies in its extent — a rough reconstruction reads a long lesion as a
+    short bump near one end of it (RESULTS §38a).
+
+A lesion at a given extent (``lesion_within``)
+    A profile's narrowing over an extent found on another profile: the MLD is the smallest
+    (smoothed) diameter inside it, the reference the profile's own line there.
 """
 
 from __future__ import annotations
@@ -191,6 +197,29 @@ def same_lesion_on(s_mm: np.ndarray, diameter_mm: np.ndarray, usable: np.ndarray
         found = find_lesions(s_mm, diameter_mm, reference, usable, min_stenosis_pct=min_stenosis_pct)
     except ValueError:
         return None
-    pad = 0.5 * lesion.length_mm
-    near = [x for x in found if lesion.start_mm - pad <= x.mld_position_mm <= lesion.end_mm + pad]
+    near = [x for x in found if is_same_lesion(lesion, x)]
     return max(near, key=lambda x: x.diameter_stenosis_pct) if near else None
+
+
+def is_same_lesion(lesion: Lesion, other: Lesion) -> bool:
+    """Whether ``other`` (found on another profile of the same centreline) is ``lesion`` (module docstring)."""
+    pad = 0.5 * lesion.length_mm
+    return (lesion.start_mm - pad <= other.mld_position_mm <= lesion.end_mm + pad
+            or other.start_mm <= lesion.mld_position_mm <= other.end_mm)
+
+
+def lesion_within(s_mm: np.ndarray, diameter_mm: np.ndarray, reference: ReferenceFit, start_mm: float, end_mm: float,
+                  area_mm2: Optional[np.ndarray] = None, smoothing_mm: float = 0.5) -> Optional[Lesion]:
+    """The narrowing of a profile between ``start_mm`` and ``end_mm`` (module docstring); None where no
+    section inside was measured."""
+    s = np.asarray(s_mm, float)
+    d = smooth_profile(s, diameter_mm, smoothing_mm)
+    inside = (s >= start_mm) & (s <= end_mm) & np.isfinite(d)
+    if not inside.any():
+        return None
+    i = int(np.flatnonzero(inside)[np.argmin(d[inside])])
+    mld, r = float(d[i]), float(reference(s[i]))
+    a_ref = np.pi * r * r / 4
+    a_min = float(smooth_profile(s, area_mm2, smoothing_mm)[i]) if area_mm2 is not None else np.pi * mld * mld / 4
+    return Lesion(mld, float(s[i]), r, 100 * (1 - mld / r), 100 * (1 - a_min / a_ref), float(start_mm), float(end_mm),
+                  float(end_mm - start_mm))

@@ -52,9 +52,9 @@ def _slicer_module():
 
 
 #: the "… QCA" table: one row per branch; its worst lesion as graded (MLD … lesion length, graded_on,
-#: seen_on_frames, seen_on_masks), as the 3D sections measure it, and the masks' largest narrowing there
+#: found_on, seen_on_frames, seen_on_masks), as the 3D sections measure it, and the masks' largest narrowing there
 QCA_TABLE_COLUMNS = ("branch", "parent", "length_mm", "mean_diameter_mm", "mld_mm", "diameter_stenosis_pct",
-                     "area_stenosis_pct", "lesion_length_mm", "graded_on", "seen_on_frames", "seen_on_masks",
+                     "area_stenosis_pct", "lesion_length_mm", "graded_on", "found_on", "seen_on_frames", "seen_on_masks",
                      "diameter_stenosis_3d_pct", "mld_3d_mm", "diameter_stenosis_masks_pct")
 #: profile columns measured on the frames (edges, density), in the branch profile tables when present
 FRAME_COLUMNS = ("diameter_frames_mm", "diameter_frames_density_mm")
@@ -179,6 +179,7 @@ def add_analysis_nodes(scene, analysis_dir: PathLike, name: str = "SDFCAR", poin
                            ("lesion_length_mm", "length_mm")):
             rows[key].append(grade[field] if grade else None)
         rows["graded_on"].append(grade["source"] if grade else "")
+        rows["found_on"].append(worst.get("found_on", "3D sections") if worst else "")  # pipeline.GRADED_ON_3D
         rows["seen_on_frames"].append("" if worst is None or worst.get("seen_on_frames") is None
                                       else ("yes" if worst["seen_on_frames"] else "no"))
         rows["seen_on_masks"].append("" if worst is None or worst.get("seen_on_masks") is None

@@ -39,6 +39,15 @@ Grade of a lesion (``lesion_grade``)
     no mask shows gets the same warning: a rough reconstruction's bumps read as stenoses (README's
     sample case), and the masks are then the only images to check it on.
 
+Lesions of the frames (``frames_lesions``)
+    Where the frames are given they are searched too (density, else edges): a lesion they show that
+    is none of the 3D sections' (``lesion.is_same_lesion``) is reported with ``found_on`` "frames"
+    and a warning, its 3D measures being the sections' over the frames' extent: a 1.5 mm vessel
+    reconstructed from segmented masks reads 0.7 mm too wide and its 50 % lesion not at all, which
+    the frames show (RESULTS §38b). Several 3D lesions graded as the same lesion of the frames (bumps
+    of a rough reconstruction along one long lesion) are reported once, as the one that narrows most
+    in 3D.
+
 Target segment of the best-view map
     The worst lesion (highest graded %DS over all branches) padded by ``TARGET_PAD_MM`` of reference
     vessel on each side, as a clinician frames a lesion; without a lesion, the first
@@ -59,7 +68,8 @@ from .diameter import CrossSections, branch_cross_sections, ellipse_diameter, ju
 from .frame_density import attenuation_per_mm, densities, density_diameter
 from .frame_widths import DEFAULT_PSF_SIGMA_MM, estimate_psf_sigma_mm, frame_widths
 from .fragments import MIN_COMPONENT_SHARE, UNRELIABLE, Fragments, find_fragments, lesion_reasons
-from .lesion import Lesion, ReferenceFit, find_lesions, minimal_lumen, reference_fit, same_lesion_on
+from .lesion import (Lesion, ReferenceFit, find_lesions, is_same_lesion, lesion_within, minimal_lumen, reference_fit,
+                     same_lesion_on)
 from .mask_centreline import place_on_masks
 from .views import ViewMap, foreshortening, overlap_fraction, view_label, view_map
 
@@ -94,6 +104,7 @@ class BranchProfile:
     width_branch: Optional[CentrelineBranch] = None
     reference: Optional[ReferenceFit] = None
     lesions: List[Lesion] = field(default_factory=list)  # reliable: measured on an intact vessel
+    frames_only: List[Lesion] = field(default_factory=list)  # of lesions/unreliable: found on the frames, not in 3D
     unreliable: List[UnreliableLesion] = field(default_factory=list)
     unresolved: int = 0  # narrowings found but below the grid's resolution (not reported as lesions)
     warning: str = ""
@@ -235,6 +246,8 @@ def analyse_volume(volume: np.ndarray, grid: VolumeGrid, level: float = 0.5, vie
     blur: Dict[str, Any] = {}
     if frames is not None and profiles:  # before the target: the worst lesion is the worst graded one
         blur = _fit_frame_widths(profiles, frames, views, psf_sigma_mm)
+        for prof in profiles:
+            frames_lesions(prof, min_stenosis_pct, fragments, bridges)
     target = dict(target) if target else _choose_target(profiles, min_stenosis_pct)
     vm = None
     target_branch = tree.branch(int(target["branch_id"]))
@@ -256,6 +269,52 @@ def analyse_volume(volume: np.ndarray, grid: VolumeGrid, level: float = 0.5, vie
                 "strands_dropped": len(strands), "voxel_mm": voxel, "centreline_on_masks": centreline_on_masks,
                 "centreline_placement": None if placement is None else [p.to_dict() for p in placement]}
     return QCAResult(tree, profiles, bifurcation_angles(tree), list(views), fore, target, vm, settings, fragments)
+
+
+def _frames_profile(p: BranchProfile) -> Optional[np.ndarray]:
+    """The frames' profile lesions are searched on: the density's, else the edges' (as they are graded)."""
+    for values in (p.frame_density_diameter_mm, p.frame_diameter_mm):
+        if values is not None and np.isfinite(values).sum() >= 3:
+            return values
+    return None
+
+
+def frames_lesions(p: BranchProfile, min_stenosis_pct: float, fragments: Optional[Fragments] = None,
+                   bridges: Sequence[Dict[str, Any]] = ()) -> None:
+    """One lesion per lesion of the frames on ``p``, and the frames' lesions the 3D sections missed (module
+    docstring, "Lesions of the frames"); changes ``p.lesions``, ``p.unreliable`` and ``p.frames_only``."""
+    values = _frames_profile(p)
+    if values is None or p.reference is None:
+        return
+    worst_of: Dict[Any, Lesion] = {}  # the frames' lesion (source, MLD position) → the 3D lesion kept for it
+    for lesion in p.lesions:
+        grade = lesion_grade(p, lesion, min_stenosis_pct)
+        key = id(lesion) if grade.source == GRADED_ON_3D else (grade.source, grade.measure.mld_position_mm)
+        kept = worst_of.get(key)
+        if kept is None or lesion.diameter_stenosis_pct > kept.diameter_stenosis_pct:
+            worst_of[key] = lesion
+    p.lesions = [x for x in p.lesions if any(x is y for y in worst_of.values())]
+    b = p.branch
+    s = b.arc_length_mm
+    usable = np.isfinite(values) & ~_end_caps(b)
+    try:
+        found = find_lesions(s, values, reference_fit(s, values, usable), usable, min_stenosis_pct=min_stenosis_pct)
+    except ValueError:
+        return
+    known = p.lesions + [u.lesion for u in p.unreliable]
+    for x in found:
+        if any(is_same_lesion(lesion, x) for lesion in known):
+            continue
+        lesion = lesion_within(s, p.diameter_mm, p.reference, x.start_mm, x.end_mm, p.sections.area_mm2)
+        if lesion is None:
+            continue
+        reasons = lesion_reasons(b, lesion.start_mm, lesion.end_mm, p.reference(s) / 2, fragments, bridges)
+        if reasons:
+            p.unreliable.append(UnreliableLesion(lesion, reasons))
+        else:
+            p.lesions.append(lesion)
+        p.frames_only.append(lesion)
+        known.append(lesion)
 
 
 def _fit_frame_widths(profiles: List[BranchProfile], frames: Sequence[np.ndarray], views: Sequence[CArmView],
@@ -367,6 +426,7 @@ def lesion_on_2d_profile(p: BranchProfile, values: Optional[np.ndarray], lesion:
 
 
 GRADED_ON_DENSITY, GRADED_ON_EDGES, GRADED_ON_3D = "frames (density)", "frames (edges)", "3D sections"
+FOUND_ON_FRAMES = "frames"  # analysis.json ``found_on``: "3D sections" (GRADED_ON_3D) or this
 
 
 @dataclass
@@ -436,7 +496,8 @@ def _lesion_entry(p: BranchProfile, lesion: Lesion, min_stenosis_pct: float, vox
     its 3D minimal lumen is thinner than the grid resolves (module docstring, "Resolution")."""
     grade = lesion_grade(p, lesion, min_stenosis_pct)
     frames = None if grade.on_frames is None else {k: None if v is None else v.to_dict() for k, v in grade.on_frames.items()}
-    return dict(lesion.to_dict(), branch_id=p.branch.branch_id, grade=grade.to_dict(),
+    found_on = FOUND_ON_FRAMES if any(lesion is x for x in p.frames_only) else GRADED_ON_3D
+    return dict(lesion.to_dict(), branch_id=p.branch.branch_id, grade=grade.to_dict(), found_on=found_on,
                 mld_below_resolution=bool(lesion.mld_mm < RESOLVABLE_VOXELS * voxel_mm),
                 seen_on_frames=grade.seen_on_frames, frames=frames, seen_on_masks=grade.seen_on_masks,
                 masks_diameter_stenosis_pct=masks_stenosis_pct(p, lesion), **extra)
@@ -450,6 +511,17 @@ def _unseen_warning(lesions: List[Dict[str, Any]], images: str, check_on: str) -
                       for d in unseen)
     return (f"{len(unseen)} lesion(s) of the 3D sections not seen on the {images}: {where}. The reconstruction may be "
             f"rough or flattened there; check the {check_on} before acting on these (they are graded on the 3D sections).")
+
+
+def _frames_only_warning(lesions: List[Dict[str, Any]]) -> Optional[str]:
+    only = [d for d in lesions if d["found_on"] == FOUND_ON_FRAMES]
+    if not only:
+        return None
+    where = ", ".join(f"branch {d['branch_id']} at {d['grade']['mld_position_mm']:.1f} mm (frames DS "
+                      f"{d['grade']['diameter_stenosis_pct']:.0f}%, 3D sections {d['diameter_stenosis_pct']:.0f}%)" for d in only)
+    return (f"{len(only)} lesion(s) found on the frames only: {where}. The reconstruction does not narrow there as "
+            f"the frames do (too coarse or too rough for this vessel): the grade is the frames', the 3D measures are "
+            f"the sections' over the frames' extent.")
 
 
 def _thin_throat_warning(lesions: List[Dict[str, Any]], voxel_mm: float) -> Optional[str]:
@@ -513,6 +585,7 @@ def summary(result: QCAResult) -> Dict[str, Any]:
         "warnings": [w for w in [result.fragments.warning() if result.fragments is not None else None,
                                  _unseen_warning(all_lesions, "frames", "frames"),
                                  _unseen_warning(all_lesions, "masks", "angiograms"),
+                                 _frames_only_warning(all_lesions),
                                  _thin_throat_warning(all_lesions, voxel_mm)] if w],
     }
     if result.view_map is not None:
