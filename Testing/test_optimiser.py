@@ -217,8 +217,10 @@ def test_a_coarse_to_fine_fit_differs_from_one_with_every_level_from_the_start_a
     assert every_level.segmentation.sum() > 0.5 * case[1].sum()
 
 
-def test_averaging_starts_after_the_last_exclusion_and_is_off_by_default():
-    assert averaging_start(make_settings("fast", steps=400)) is None
+def test_averaging_starts_after_the_last_exclusion_on_the_last_fifth_in_fast():
+    assert averaging_start(make_settings("fast", steps=400)) == 320  # fast: the last fifth
+    assert averaging_start(make_settings("fast", steps=400, average_last_fraction=0.0)) is None
+    assert averaging_start(make_settings("paper")) is None  # the published recipe: Adam's last step
     assert averaging_start(make_settings("fast", steps=400, average_last_fraction=0.1)) == 360
     # the field fits something else before the exclusion at 60 %: the average starts after it
     assert averaging_start(make_settings("fast", steps=400, average_last_fraction=0.5)) == 240
