@@ -91,7 +91,7 @@ def score(phantom, volume, grid, level, masks, ostium, view_step_deg, frames=Non
     plateau = np.flatnonzero(tw == tw.max()) if tw.max() > 0 else None
     centre = None if plateau is None else tp[plateau[len(plateau) // 2]]
     # A tube is one vessel: its lesion is looked for on the main branch first, where one lies near enough; a
-    # ghost spur leaving the tube beside the lesion has a narrowing at its root as near (RESULTS §38e)
+    # ghost spur leaving the tube beside the lesion has a narrowing at its root as near (RESULTS §38d)
     main_id = None
     if "length_mm" in truth:
         ostium = np.asarray(truth["ostium_mm"], float)
