@@ -92,11 +92,10 @@ def score(phantom, volume, grid, level, masks, ostium, view_step_deg, frames=Non
     centre = None if plateau is None else tp[plateau[len(plateau) // 2]]
     # A tube is one vessel: its lesion is looked for on the main branch first, where one lies near enough; a
     # ghost spur leaving the tube beside the lesion has a narrowing at its root as near (RESULTS §38d)
-    main_id = None
+    main = None  # a tube's main branch: the root nearest its ostium (the longest path)
     if "length_mm" in truth:
         ostium = np.asarray(truth["ostium_mm"], float)
-        main_id = min((x for x in r.tree.branches if x.parent_id is None),
-                      key=lambda x: np.linalg.norm(x.points_mm[0] - ostium)).branch_id
+        main = min((x for x in r.tree.branches if x.parent_id is None), key=lambda x: np.linalg.norm(x.points_mm[0] - ostium))
     best_on_main = None
     for p in r.profiles:
         b = p.branch
@@ -114,7 +113,7 @@ def score(phantom, volume, grid, level, masks, ostium, view_step_deg, frames=Non
             d = np.linalg.norm(pos - centre)
             if best is None or d < best[0]:
                 best = (d, lesion, p)
-            if b.branch_id == main_id and (best_on_main is None or d < best_on_main[0]):
+            if main is not None and b.branch_id == main.branch_id and (best_on_main is None or d < best_on_main[0]):
                 best_on_main = (d, lesion, p)
     if best_on_main is not None and best_on_main[0] <= truth["lesion_length_mm"]:
         best = best_on_main
@@ -162,8 +161,6 @@ def score(phantom, volume, grid, level, masks, ostium, view_step_deg, frames=Non
     b = p.branch
     if "length_mm" in truth:  # a tube: its centreline against the main branch from the ostium (the longest path),
         # not the lesion's branch, which on a rough surface can be a parallel side strand (RESULTS §20)
-        ostium = np.asarray(truth["ostium_mm"], float)
-        main = min((x for x in r.tree.branches if x.parent_id is None), key=lambda x: np.linalg.norm(x.points_mm[0] - ostium))
         row["length_err_pct"] = 100 * (main.length_mm - truth["length_mm"]) / truth["length_mm"]
         # how far the main branch's centreline runs from the true one (3 mm from either end left out): its
         # wander lengthens the tube (RESULTS §32d)
