@@ -170,12 +170,19 @@ def find_lesions(s_mm: np.ndarray, diameter_mm: np.ndarray, reference: Reference
             break
         # Flanks are read on the whole profile (a lesion may run into a junction zone).
         start, end = _edge(s, walk, i, -1), _edge(s, walk, i, +1)
-        mld, r = float(d[i]), float(ref[i])
-        a_ref = np.pi * r * r / 4
-        a_min = float(area_mm2[i]) if area_mm2 is not None else np.pi * mld * mld / 4
-        lesions.append(Lesion(mld, float(s[i]), r, 100 * (1 - mld / r), 100 * (1 - a_min / a_ref), start, end, end - start))
+        lesions.append(_lesion_at(s, d, ref, area_mm2, i, start, end))
         open_ &= (s < start) | (s > end)
     return lesions
+
+
+def _lesion_at(s: np.ndarray, d: np.ndarray, ref: np.ndarray, area_mm2: Optional[np.ndarray], i: int,
+               start_mm: float, end_mm: float) -> Lesion:
+    """The lesion whose MLD is section ``i`` of the (smoothed) profile ``d`` (module docstring: %DS, %AS)."""
+    mld, r = float(d[i]), float(ref[i])
+    a_ref = np.pi * r * r / 4
+    a_min = float(area_mm2[i]) if area_mm2 is not None else np.pi * mld * mld / 4
+    return Lesion(mld, float(s[i]), r, 100 * (1 - mld / r), 100 * (1 - a_min / a_ref), float(start_mm), float(end_mm),
+                  float(end_mm - start_mm))
 
 
 def minimal_lumen(s_mm: np.ndarray, diameter_mm: np.ndarray, searchable: Optional[np.ndarray] = None) -> Dict[str, float]:
@@ -218,8 +225,5 @@ def lesion_within(s_mm: np.ndarray, diameter_mm: np.ndarray, reference: Referenc
     if not inside.any():
         return None
     i = int(np.flatnonzero(inside)[np.argmin(d[inside])])
-    mld, r = float(d[i]), float(reference(s[i]))
-    a_ref = np.pi * r * r / 4
-    a_min = float(smooth_profile(s, area_mm2, smoothing_mm)[i]) if area_mm2 is not None else np.pi * mld * mld / 4
-    return Lesion(mld, float(s[i]), r, 100 * (1 - mld / r), 100 * (1 - a_min / a_ref), float(start_mm), float(end_mm),
-                  float(end_mm - start_mm))
+    area = smooth_profile(s, area_mm2, smoothing_mm) if area_mm2 is not None else None
+    return _lesion_at(s, d, reference(s), area, i, start_mm, end_mm)
