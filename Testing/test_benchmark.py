@@ -55,6 +55,8 @@ def table_lines(summary: str):
 
 # --- end to end -----------------------------------------------------------------------------------
 def test_tiny_suite_end_to_end_then_resume(tmp_path, capsys):
+    pytest.importorskip("distributed", reason="the benchmark harness needs the 'bench' extra (dask[distributed], matplotlib)")
+    pytest.importorskip("matplotlib", reason="the benchmark harness needs the 'bench' extra (dask[distributed], matplotlib)")
     out = tmp_path / "bench"
     argv = ["--suite", "rca", "--cases", 2, "--modes", "sdfcar,neca", "--steps", 5, "--out", out, "--workers", 2,
             "--no-progress", *TINY]
@@ -132,7 +134,8 @@ def test_tiny_suite_end_to_end_then_resume(tmp_path, capsys):
 
 
 def test_failed_run_is_recorded_and_retried_on_request(tmp_path, capsys, monkeypatch):
-    from distributed import LocalCluster
+    LocalCluster = pytest.importorskip("distributed", reason="the benchmark harness needs the 'bench' extra (dask[distributed], matplotlib)").LocalCluster
+    pytest.importorskip("matplotlib", reason="the benchmark harness needs the 'bench' extra (dask[distributed], matplotlib)")
 
     real = bm_run._reconstruct
 
@@ -269,6 +272,7 @@ def test_suites_cases_and_seeds(tmp_path):
 
 @pytest.mark.skipif(not bm.default_centreline().is_file(), reason="the shared 721A centreline is not in this checkout")
 def test_721a_suite_prepares_the_centreline(tmp_path):
+    pytest.importorskip("vtk", reason="the vtk package (extra 'headless', or Slicer) is not installed")
     cases = bm.build_cases(bm.BenchmarkConfig("721a", tmp_path, cases=2))
     assert [(c.name, c.seed) for c in cases] == [("721A-s0", 0), ("721A-s1", 1)]
     prepared = bm.prepare_case(cases[0], "clinical-lao30-rao30", TINY_GRID)

@@ -256,7 +256,7 @@ def test_read_label_thresholds_continuous_volumes_and_collapses_segment_layers(t
 
 
 def test_read_label_voxelises_a_centreline_on_the_grid(tmp_path):
-    import vtk
+    vtk = pytest.importorskip("vtk", reason="the vtk package (extra 'headless', or Slicer) is not installed")
 
     points = vtk.vtkPoints()
     for p in ((5.0, -20.0, 28.5), (9.8, -20.0, 28.5)):

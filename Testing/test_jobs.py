@@ -54,6 +54,7 @@ def _wait_for(predicate, timeout: float, interval: float = 0.05) -> bool:
 
 
 def test_progress_in_order_to_the_end_and_results(tiny_case, tmp_path):
+    pytest.importorskip("vtk", reason="the vtk package (extra 'headless', or Slicer) is not installed")
     settings = dict(SMALL, steps=15)
     job = ReconstructionJob.start(tmp_path / "job", tiny_case.geometry, tiny_case.masks, settings, name="tiny")
     assert job.state == "running"

@@ -17,6 +17,9 @@ import pytest
 
 import slicer_fakes
 
+# the module imports vtk, which Slicer ships; here the 'headless' extra (slicer-core) brings it
+pytest.importorskip("vtk", reason="the vtk package (extra 'headless', or Slicer) is not installed")
+
 
 @pytest.fixture
 def sdfcar(monkeypatch):

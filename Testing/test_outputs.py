@@ -71,6 +71,8 @@ def test_surface_of_an_empty_volume_is_empty(tiny_geometry):
 def test_write_reconstruction_writes_every_file_and_the_report(tmp_path, tiny_geometry, no_scene):
     import nrrd
 
+    pytest.importorskip("vtk", reason="the vtk package (extra 'headless', or Slicer) is not installed")
+
     grid = tiny_geometry.volume
     result = _reconstruction(tiny_geometry, _sphere_occupancy(grid))
     out = tmp_path / "nested" / "result"
@@ -186,6 +188,7 @@ def test_a_failure_while_moving_files_in_restores_the_earlier_files(tmp_path, mo
 
 
 def test_scene_is_written_by_the_mrml_bridge_inside_the_staging_folder(tmp_path, tiny_geometry, monkeypatch):
+    pytest.importorskip("vtk", reason="the vtk package (extra 'headless', or Slicer) is not installed")
     calls = []
 
     def write_result_scene(directory, name, geometry, segmentation_file, surface_file, attributes):

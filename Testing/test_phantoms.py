@@ -145,6 +145,7 @@ def test_voxelize_uses_voxel_centres_in_lps():
 # --- centreline files ------------------------------------------------------------------------------------------
 @pytest.mark.skipif(not CENTRELINE_721A.is_file(), reason="the 721A centreline lives outside the repository (/work/shared/data) and is absent here")
 def test_load_721a_centreline():
+    pytest.importorskip("vtk", reason="the vtk package (extra 'headless', or Slicer) is not installed")
     tree = load_centreline_vtk(CENTRELINE_721A)
     assert tree.name == "721A_Centreline"
     assert len(tree.branches) == 3
@@ -167,6 +168,7 @@ VTK_HEADER = "# vtk DataFile Version 3.0\ntest\nASCII\nDATASET POLYDATA\nPOINTS 
 
 
 def test_load_centreline_alternative_radius_name(tmp_path):
+    pytest.importorskip("vtk", reason="the vtk package (extra 'headless', or Slicer) is not installed")
     path = tmp_path / "c.vtk"
     path.write_text(VTK_HEADER + "LINES 1 4\n3 0 1 2\nPOINT_DATA 3\nSCALARS Radius float 1\nLOOKUP_TABLE default\n1.5 1.2 1.0\n")
     tree = load_centreline_vtk(path)
@@ -176,6 +178,7 @@ def test_load_centreline_alternative_radius_name(tmp_path):
 
 
 def test_load_centreline_errors(tmp_path):
+    pytest.importorskip("vtk", reason="the vtk package (extra 'headless', or Slicer) is not installed")
     with pytest.raises(FileNotFoundError, match="not found"):
         load_centreline_vtk(tmp_path / "missing.vtk")
     no_radius = tmp_path / "no_radius.vtk"

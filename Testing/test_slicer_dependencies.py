@@ -227,7 +227,7 @@ def _run_blocked(tmp_path, body: str, *args):
     script.write_text(BLOCKER + textwrap.dedent(body), encoding="utf-8")
     log = tmp_path / "blocked.log"
     env = dict(os.environ, SDFCAR_ALLOWED_IMPORTS=json.dumps(sorted(allowed_imports())), SDFCAR_BLOCKED_LOG=str(log),
-               PYTHONPATH=str(ROOT))
+               PYTHONPATH=os.pathsep.join([str(ROOT), *filter(None, [os.environ.get("PYTHONPATH")])]))
     out = subprocess.run([sys.executable, str(script), *map(str, args)], capture_output=True, text=True, env=env, timeout=600)
     blocked = log.read_text().splitlines() if log.exists() else []
     return out, blocked

@@ -158,13 +158,14 @@ def check_config(config: BenchmarkConfig) -> List[CaseSpec]:
         protocol_geometry(config.protocol, kind, config.grid)
     except ValueError as exc:
         raise BenchmarkError(f"the grid/detector overrides give an invalid geometry: {exc}") from None
+    out = Path(config.out)
+    if out.exists() and not out.is_dir():
+        raise BenchmarkError(f"--out {out} is a file; give a folder")
+    cases = build_cases(config)  # the user's own mistakes first, then what the machine lacks
     for extra in ("matplotlib", "distributed"):
         try:
             __import__(extra)
         except ImportError:
             raise BenchmarkError(f"the benchmark needs {extra}: pip install 'SDFCARLib[bench]' "
                                  "(dask[distributed] and matplotlib)") from None
-    out = Path(config.out)
-    if out.exists() and not out.is_dir():
-        raise BenchmarkError(f"--out {out} is a file; give a folder")
-    return build_cases(config)
+    return cases
