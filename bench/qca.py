@@ -55,6 +55,7 @@ from SDFCARLib.phantoms import lad_tree, rca_tree  # noqa: E402
 from SDFCARLib.settings import parse_setting_overrides  # noqa: E402
 
 VIEWS = standard_geometry("lao30-rao30").views
+INNER_MARK_MM = 5.0  # the inner landmarks of the 3D length: this far from either true end
 
 
 def _truth_samples(phantom):
@@ -166,6 +167,15 @@ def score(phantom, volume, grid, level, masks, ostium, view_step_deg, frames=Non
         # wander lengthens the tube (RESULTS §32d)
         inner = (main.arc_length_mm >= 3.0) & (main.arc_length_mm <= main.arc_length_mm[-1] - 3.0)
         row["axis_offset_mm"] = float(kd.query(main.points_mm[inner])[0].mean()) if inner.any() else float("nan")
+        # the length between two inner landmarks (the true axis 5 mm from either end, taken to the nearest
+        # centreline points), as a phantom validation marks a segment; the rest of the error is the ends'
+        true_arc = tarc[tnames == tnames[0]]
+        marks = [tp[np.argmin(np.abs(true_arc - a))] for a in (INNER_MARK_MM, truth["length_mm"] - INNER_MARK_MM)]
+        at = [main.arc_length_mm[np.argmin(np.linalg.norm(main.points_mm - m, axis=1))] for m in marks]
+        inner_truth = truth["length_mm"] - 2 * INNER_MARK_MM
+        row["inner_length_err_pct"] = 100 * (at[1] - at[0] - inner_truth) / inner_truth
+        row["start_excess_mm"] = float(at[0] - INNER_MARK_MM)  # beyond the true ostium end (+) or short of it (−)
+        row["end_excess_mm"] = float(main.length_mm - at[1] - INNER_MARK_MM)
         row["lesion_on_main_branch"] = int(b.branch_id == main.branch_id)
     else:  # a tree: which distal path a branch follows is a labelling choice; compare total lengths
         total = phantom.tree.total_length_mm()
@@ -379,6 +389,9 @@ def summarise(rows: List[Dict]) -> str:
     lines.append(f"| lesion length error (mm) | {ms(col('len_err_3d_mm', found))} | {ms(col('len_err_masks_mm', found))} |"
                  + extra("len_err_frames_mm", found) + " within 2 |")
     lines.append(f"| 3D length error (%) | {ms(col('length_err_pct', found))} | — |{' — | — | — |' if frames else ''} within 2 % |")
+    lines.append(f"| 3D length between inner landmarks, 5 mm from each end (%) | {ms(col('inner_length_err_pct', found))} | — |{' — | — | — |' if frames else ''} within 2 % |")
+    lines.append(f"| ostium end beyond the truth (mm) | {ms(col('start_excess_mm', found))} | — |{' — | — | — |' if frames else ''} — |")
+    lines.append(f"| distal end beyond the truth (mm) | {ms(col('end_excess_mm', found))} | — |{' — | — | — |' if frames else ''} — |")
     lines.append(f"| main branch's centreline from the true axis (mm, mean) | {mae('axis_offset_mm')} | — |{' — | — | — |' if frames else ''} — |")
     lines.append(f"| foreshortening error, acquisition views (points, worst view) | {ms(col('fs_err_pts', found))} | — |{' — | — | — |' if frames else ''} within 1 |")
     lines.append(f"| truth foreshortening in the suggested view (%) | {ms(col('best_fs_truth_pct', found))} | — |{' — | — | — |' if frames else ''} ≤ 5 |")
