@@ -239,6 +239,54 @@ def test_analyse_command_writes_every_output(tmp_path, capsys):
     assert "--overwrite" in capsys.readouterr().err
 
 
+def test_a_marked_segment_is_measured_between_the_marks(tmp_path, capsys):
+    import json
+
+    from SDFCARLib.cli import main
+
+    folder, phantom = _result_folder(tmp_path)  # a straight 24 mm tube centred on the origin
+    axis = phantom.tree.branches[0].points
+    t = (axis[-1] - axis[0]) / np.linalg.norm(axis[-1] - axis[0])
+    marks = np.array([-8.0 * t, 8.0 * t])
+    argv = ["analyse", str(folder), "--view-step-deg", "10", "--segment", *map(str, marks.ravel())]
+    assert main(argv) == 0
+    target = json.loads((folder / "analysis" / "analysis.json").read_text())["target_segment"]
+    assert target["kind"] == "marked"
+    np.testing.assert_allclose(target["marked_mm"], marks)
+    assert target["length_mm"] == pytest.approx(16.0, rel=0.02)
+    assert max(target["marks_from_centreline_mm"]) < 0.3
+    for view, seen in zip(standard_geometry("lao30-rao30").views, target["acquisition_views"]):
+        assert 100 * seen["foreshortening"] == pytest.approx(100 * foreshortening(marks, view), abs=1.0)
+    assert "target segment (marked): branch 0" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("marks, message", [
+    ([[0, 0, 0], [0, 0, 0]], "fall on one place"),
+    ([[0, 0, 0], [0, 30, 0]], "point 2 is"),
+])
+def test_marks_that_mark_no_segment_are_refused_and_nothing_is_written(tmp_path, capsys, marks, message):
+    from SDFCARLib.cli import main
+
+    folder, _ = _result_folder(tmp_path)
+    assert main(["analyse", str(folder), "--segment", *map(str, np.ravel(marks))]) == 2
+    err = capsys.readouterr().err
+    assert "--segment" in err and message in err
+    assert not (folder / "analysis").exists()
+
+
+def test_marks_on_two_branches_are_named():
+    from SDFCARLib.analysis.centreline import CentrelineBranch, CentrelineTree
+    from SDFCARLib.analysis.pipeline import SegmentError, segment_between
+
+    main_axis = np.c_[np.linspace(0, 40, 81), np.zeros(81), np.zeros(81)]
+    side = np.c_[np.full(41, 20.0), np.linspace(0, 20, 41), np.zeros(41)]
+    tree = CentrelineTree([CentrelineBranch(0, main_axis, np.ones(81)), CentrelineBranch(1, side, np.ones(41), 0, 40)])
+    target = segment_between(tree, [5, 0.5, 0], [35, -0.5, 0])
+    assert (target["branch_id"], target["start_mm"], target["end_mm"]) == (0, pytest.approx(5.0), pytest.approx(35.0))
+    with pytest.raises(SegmentError, match=r"different branches \(0 and 1\)"):
+        segment_between(tree, [5, 0, 0], [20, 15, 0])
+
+
 def test_analyse_places_the_centreline_on_the_masks_unless_told_otherwise(tmp_path, capsys):
     import json
 

@@ -31,7 +31,8 @@ import numpy as np
 from ..geometry import Geometry
 from ..io import InputError, read_image, read_label, read_mask, read_volume, write_json
 from ..outputs import staged_directory
-from .pipeline import FOUND_ON_FRAMES, GRADED_ON_3D, QCAResult, analyse_volume, lesion_grade, summary, unseen_on
+from .pipeline import (FOUND_ON_FRAMES, GRADED_ON_3D, QCAResult, SegmentError, analyse_volume, lesion_grade, summary,
+                       unseen_on)
 
 PathLike = Union[str, Path]
 ANALYSIS_FILES = ("analysis.json", "centrelines.vtk", "diameter_profiles.png", "view_map.png")
@@ -281,6 +282,12 @@ def analysis_summary_lines(data: Dict[str, Any]) -> List[str]:
     if unreliable:
         lines.append(f"  {len(unreliable)} more narrowing(s) flagged \"{unreliable[0]['flag']}\" (in analysis.json, not lesions):")
         lines += ["  " + lesion_line(lesion) + f" — {'; '.join(lesion['reasons'])}" for lesion in unreliable]
+    target = data.get("target_segment") or {}
+    if target.get("length_mm") is not None:
+        seen = ", ".join(f"{v['label']} {100 * v['foreshortening']:.1f}%" for v in target.get("acquisition_views") or [])
+        lines.append(f"  target segment ({target.get('kind', 'chosen')}): branch {target['branch_id']}, "
+                     f"{target['start_mm']:.1f}–{target['end_mm']:.1f} mm, 3D length {target['length_mm']:.1f} mm"
+                     + (f"; foreshortened in the acquired views {seen}" if seen else ""))
     best = data.get("best_view")
     if best:
         lines.append(f"  suggested view: {best['label']} (foreshortening {100 * best['foreshortening']:.1f}%, "
@@ -292,14 +299,16 @@ def analyse_result_dir(result_dir: PathLike, out_dir: Optional[PathLike] = None,
                        masks: Optional[Sequence[PathLike]] = None, ostium_mm: Optional[Sequence[float]] = None,
                        view_step_deg: float = 2.0, min_stenosis_pct: float = 20.0,
                        min_component_share: Optional[float] = None, frames: Optional[Sequence[PathLike]] = None,
-                       psf_sigma_mm: Optional[float] = 0.3, centreline_on_masks: Optional[bool] = None) -> Dict[str, Path]:
+                       psf_sigma_mm: Optional[float] = 0.3, centreline_on_masks: Optional[bool] = None,
+                       segment_mm: Optional[Sequence[Sequence[float]]] = None) -> Dict[str, Path]:
     """Analyse a reconstruction's result folder and write the QCA files (module docstring); return their paths.
 
     ``frames``: the views' intensity images (vessels dark), one per view: the widths are then also
     fitted to their profiles (``frame_widths.py``; needs the masks, which give the first guess) and the
     lumen area read from their absorbance (``frame_density.py``);
     ``psf_sigma_mm`` None estimates the detector blur from the frames; ``centreline_on_masks``: see
-    ``pipeline.analyse_volume`` (None: on where the masks of two views or more are found)."""
+    ``pipeline.analyse_volume`` (None: on where the masks of two views or more are found);
+    ``segment_mm``: two points (LPS mm) marking the target segment (``pipeline.segment_between``)."""
     result_dir = Path(result_dir)
     if not result_dir.is_dir():
         raise InputError(f"{result_dir} is not a folder; give the result folder of `reconstruct`")
@@ -321,12 +330,15 @@ def analyse_result_dir(result_dir: PathLike, out_dir: Optional[PathLike] = None,
     reconnection = report.get("reconnection") or {}
     # both reconnections lay bridges (the last one when final_reconnect_max_gap_mm asks for it)
     bridges = list(reconnection.get("bridges") or []) + list((report.get("final_reconnection") or {}).get("bridges") or [])
-    result = analyse_volume(volume, grid, level=level, views=geometry.views if geometry else (), masks=view_masks,
-                            ostium_mm=ostium_mm, view_step_deg=view_step_deg, min_stenosis_pct=min_stenosis_pct,
-                            bridges=bridges, frames=view_frames, psf_sigma_mm=psf_sigma_mm,
-                            centreline_on_masks=centreline_on_masks,
-                            **({} if min_component_share is None
-                                                else {"min_component_share": min_component_share}))
+    try:
+        result = analyse_volume(volume, grid, level=level, views=geometry.views if geometry else (), masks=view_masks,
+                                ostium_mm=ostium_mm, view_step_deg=view_step_deg, min_stenosis_pct=min_stenosis_pct,
+                                bridges=bridges, frames=view_frames, psf_sigma_mm=psf_sigma_mm,
+                                centreline_on_masks=centreline_on_masks, segment_mm=segment_mm,
+                                **({} if min_component_share is None
+                                                    else {"min_component_share": min_component_share}))
+    except SegmentError as exc:
+        raise InputError(f"--segment: {exc}") from None
     data = summary(result)
     data["source"] = {"result_dir": str(result_dir.absolute()), "volume": source, "level": level,
                       "report": report_path.name if report else None}

@@ -51,7 +51,11 @@ Lesions of the frames (``frames_lesions``)
 Target segment of the best-view map
     The worst lesion (highest graded %DS over all branches) padded by ``TARGET_PAD_MM`` of reference
     vessel on each side, as a clinician frames a lesion; without a lesion, the first
-    ``TARGET_DEFAULT_MM`` of the main branch after the ostium.
+    ``TARGET_DEFAULT_MM`` of the main branch after the ostium. Or the segment a user marks by two
+    points (``segment_between``): the stretch of the one branch whose centreline passes within
+    ``MARK_MAX_DISTANCE_MM`` of both, between the centreline points nearest to them; its 3D length is
+    what a validation against marked phantom lengths measures (between two landmarks the length is
+    within 2 % where the whole tube's, with its free ends, is not: RESULTS §40a).
 """
 
 from __future__ import annotations
@@ -74,6 +78,7 @@ from .mask_centreline import place_on_masks
 from .views import ViewMap, foreshortening, overlap_fraction, view_label, view_map
 
 TARGET_PAD_MM = 2.5
+MARK_MAX_DISTANCE_MM = 5.0  # a marked point farther than this from a branch's centreline is not on it
 TARGET_DEFAULT_MM = 20.0
 OTHERS_STEP_MM = 1.0  # tree samples kept for the overlap test: finer adds time, not accuracy
 RESOLVABLE_VOXELS = 2.5  # a lesion's reference diameter and length must span this many voxels
@@ -162,6 +167,44 @@ def _choose_target(profiles: List[BranchProfile], min_stenosis_pct: float) -> Di
             "start_mm": first, "end_mm": min(main.branch.length_mm, first + TARGET_DEFAULT_MM)}
 
 
+class SegmentError(ValueError):
+    """Two marked points that mark no segment of the tree (the message says why and what to do)."""
+
+
+def segment_between(tree: CentrelineTree, first_mm: Sequence[float], second_mm: Sequence[float],
+                    max_distance_mm: float = MARK_MAX_DISTANCE_MM) -> Dict[str, Any]:
+    """The target segment between two marked points, LPS mm (module docstring); SegmentError naming what is
+    wrong where no branch passes near both or they mark one place."""
+    marks = np.asarray([first_mm, second_mm], float)
+    if marks.shape != (2, 3) or not np.isfinite(marks).all():
+        raise SegmentError(f"a segment is marked by two points of three finite coordinates (LPS mm), got {marks.tolist()}")
+    reach = {}  # branch id → (each mark's distance to the branch's centreline, the index of its nearest point)
+    for b in tree.branches:
+        if len(b.points_mm) >= 2:
+            distances = np.linalg.norm(b.points_mm[None, :, :] - marks[:, None, :], axis=2)  # (2 marks, points)
+            index = distances.argmin(axis=1)
+            reach[b.branch_id] = (distances[[0, 1], index], index)
+    if not reach:
+        raise SegmentError("the reconstruction has no centreline to mark a segment on")
+    branch_id = min(reach, key=lambda k: reach[k][0].max())
+    distances, index = reach[branch_id]
+    if distances.max() > max_distance_mm:
+        near = [min(reach, key=lambda k: reach[k][0][m]) for m in range(2)]  # each mark's nearest branch
+        if all(reach[near[m]][0][m] <= max_distance_mm for m in range(2)):
+            raise SegmentError(f"the two marked points lie on different branches ({near[0]} and {near[1]}): mark both "
+                             "points on one branch (a branch runs from its junction, or the ostium, to its end)")
+        far = [f"point {m + 1} is {reach[near[m]][0][m]:.1f} mm from the nearest centreline (branch {near[m]})"
+               for m in range(2) if reach[near[m]][0][m] > max_distance_mm]
+        raise SegmentError("; ".join(far) + f": mark points on the vessel, within {max_distance_mm:g} mm of its centreline")
+    branch = tree.branch(branch_id)
+    start_mm, end_mm = sorted(float(x) for x in branch.arc_length_mm[index])
+    if end_mm - start_mm < 2 * float(np.median(np.diff(branch.arc_length_mm))):
+        raise SegmentError(f"the two marked points fall on one place of branch {branch_id} ({start_mm:.1f} mm along it): "
+                         "mark the segment's two ends")
+    return {"branch_id": branch_id, "kind": "marked", "start_mm": start_mm, "end_mm": end_mm,
+            "marked_mm": marks.tolist(), "marks_from_centreline_mm": [float(d) for d in distances]}
+
+
 def analyse_volume(volume: np.ndarray, grid: VolumeGrid, level: float = 0.5, views: Sequence[CArmView] = (),
                    masks: Optional[Sequence[np.ndarray]] = None, ostium_mm: Optional[Sequence[float]] = None,
                    min_branch_mm: float = 3.0, min_stenosis_pct: float = 20.0, view_step_deg: float = 2.0,
@@ -169,8 +212,10 @@ def analyse_volume(volume: np.ndarray, grid: VolumeGrid, level: float = 0.5, vie
                    min_component_share: float = MIN_COMPONENT_SHARE,
                    bridges: Sequence[Dict[str, Any]] = (), frames: Optional[Sequence[np.ndarray]] = None,
                    psf_sigma_mm: Optional[float] = DEFAULT_PSF_SIGMA_MM,
-                   centreline_on_masks: Optional[bool] = None) -> QCAResult:
-    """Every QCA measure of a vessel volume (module docstring); ``target`` overrides the chosen segment.
+                   centreline_on_masks: Optional[bool] = None,
+                   segment_mm: Optional[Sequence[Sequence[float]]] = None) -> QCAResult:
+    """Every QCA measure of a vessel volume (module docstring); ``target`` overrides the chosen segment,
+    as do two marked points ``segment_mm`` (LPS mm, ``segment_between``: SegmentError where they mark none).
 
     ``bridges``: the gaps reconnection filled (report.json ``reconnection.bridges``), LPS mm.
     ``frames`` (with ``masks``): the views' intensity images; the widths are then also fitted to
@@ -248,6 +293,8 @@ def analyse_volume(volume: np.ndarray, grid: VolumeGrid, level: float = 0.5, vie
         blur = _fit_frame_widths(profiles, frames, views, psf_sigma_mm)
         for prof in profiles:
             frames_lesions(prof, min_stenosis_pct, fragments, bridges)
+    if segment_mm is not None:
+        target = segment_between(tree, *segment_mm)
     target = dict(target) if target else _choose_target(profiles, min_stenosis_pct)
     vm = None
     target_branch = tree.branch(int(target["branch_id"]))

@@ -117,6 +117,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--ostium", type=float, nargs=3, metavar=("X", "Y", "Z"),
                    help="ostium in LPS mm (default: the thickest end of the tree)")
     p.add_argument("--view-step-deg", type=float, default=2.0, help="angle step of the best-view map (default 2)")
+    p.add_argument("--segment", type=float, nargs=6, metavar=("X1", "Y1", "Z1", "X2", "Y2", "Z2"),
+                   help="two points in LPS mm marking the segment to measure (its 3D length, its foreshortening in "
+                        "each acquired view) and to find the best view of, on one branch within 5 mm of its "
+                        "centreline (default: the worst lesion with 2.5 mm either side)")
     p.add_argument("--min-component-share", type=float, default=None, metavar="SHARE",
                    help="analyse only the pieces of a fragmented reconstruction that hold at least this share of the "
                         "main tree's voxels (default 0.1; 0 analyses every piece)")

@@ -269,7 +269,8 @@ def cmd_analyse(args: argparse.Namespace) -> int:
     _print_analysis(args.result_dir, args.out, args.overwrite, masks=args.masks, ostium_mm=args.ostium,
                     view_step_deg=args.view_step_deg, min_component_share=args.min_component_share,
                     frames=args.frames, psf_sigma_mm=args.psf_sigma_mm,
-                    centreline_on_masks={"auto": None, "masks": True, "volume": False}[args.centreline])
+                    centreline_on_masks={"auto": None, "masks": True, "volume": False}[args.centreline],
+                    segment_mm=None if args.segment is None else [args.segment[:3], args.segment[3:]])
     return EXIT_OK
 
 
