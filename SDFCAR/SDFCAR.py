@@ -576,7 +576,11 @@ class SDFCARWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
 
     def _startAnalysis(self, resultNode):
         # Not wrapped in tryWithErrorDisplay: each caller shows its own message (the wrapper re-raises).
-        self._analysisJob, self._analysisContext = self.logic.startAnalysis(resultNode)
+        # The point list is not a parameter: Markups' classes reach the slicer namespace only after the
+        # scripted modules' wrappers are built in Slicer 5.4–5.8 (Markups became core MRML in 5.10).
+        segment = self.logic.segmentFromPoints(self.ui.segmentPointsSelector.currentNode())
+        options = None if segment is None else {"segment_mm": segment}
+        self._analysisJob, self._analysisContext = self.logic.startAnalysis(resultNode, options=options)
         self.ui.analyseButton.enabled = False
         self.ui.statusLabel.text = f"Analysing '{resultNode.GetName()}' (3D-QCA)…"
         self._timer.start()
@@ -1121,6 +1125,25 @@ class SDFCARLogic(ScriptedLoadableModuleLogic):
                              f"in {folder}): it has {len(overlays)} view(s) with overlays")
         slicer.util.setSliceViewerLayers(background=overlays[viewNumber], fit=True)
         return overlays[viewNumber]
+
+    @staticmethod
+    def segmentFromPoints(pointsNode):
+        """The first two control points of a point list in LPS mm, as ``analyse --segment`` takes them (the
+        segment whose 3D length, foreshortening and best view the analysis reports); None without a list."""
+        from SDFCARLib import mrml
+
+        if pointsNode is None:
+            return None
+        count = pointsNode.GetNumberOfControlPoints()
+        if count != 2:
+            raise ValueError(f"the point list '{pointsNode.GetName()}' has {count} point(s): place exactly two, at the "
+                             "ends of the segment to measure, or choose no point list to measure the worst lesion")
+        ends = []
+        for index in range(2):
+            ras = [0.0, 0.0, 0.0]
+            pointsNode.GetNthControlPointPositionWorld(index, ras)
+            ends.append([float(c) for c in mrml.ras_to_lps(ras)])
+        return ends
 
     @staticmethod
     def startAnalysis(resultNode, outputDir=None, options=None):

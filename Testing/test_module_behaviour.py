@@ -410,6 +410,22 @@ def test_a_result_whose_files_are_gone_says_so(sdfcar, tmp_path):
         widget.logic.startAnalysis(node)
 
 
+def test_analyse_measures_the_segment_the_chosen_point_list_marks(sdfcar, tmp_path, monkeypatch):
+    widget = _widget(sdfcar)
+    widget.initializeParameterNode()
+    result = _result_node(tmp_path)
+    started = []
+    monkeypatch.setattr(sdfcar.SDFCARLogic, "startAnalysis", staticmethod(
+        lambda node, outputDir=None, options=None: started.append(options) or (_FinishedJob({}), {"name": node.GetName()})))
+    ends = _node("vtkMRMLMarkupsFiducialNode", "ends")
+    monkeypatch.setattr(sdfcar.SDFCARLogic, "segmentFromPoints",
+                        staticmethod(lambda node: None if node is None else [[1.0, 2.0, 3.0], [4.0, 5.0, 6.0]]))
+    widget._startAnalysis(result)
+    widget.ui.segmentPointsSelector.setCurrentNode(ends)
+    widget._startAnalysis(result)
+    assert started == [None, {"segment_mm": [[1.0, 2.0, 3.0], [4.0, 5.0, 6.0]]}]
+
+
 def test_finished_reconstruction_selects_its_result_and_analyses_it(sdfcar, tmp_path, monkeypatch):
     widget = _widget(sdfcar)
     widget.initializeParameterNode()
@@ -420,7 +436,7 @@ def test_finished_reconstruction_selects_its_result_and_analyses_it(sdfcar, tmp_
     analysis = _FinishedJob({"folder": str(tmp_path / "result" / "analysis")})
     analysis.state = "running"
     monkeypatch.setattr(sdfcar.SDFCARLogic, "startAnalysis", staticmethod(
-        lambda node, *a: analysed.append(node) or (analysis, {"name": node.GetName(), "resultNodeID": node.GetID()})))
+        lambda node, *a, **k: analysed.append(node) or (analysis, {"name": node.GetName(), "resultNodeID": node.GetID()})))
     loaded = []
     monkeypatch.setattr(sdfcar.SDFCARLogic, "addAnalysis", lambda self, files, context: loaded.append(files))
     widget._job = _FinishedJob({"report": str(tmp_path / "result" / "report.json")})

@@ -149,3 +149,14 @@ def test_analyse_adds_the_qca_and_the_suggested_view_turns_the_camera(module, th
     nodes.segmentation.SetAttribute("SDFCAR.analysisFolder", str(folder))
     text = logic.analysisText(nodes.segmentation)
     assert text.startswith("3D-QCA:") and text.endswith("1 warning(s):\n• " + data["warnings"][0])
+
+
+def test_a_point_list_of_two_points_marks_the_segment_in_lps(module):
+    logic = module.SDFCARLogic()
+    points = module.scene.AddNewNodeByClass("vtkMRMLMarkupsFiducialNode", "ends")
+    points.AddControlPointWorld(10.0, -20.0, 30.0)
+    assert logic.segmentFromPoints(None) is None  # none chosen: the analysis frames the worst lesion
+    with pytest.raises(ValueError, match="'ends' has 1 point"):
+        logic.segmentFromPoints(points)
+    points.AddControlPointWorld(-4.0, 5.0, -6.0)
+    assert logic.segmentFromPoints(points) == [[-10.0, 20.0, 30.0], [4.0, -5.0, -6.0]]  # RAS → LPS

@@ -429,6 +429,8 @@ VERIFIED_MRML_METHODS = {
     "SetFocalPoint": "vtkMRMLCameraNode", "ResetClippingRange": "vtkMRMLCameraNode",
     "ShowChartInLayout": "vtkSlicerPlotsLogic (Modules/Loadable/Plots/Logic/vtkSlicerPlotsLogic.h)",
     "PyTorchUtilsLogic": "the PyTorch extension's PyTorchUtils module",
+    "GetNumberOfControlPoints": "vtkMRMLMarkupsNode (Modules/Loadable/Markups/MRML/ to 5.8, Libs/MRML/Core/ from 5.10)",
+    "GetNthControlPointPositionWorld": "vtkMRMLMarkupsNode (int index, double worldxyz[3]) at every tag",
 }
 # Qt/CTK/qMRML methods called on widgets, layouts, the layout manager and its views.
 VERIFIED_WIDGET_METHODS = {
