@@ -192,7 +192,7 @@ def segment_between(tree: CentrelineTree, first_mm: Sequence[float], second_mm: 
         near = [min(reach, key=lambda k: reach[k][0][m]) for m in range(2)]  # each mark's nearest branch
         if all(reach[near[m]][0][m] <= max_distance_mm for m in range(2)):
             raise SegmentError(f"the two marked points lie on different branches ({near[0]} and {near[1]}): mark both "
-                             "points on one branch (a branch runs from its junction, or the ostium, to its end)")
+                               "points on one branch (a branch runs from its junction, or the ostium, to its end)")
         far = [f"point {m + 1} is {reach[near[m]][0][m]:.1f} mm from the nearest centreline (branch {near[m]})"
                for m in range(2) if reach[near[m]][0][m] > max_distance_mm]
         raise SegmentError("; ".join(far) + f": mark points on the vessel, within {max_distance_mm:g} mm of its centreline")
@@ -200,7 +200,7 @@ def segment_between(tree: CentrelineTree, first_mm: Sequence[float], second_mm: 
     start_mm, end_mm = sorted(float(x) for x in branch.arc_length_mm[index])
     if end_mm - start_mm < 2 * float(np.median(np.diff(branch.arc_length_mm))):
         raise SegmentError(f"the two marked points fall on one place of branch {branch_id} ({start_mm:.1f} mm along it): "
-                         "mark the segment's two ends")
+                           "mark the segment's two ends")
     return {"branch_id": branch_id, "kind": "marked", "start_mm": start_mm, "end_mm": end_mm,
             "marked_mm": marks.tolist(), "marks_from_centreline_mm": [float(d) for d in distances]}
 
