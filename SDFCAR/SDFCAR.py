@@ -576,8 +576,8 @@ class SDFCARWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
 
     def _startAnalysis(self, resultNode):
         # Not wrapped in tryWithErrorDisplay: each caller shows its own message (the wrapper re-raises).
-        # The point list is not a parameter: Markups' classes reach the slicer namespace only after the
-        # scripted modules' wrappers are built in Slicer 5.4–5.8 (Markups became core MRML in 5.10).
+        # The point list is read from its selector, not a parameter-node field: before Slicer 5.10 (Markups
+        # in core MRML) its class is not in the slicer namespace when this module's parameter class is defined.
         segment = self.logic.segmentFromPoints(self.ui.segmentPointsSelector.currentNode())
         options = None if segment is None else {"segment_mm": segment}
         self._analysisJob, self._analysisContext = self.logic.startAnalysis(resultNode, options=options)
