@@ -258,6 +258,8 @@ def analyse_volume(volume: np.ndarray, grid: VolumeGrid, level: float = 0.5, vie
             raise ValueError("centreline_on_masks needs the masks of two views or more: give masks and views, "
                              "or leave centreline_on_masks off")
         tree, placement = place_on_masks(tree, masks, views)
+    if segment_mm is not None:  # the tree is final: marks that mark no segment are refused before the frames' fit
+        target = segment_between(tree, *segment_mm)
     profiles: List[BranchProfile] = []
     voxel = float(max(grid.spacing_mm))
     for branch in tree.branches:
@@ -293,8 +295,6 @@ def analyse_volume(volume: np.ndarray, grid: VolumeGrid, level: float = 0.5, vie
         blur = _fit_frame_widths(profiles, frames, views, psf_sigma_mm)
         for prof in profiles:
             frames_lesions(prof, min_stenosis_pct, fragments, bridges)
-    if segment_mm is not None:
-        target = segment_between(tree, *segment_mm)
     target = dict(target) if target else _choose_target(profiles, min_stenosis_pct)
     vm = None
     target_branch = tree.branch(int(target["branch_id"]))
