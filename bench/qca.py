@@ -44,10 +44,11 @@ from scipy.spatial import cKDTree
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from SDFCARLib.analysis.centreline import CentrelineError  # noqa: E402
+from SDFCARLib.analysis.centreline import CentrelineError, CentrelineTree  # noqa: E402
 from SDFCARLib.analysis.phantoms import (branch_arc_length_mm, grid_around, lesion_weight, render_mask,  # noqa: E402
                                          stenosed_tree, stenosed_tube, voxelize_exact)
-from SDFCARLib.analysis.pipeline import analyse_volume, lesion_grade, lesion_on_2d_profile, masks_stenosis_pct  # noqa: E402
+from SDFCARLib.analysis.pipeline import (SegmentError, analyse_volume, lesion_grade, lesion_on_2d_profile,  # noqa: E402
+                                        masks_stenosis_pct, segment_between)
 from SDFCARLib.analysis.views import foreshortening, foreshortening_map  # noqa: E402
 from SDFCARLib.angiogram import AngiogramSettings  # noqa: E402
 from SDFCARLib.geometry import Geometry, VolumeGrid, standard_geometry  # noqa: E402
@@ -167,15 +168,19 @@ def score(phantom, volume, grid, level, masks, ostium, view_step_deg, frames=Non
         # wander lengthens the tube (RESULTS §32d)
         inner = (main.arc_length_mm >= 3.0) & (main.arc_length_mm <= main.arc_length_mm[-1] - 3.0)
         row["axis_offset_mm"] = float(kd.query(main.points_mm[inner])[0].mean()) if inner.any() else float("nan")
-        # the length between two inner landmarks (the true axis 5 mm from either end, taken to the nearest
-        # centreline points), as a phantom validation marks a segment; the rest of the error is the ends'
+        # the length between two inner landmarks (the true axis 5 mm from either end), marked on the main branch
+        # as a user marks a segment (analyse --segment); the rest of the error is the ends'
         true_arc = tarc[tnames == tnames[0]]
         marks = [tp[np.argmin(np.abs(true_arc - a))] for a in (INNER_MARK_MM, truth["length_mm"] - INNER_MARK_MM)]
-        at = [main.arc_length_mm[np.argmin(np.linalg.norm(main.points_mm - m, axis=1))] for m in marks]
-        inner_truth = truth["length_mm"] - 2 * INNER_MARK_MM
-        row["inner_length_err_pct"] = 100 * (at[1] - at[0] - inner_truth) / inner_truth
-        row["start_excess_mm"] = float(at[0] - INNER_MARK_MM)  # beyond the true ostium end (+) or short of it (−)
-        row["end_excess_mm"] = float(main.length_mm - at[1] - INNER_MARK_MM)
+        try:
+            marked = segment_between(CentrelineTree([main]), *marks)
+        except SegmentError:  # a landmark farther than the product allows from the centreline: no marked length
+            marked = None
+        if marked is not None:
+            inner_truth = truth["length_mm"] - 2 * INNER_MARK_MM
+            row["inner_length_err_pct"] = 100 * (marked["end_mm"] - marked["start_mm"] - inner_truth) / inner_truth
+            row["start_excess_mm"] = marked["start_mm"] - INNER_MARK_MM  # beyond the true ostium end (+) or short (−)
+            row["end_excess_mm"] = float(main.length_mm - marked["end_mm"] - INNER_MARK_MM)
         row["lesion_on_main_branch"] = int(b.branch_id == main.branch_id)
     else:  # a tree: which distal path a branch follows is a labelling choice; compare total lengths
         total = phantom.tree.total_length_mm()
