@@ -559,3 +559,87 @@ def test_analyse_reads_the_bridges_of_either_reconnection_from_report_json(tmp_p
     assert "but not where" not in capsys.readouterr().err
     data = json.loads((folder / "analysis" / "analysis.json").read_text())
     assert data["lesions"] == [] and data["unreliable_lesions"][0]["reasons"][0].startswith("bridge:")
+
+
+def test_without_frames_a_lesion_the_masks_show_on_a_vessel_too_thin_for_the_grid_is_reported_from_the_masks(tmp_path):
+    from SDFCARLib.analysis.outputs import analysis_summary_lines
+    from SDFCARLib.analysis.pipeline import analyse_volume, summary
+
+    # A 1.5 mm tube with a 50 % lesion over 10 mm on a 0.6 mm grid: its reference spans under 2.5 voxels, so the
+    # 3D sections narrow there but report no lesion; its clean masks show it.
+    phantom = stenosed_tube(length_mm=30.0, diameter_mm=1.5, stenosis_pct=50.0, lesion_length_mm=10.0)
+    grid = grid_around(phantom.tree, 0.6)
+    volume = voxelize_exact(phantom.tree, grid).astype(np.float32)
+    views = standard_geometry("lao30-rao30").views
+    masks = [render_mask(phantom.tree, v) for v in views]
+
+    def analysed(search_masks):
+        return summary(analyse_volume(volume, grid, views=views, masks=masks, ostium_mm=phantom.truth["ostium_mm"],
+                                      best_view=False, search_masks=search_masks))
+
+    before = analysed(False)
+    assert before["lesions"] == [] and before["branches"][0]["narrowings_below_resolution"] >= 1
+    data = analysed(True)
+    [lesion] = data["lesions"]
+    grade = lesion["grade"]
+    assert lesion["found_on"] == "masks" and grade["source"] == "masks (two-view diameter)"
+    assert grade["diameter_stenosis_pct"] == pytest.approx(50.0, abs=8.0)
+    assert grade["length_mm"] == pytest.approx(10.0, abs=2.0)
+    assert grade["reference_diameter_mm"] == pytest.approx(1.5, abs=0.3)
+    assert lesion["diameter_stenosis_pct"] >= 20.0  # the 3D sections narrow over the masks' extent too
+    assert any("found on the masks only" in w and "branch 0" in w and "--frames" in w for w in data["warnings"])
+    assert "found on the masks only" in analysis_summary_lines(data)[1]
+
+
+def test_without_frames_a_narrowing_of_the_masks_alone_is_not_a_lesion():
+    from SDFCARLib.analysis.pipeline import analyse_volume, summary
+
+    # The masks of a tube with a 50 % lesion, a volume of the same tube without one: the masks' narrowing is not
+    # confirmed by the 3D sections (an overlap or a ghost spur narrows the 2D widths alike), so no lesion.
+    stenosed = stenosed_tube(length_mm=30.0, diameter_mm=3.0, stenosis_pct=50.0, lesion_length_mm=10.0)
+    healthy = straight_tube(30.0, 3.0, (1.0, 0.5, 0.25))
+    grid = grid_around(healthy.tree, 0.4)
+    views = standard_geometry("lao30-rao30").views
+    masks = [render_mask(stenosed.tree, v) for v in views]
+    data = summary(analyse_volume(voxelize_exact(healthy.tree, grid).astype(np.float32), grid, views=views, masks=masks,
+                                  ostium_mm=stenosed.truth["ostium_mm"], best_view=False))
+    assert data["lesions"] == [] and data["unreliable_lesions"] == []
+
+
+def test_relative_scatter_is_the_robust_sd_of_the_profile_about_its_reference():
+    from SDFCARLib.analysis.lesion import ReferenceFit, relative_scatter
+
+    s = np.arange(0.0, 20.0, 0.5)
+    reference = ReferenceFit(3.0, -0.05, np.ones(len(s), bool))  # a tapering vessel
+    alternating = np.where(np.arange(len(s)) % 2 == 0, 1.1, 0.9)  # ±10 % about the reference
+    assert relative_scatter(s, reference(s) * alternating, reference) == pytest.approx(1.4826 * 0.1)
+    assert relative_scatter(s, reference(s), reference) == pytest.approx(0.0)
+
+
+@pytest.mark.parametrize("masks_dip, dip_sd_mm, scatter, in_3d, found", [
+    (0.5, 2.5, 0.0, 0.5, True),     # a 50 % lesion over ~10 mm on smooth masks, the 3D sections narrow too
+    (0.5, 2.5, 0.0, 0.1, False),    # the 3D sections narrow 10 %: the masks' narrowing alone is no lesion
+    (0.5, 2.5, 0.25, 0.5, False),   # masks that stray ±25 % about their reference: a 50 % dip is under 2.5 scatters
+    (0.5, 0.3, 0.0, 0.5, False),    # a dip ~1 mm long on a 3 mm vessel: shorter than its diameter
+])
+def test_a_lesion_is_found_on_the_masks_only_where_the_3d_sections_narrow_and_it_stands_out(
+        masks_dip, dip_sd_mm, scatter, in_3d, found):
+    from SDFCARLib.analysis.centreline import CentrelineBranch
+    from SDFCARLib.analysis.diameter import CrossSections
+    from SDFCARLib.analysis.lesion import ReferenceFit
+    from SDFCARLib.analysis.pipeline import BranchProfile, masks_lesions
+
+    s = np.arange(0.0, 40.0, 0.25)
+    branch = CentrelineBranch(branch_id=0, points_mm=np.stack([s, 0 * s, 0 * s], axis=1),
+                              inscribed_radius_mm=np.full(len(s), 1.5))
+    bump = np.exp(-0.5 * ((s - 20.0) / dip_sd_mm) ** 2)
+    sections_mm = 3.0 * (1 - in_3d * bump)
+    sections = CrossSections(np.pi * sections_mm ** 2 / 4, sections_mm, sections_mm, sections_mm)
+    profile = BranchProfile(branch, sections, np.zeros(len(s), bool))
+    profile.reference = ReferenceFit(3.0, 0.0, np.ones(len(s), bool))
+    stray = np.where(np.arange(len(s)) % 2 == 0, 1 + scatter, 1 - scatter)
+    profile.mask_diameter_mm = 3.0 * stray * (1 - masks_dip * bump)
+    masks_lesions(profile, 20.0)
+    assert len(profile.masks_only) == int(found) and len(profile.lesions) == int(found)
+    if found:
+        assert profile.masks_only[0].mld_position_mm == pytest.approx(20.0, abs=0.5)

@@ -109,6 +109,16 @@ def reference_fit(s_mm: np.ndarray, diameter_mm: np.ndarray, usable: Optional[np
     return ReferenceFit(float(a), float(b), kept)
 
 
+def relative_scatter(s_mm: np.ndarray, diameter_mm: np.ndarray, reference: ReferenceFit) -> float:
+    """The robust scatter of a profile about its reference, as a share of the reference (on the points the
+    fit kept): how far a healthy stretch of this profile strays, against which a narrowing is read."""
+    ref = reference(np.asarray(s_mm, float))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        relative = np.asarray(diameter_mm, float) / ref - 1.0
+    use = reference.kept & np.isfinite(relative)
+    return _robust_sigma(relative[use]) if use.any() else float("nan")
+
+
 def _crossing(s: np.ndarray, n: np.ndarray, start: int, step: int, level: float) -> Optional[float]:
     """Arc length where n first falls below ``level`` walking from index ``start`` by ``step``."""
     i = start

@@ -31,8 +31,8 @@ import numpy as np
 from ..geometry import Geometry
 from ..io import InputError, read_image, read_label, read_mask, read_volume, write_json
 from ..outputs import staged_directory
-from .pipeline import (FOUND_ON_FRAMES, GRADED_ON_3D, QCAResult, SegmentError, analyse_volume, lesion_grade, summary,
-                       unseen_on)
+from .pipeline import (FOUND_ON_FRAMES, FOUND_ON_MASKS, GRADED_ON_3D, QCAResult, SegmentError, analyse_volume,
+                       lesion_grade, summary, unseen_on)
 
 PathLike = Union[str, Path]
 ANALYSIS_FILES = ("analysis.json", "centrelines.vtk", "diameter_profiles.png", "view_map.png")
@@ -270,6 +270,8 @@ def analysis_summary_lines(data: Dict[str, Any]) -> List[str]:
             line += "; " + "; ".join(seen)
         if lesion.get("found_on") == FOUND_ON_FRAMES:
             line += "; found on the frames only (the reconstruction does not narrow there)"
+        elif lesion.get("found_on") == FOUND_ON_MASKS:
+            line += "; found on the masks only (the 3D sections did not report it)"
         images = unseen_on(lesion.get("seen_on_frames"), lesion.get("seen_on_masks"))
         if images == "frames":
             line += "; NOT seen on the frames: check it there"

@@ -48,6 +48,18 @@ Lesions of the frames (``frames_lesions``)
     of a rough reconstruction along one long lesion) are reported once, as the one that narrows most
     in 3D.
 
+Lesions of the masks (``masks_lesions``)
+    Where no frames are given, the masks' two-view diameter is searched the same way, and a lesion it
+    shows that the 3D sections did not report is reported with ``found_on`` "masks", graded on that
+    diameter (``GRADED_ON_MASKS``), with a warning. A thin vessel's 3D reference can fall below what
+    the grid resolves, so its narrowing is not reported from the sections although they show it (the
+    1.5 mm tube's 50 % lesion from segmented masks, RESULTS §43). Three conditions keep the masks' own
+    artefacts out (where a branch overlaps another or a ghost spur lies inside its parent's shadow the
+    widths narrow too): the 3D sections narrow over the same extent by ``min_stenosis_pct`` as well;
+    the masks narrow by at least ``MASKS_LESION_MIN_SCATTERS`` times their own scatter about the
+    reference on that branch (``lesion.relative_scatter``; the reference fit's own outlier rule); and
+    the narrowing is at least ``MASKS_LESION_MIN_LENGTH_DIAMETERS`` reference diameters long.
+
 Target segment of the best-view map
     The worst lesion (highest graded %DS over all branches) padded by ``TARGET_PAD_MM`` of reference
     vessel on each side, as a clinician frames a lesion; without a lesion, the first
@@ -61,7 +73,7 @@ Target segment of the best-view map
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any, Dict, List, Optional, Sequence
+from typing import Any, Callable, Dict, List, Optional, Sequence
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -73,7 +85,7 @@ from .frame_density import attenuation_per_mm, densities, density_diameter
 from .frame_widths import DEFAULT_PSF_SIGMA_MM, estimate_psf_sigma_mm, frame_widths
 from .fragments import MIN_COMPONENT_SHARE, UNRELIABLE, Fragments, find_fragments, lesion_reasons
 from .lesion import (Lesion, ReferenceFit, find_lesions, is_same_lesion, lesion_within, minimal_lumen, reference_fit,
-                     same_lesion_on)
+                     relative_scatter, same_lesion_on)
 from .mask_centreline import place_on_masks
 from .views import ViewMap, foreshortening, overlap_fraction, view_label, view_map
 
@@ -84,6 +96,8 @@ OTHERS_STEP_MM = 1.0  # tree samples kept for the overlap test: finer adds time,
 RESOLVABLE_VOXELS = 2.5  # a lesion's reference diameter and length must span this many voxels
 STRAND_MAX_REACH_DIAMETERS = 1.0  # a strand stays this close to its parent's centreline (× parent diameter)
 STRAND_MIN_ALIGNMENT = 0.75  # … and runs along it: mean |cos| between the two tangents
+MASKS_LESION_MIN_SCATTERS = 2.5  # a lesion found on the masks only narrows them by this many times their scatter
+MASKS_LESION_MIN_LENGTH_DIAMETERS = 1.0  # … and is at least this long (× their reference diameter)
 
 
 @dataclass
@@ -110,6 +124,7 @@ class BranchProfile:
     reference: Optional[ReferenceFit] = None
     lesions: List[Lesion] = field(default_factory=list)  # reliable: measured on an intact vessel
     frames_only: List[Lesion] = field(default_factory=list)  # of lesions/unreliable: found on the frames, not in 3D
+    masks_only: List[Lesion] = field(default_factory=list)  # … without frames: found on the masks, not in 3D
     unreliable: List[UnreliableLesion] = field(default_factory=list)
     unresolved: int = 0  # narrowings found but below the grid's resolution (not reported as lesions)
     warning: str = ""
@@ -213,7 +228,7 @@ def analyse_volume(volume: np.ndarray, grid: VolumeGrid, level: float = 0.5, vie
                    bridges: Sequence[Dict[str, Any]] = (), frames: Optional[Sequence[np.ndarray]] = None,
                    psf_sigma_mm: Optional[float] = DEFAULT_PSF_SIGMA_MM,
                    centreline_on_masks: Optional[bool] = None,
-                   segment_mm: Optional[Sequence[Sequence[float]]] = None) -> QCAResult:
+                   segment_mm: Optional[Sequence[Sequence[float]]] = None, search_masks: bool = True) -> QCAResult:
     """Every QCA measure of a vessel volume (module docstring); ``target`` overrides the chosen segment,
     as do two marked points ``segment_mm`` (LPS mm, ``segment_between``: SegmentError where they mark none).
 
@@ -225,7 +240,8 @@ def analyse_volume(volume: np.ndarray, grid: VolumeGrid, level: float = 0.5, vie
     for the lengths, positions, angles, foreshortening and views, while the 3D sections and the 2D
     widths stay on the volume's own centreline (through the lumen, lesions too); None: where masks of
     two views or more are given (the lumen of a fit to segmented masks wanders about the axis: the
-    comparison is in bench/RESULTS.md §35).
+    comparison is in bench/RESULTS.md §35). ``search_masks``: without frames, the masks' two-view diameter is
+    also searched for lesions the 3D sections missed (module docstring, "Lesions of the masks").
     """
     if frames is not None and (masks is None or len(frames) != len(views)):
         raise ValueError(f"{len(frames)} frames for {len(views)} views and {'no' if masks is None else len(masks)} masks: "
@@ -295,6 +311,9 @@ def analyse_volume(volume: np.ndarray, grid: VolumeGrid, level: float = 0.5, vie
         blur = _fit_frame_widths(profiles, frames, views, psf_sigma_mm)
         for prof in profiles:
             frames_lesions(prof, min_stenosis_pct, fragments, bridges)
+    elif search_masks:
+        for prof in profiles:
+            masks_lesions(prof, min_stenosis_pct, fragments, bridges)
     target = dict(target) if target else _choose_target(profiles, min_stenosis_pct)
     vm = None
     target_branch = tree.branch(int(target["branch_id"]))
@@ -341,27 +360,58 @@ def frames_lesions(p: BranchProfile, min_stenosis_pct: float, fragments: Optiona
         if kept is None or lesion.diameter_stenosis_pct > kept.diameter_stenosis_pct:
             worst_of[key] = lesion
     p.lesions = [x for x in p.lesions if any(x is y for y in worst_of.values())]
+    p.frames_only += _lesions_missed_in_3d(p, values, min_stenosis_pct, fragments, bridges)
+
+
+def masks_lesions(p: BranchProfile, min_stenosis_pct: float, fragments: Optional[Fragments] = None,
+                  bridges: Sequence[Dict[str, Any]] = ()) -> None:
+    """Where no frames are given: the lesions the masks' two-view diameter shows that the 3D sections missed
+    (module docstring, "Lesions of the masks"); changes ``p.lesions``, ``p.unreliable`` and ``p.masks_only``."""
+    if p.mask_diameter_mm is None or p.reference is None:
+        return
+
+    s = p.branch.arc_length_mm
+
+    def confirmed(on_masks: Lesion, in_3d: Lesion, fit: ReferenceFit) -> bool:
+        scatter_pct = 100 * relative_scatter(s, p.mask_diameter_mm, fit)
+        return (in_3d.diameter_stenosis_pct >= min_stenosis_pct
+                and on_masks.diameter_stenosis_pct >= MASKS_LESION_MIN_SCATTERS * scatter_pct
+                and on_masks.length_mm >= MASKS_LESION_MIN_LENGTH_DIAMETERS * on_masks.reference_diameter_mm)
+
+    p.masks_only += _lesions_missed_in_3d(p, p.mask_diameter_mm, min_stenosis_pct, fragments, bridges, confirmed)
+
+
+def _lesions_missed_in_3d(p: BranchProfile, values: np.ndarray, min_stenosis_pct: float, fragments: Optional[Fragments],
+                          bridges: Sequence[Dict[str, Any]],
+                          confirmed: Optional[Callable[[Lesion, Lesion, ReferenceFit], bool]] = None) -> List[Lesion]:
+    """The lesions of a two-view profile of ``p`` that are none of its lesions yet, each added (to ``p.lesions``,
+    or ``p.unreliable`` where the reconstruction is broken there) as the 3D sections measure its extent;
+    ``confirmed(on the profile, in 3D, the profile's reference)``: which to add (None: all)."""
     b = p.branch
     s = b.arc_length_mm
     usable = np.isfinite(values) & ~_end_caps(b)
     try:
-        found = find_lesions(s, values, reference_fit(s, values, usable), usable, min_stenosis_pct=min_stenosis_pct)
+        fit = reference_fit(s, values, usable)
     except ValueError:
-        return
+        return []
+    found = find_lesions(s, values, fit, usable, min_stenosis_pct=min_stenosis_pct)
     known = p.lesions + [u.lesion for u in p.unreliable]
+    added: List[Lesion] = []
     for x in found:
         if any(is_same_lesion(lesion, x) for lesion in known):
             continue
         lesion = lesion_within(s, p.diameter_mm, p.reference, x.start_mm, x.end_mm, p.sections.area_mm2)
-        if lesion is None:
+        if lesion is None or (confirmed is not None and not confirmed(x, lesion, fit)):
             continue
-        reasons = lesion_reasons(b, lesion.start_mm, lesion.end_mm, p.reference(s) / 2, fragments, bridges)
+        reasons = [] if fragments is None else lesion_reasons(b, lesion.start_mm, lesion.end_mm, p.reference(s) / 2,
+                                                              fragments, bridges)
         if reasons:
             p.unreliable.append(UnreliableLesion(lesion, reasons))
         else:
             p.lesions.append(lesion)
-        p.frames_only.append(lesion)
+        added.append(lesion)
         known.append(lesion)
+    return added
 
 
 def _fit_frame_widths(profiles: List[BranchProfile], frames: Sequence[np.ndarray], views: Sequence[CArmView],
@@ -473,14 +523,15 @@ def lesion_on_2d_profile(p: BranchProfile, values: Optional[np.ndarray], lesion:
 
 
 GRADED_ON_DENSITY, GRADED_ON_EDGES, GRADED_ON_3D = "frames (density)", "frames (edges)", "3D sections"
-FOUND_ON_FRAMES = "frames"  # analysis.json ``found_on``: "3D sections" (GRADED_ON_3D) or this
+GRADED_ON_MASKS = "masks (two-view diameter)"
+FOUND_ON_FRAMES, FOUND_ON_MASKS = "frames", "masks"  # analysis.json ``found_on``: "3D sections" (GRADED_ON_3D) or these
 
 
 @dataclass
 class LesionGrade:
     """How a lesion found on the 3D sections is graded (module docstring, "Grade of a lesion")."""
 
-    source: str  # GRADED_ON_DENSITY, GRADED_ON_EDGES or GRADED_ON_3D
+    source: str  # GRADED_ON_DENSITY, GRADED_ON_EDGES, GRADED_ON_MASKS (lesions found on the masks only) or GRADED_ON_3D
     measure: Lesion  # the lesion as that source measures it
     seen_on_frames: Optional[bool]  # None: no frames given
     on_frames: Optional[Dict[str, Optional[Lesion]]] = None  # "edges", "density": the same lesion there, or None
@@ -518,6 +569,10 @@ def lesion_grade(p: BranchProfile, lesion: Lesion, min_stenosis_pct: float = 20.
     else the 3D sections (module docstring); with both frame measures of it, and whether the masks show it."""
     on_masks = seen_on_masks(p, lesion, min_stenosis_pct)
     if p.frame_diameter_mm is None:
+        if any(lesion is x for x in p.masks_only):  # the 3D sections do not show it: the masks' grade
+            measure = lesion_on_2d_profile(p, p.mask_diameter_mm, lesion, min_stenosis_pct)
+            if measure is not None:
+                return LesionGrade(GRADED_ON_MASKS, measure, None, seen_on_masks=True)
         return LesionGrade(GRADED_ON_3D, lesion, None, seen_on_masks=on_masks)
     on_frames = {name: lesion_on_2d_profile(p, values, lesion, min_stenosis_pct)
                  for name, values in (("edges", p.frame_diameter_mm), ("density", p.frame_density_diameter_mm))}
@@ -543,7 +598,8 @@ def _lesion_entry(p: BranchProfile, lesion: Lesion, min_stenosis_pct: float, vox
     its 3D minimal lumen is thinner than the grid resolves (module docstring, "Resolution")."""
     grade = lesion_grade(p, lesion, min_stenosis_pct)
     frames = None if grade.on_frames is None else {k: None if v is None else v.to_dict() for k, v in grade.on_frames.items()}
-    found_on = FOUND_ON_FRAMES if any(lesion is x for x in p.frames_only) else GRADED_ON_3D
+    found_on = (FOUND_ON_FRAMES if any(lesion is x for x in p.frames_only)
+                else FOUND_ON_MASKS if any(lesion is x for x in p.masks_only) else GRADED_ON_3D)
     return dict(lesion.to_dict(), branch_id=p.branch.branch_id, grade=grade.to_dict(), found_on=found_on,
                 mld_below_resolution=bool(lesion.mld_mm < RESOLVABLE_VOXELS * voxel_mm),
                 seen_on_frames=grade.seen_on_frames, frames=frames, seen_on_masks=grade.seen_on_masks,
@@ -560,15 +616,22 @@ def _unseen_warning(lesions: List[Dict[str, Any]], images: str, check_on: str) -
             f"rough or flattened there; check the {check_on} before acting on these (they are graded on the 3D sections).")
 
 
-def _frames_only_warning(lesions: List[Dict[str, Any]]) -> Optional[str]:
-    only = [d for d in lesions if d["found_on"] == FOUND_ON_FRAMES]
+def _found_only_warning(lesions: List[Dict[str, Any]], images: str) -> Optional[str]:
+    """The warning for the lesions found on ``images`` (FOUND_ON_FRAMES or FOUND_ON_MASKS) only."""
+    only = [d for d in lesions if d["found_on"] == images]
     if not only:
         return None
-    where = ", ".join(f"branch {d['branch_id']} at {d['grade']['mld_position_mm']:.1f} mm (frames DS "
+    where = ", ".join(f"branch {d['branch_id']} at {d['grade']['mld_position_mm']:.1f} mm ({images} DS "
                       f"{d['grade']['diameter_stenosis_pct']:.0f}%, 3D sections {d['diameter_stenosis_pct']:.0f}%)" for d in only)
-    return (f"{len(only)} lesion(s) found on the frames only: {where}. The reconstruction does not narrow there as "
-            f"the frames do (too coarse or too rough for this vessel): the grade is the frames', the 3D measures are "
-            f"the sections' over the frames' extent.")
+    if images == FOUND_ON_FRAMES:
+        why = ("The reconstruction does not narrow there as the frames do (too coarse or too rough for this vessel): "
+               "the grade is the frames'")
+    else:
+        why = ("The 3D sections narrow there too but did not report it (a vessel thinner than the grid resolves, or a "
+               "rough lumen): the grade is the masks' two-view diameter, which reads an eccentric throat up to 20 "
+               "points off; grade it on the frames (analyse --frames)")
+    return (f"{len(only)} lesion(s) found on the {images} only: {where}. {why}; the 3D measures are the sections' over "
+            f"the {images}' extent.")
 
 
 def _thin_throat_warning(lesions: List[Dict[str, Any]], voxel_mm: float) -> Optional[str]:
@@ -632,7 +695,8 @@ def summary(result: QCAResult) -> Dict[str, Any]:
         "warnings": [w for w in [result.fragments.warning() if result.fragments is not None else None,
                                  _unseen_warning(all_lesions, "frames", "frames"),
                                  _unseen_warning(all_lesions, "masks", "angiograms"),
-                                 _frames_only_warning(all_lesions),
+                                 _found_only_warning(all_lesions, FOUND_ON_FRAMES),
+                                 _found_only_warning(all_lesions, FOUND_ON_MASKS),
                                  _thin_throat_warning(all_lesions, voxel_mm)] if w],
     }
     if result.view_map is not None:
