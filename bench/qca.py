@@ -79,8 +79,11 @@ def _truth_samples(phantom):
 def score(phantom, volume, grid, level, masks, ostium, view_step_deg, frames=None, views=VIEWS,
           centreline_on_masks=False) -> Dict[str, float]:
     t0 = time.perf_counter()
+    if ANALYSE_WITHOUT_FRAMES:  # as analyse does where the user gives masks only
+        frames = None
     r = analyse_volume(volume, grid, level=level, views=views, masks=masks, ostium_mm=ostium, view_step_deg=view_step_deg,
-                       frames=frames, psf_sigma_mm=AngiogramSettings().psf_sigma_mm, centreline_on_masks=centreline_on_masks)
+                       frames=frames, psf_sigma_mm=AngiogramSettings().psf_sigma_mm, centreline_on_masks=centreline_on_masks,
+                       search_masks=SEARCH_MASKS)
     elapsed = time.perf_counter() - t0
     tp, td, tw, tnames, tarc = _truth_samples(phantom)
     kd = cKDTree(tp)
@@ -128,6 +131,19 @@ def score(phantom, volume, grid, level, masks, ostium, view_step_deg, frames=Non
     # Lesions other than the true one (rough surfaces, bridges), and how many the masks do not show (the flag).
     others = [(q, x) for q in r.profiles for x in q.lesions
               if best is None or best[0] > truth["lesion_length_mm"] or x is not best[1]]
+    # the lesions found on the masks only (no frames), each as true/false:root or side branch:branch length:
+    # lesion length:the masks' %DS, to choose what keeps ghost spurs' narrowings out on
+    details = []
+    for q in r.profiles:
+        for x in q.masks_only:
+            pos = q.branch.points_mm[np.argmin(np.abs(q.branch.arc_length_mm - x.mld_position_mm))]
+            true = centre is not None and np.linalg.norm(pos - centre) <= truth["lesion_length_mm"]
+            g = lesion_grade(q, x)
+            details.append(f"{'T' if true else 'F'}:{'root' if q.branch.parent_id is None else 'side'}:"
+                           f"{q.branch.length_mm:.1f}:{g.measure.length_mm:.1f}:{g.measure.diameter_stenosis_pct:.1f}:"
+                           f"{g.measure.reference_diameter_mm:.2f}:{x.diameter_stenosis_pct:.1f}")
+    row["masks_only_detail"] = "true/false:root or side branch:branch mm:lesion mm:masks' DS:masks' reference mm:3D DS"
+    row["masks_only"] = " ".join(details)
     row.update({"false_lesions": len(others),
                 "false_lesions_unseen_on_masks": sum(lesion_grade(q, x).seen_on_masks is False for q, x in others),
                 # each as "3D %DS / the masks' largest %DS there", to choose the masks' rule on
@@ -279,6 +295,8 @@ def tube_direction(seed: int, max_foreshortening_pct=None) -> np.ndarray:
 
 
 CENTRELINES = ["volume"]  # the analysis' centreline: "volume", "masks" (main's --centreline)
+ANALYSE_WITHOUT_FRAMES = False  # --no-frames: the analysis on the masks alone, as analyse without --frames
+SEARCH_MASKS = True  # analyse_volume's search_masks (--no-masks-search: off, the analysis before RESULTS §43)
 
 RECON_TUBES = [  # the recon suite's ten tubes: name, stenosed_tube's parameters
     ("50%/10mm/3mm/con", dict(stenosis_pct=50, lesion_length_mm=10, diameter_mm=3.0, eccentric=False)),
@@ -419,7 +437,8 @@ def summarise(rows: List[Dict]) -> str:
         # the masks' largest %DS at a lesion over its 3D %DS: can a ratio tell true lesions from the others?
         true_ratio = np.array([r["masks_ds"] / r["ds_3d"] for r in found if r.get("masks_ds") is not None])
         other_ratio = np.array([float(m) / float(d) for r in rows for d, m in
-                                (pair.split("/") for pair in str(r.get("false_lesions_ds_3d_masks") or "").split())])
+                                (pair.split("/") for pair in str(r.get("false_lesions_ds_3d_masks") or "").split())
+                                if float(d) > 0])  # (a lesion found on the masks only may not narrow in 3D)
         lines.append(f"masks' %DS / 3D %DS: true lesions min {true_ratio.min():.2f}, below 0.6 in {int(np.sum(true_ratio < 0.6))} "
                      f"of {true_ratio.size}; other lesions " + (f"max {other_ratio.max():.2f}, at or above 0.6 in "
                      f"{int(np.sum(other_ratio >= 0.6))} of {other_ratio.size}" if other_ratio.size else "none"))
@@ -457,6 +476,10 @@ def main(argv=None) -> int:
     ap.add_argument("--centreline", choices=("volume", "masks"), nargs="+", default=["volume"],
                     help="analyse with the volume's centreline, or re-placed on the masks' midlines "
                          "(analyse_volume's centreline_on_masks), or both side by side on the same volumes")
+    ap.add_argument("--no-frames", action="store_true",
+                    help="with --masks segmented: analyse on the masks alone, as analyse does without --frames")
+    ap.add_argument("--no-masks-search", action="store_true",
+                    help="without frames, do not search the masks for lesions the 3D sections missed (as before RESULTS §43)")
     ap.add_argument("--view-step-deg", type=float, default=2.0)
     ap.add_argument("--csv", help="write the case rows here")
     args = ap.parse_args(argv)
@@ -467,6 +490,8 @@ def main(argv=None) -> int:
     if args.masks == "segmented-moving" and args.suite != "recon":
         ap.error("--masks segmented-moving needs --suite recon (a motion between the views matters to a reconstruction)")
     CENTRELINES[:] = args.centreline
+    global ANALYSE_WITHOUT_FRAMES, SEARCH_MASKS
+    ANALYSE_WITHOUT_FRAMES, SEARCH_MASKS = args.no_frames, not args.no_masks_search
     t0 = time.perf_counter()
     if args.suite == "tubes":
         rows = run_truth(tube_cases(), args.spacing, args.view_step_deg, args.masks)
