@@ -369,7 +369,6 @@ def masks_lesions(p: BranchProfile, min_stenosis_pct: float, fragments: Optional
     (module docstring, "Lesions of the masks"); changes ``p.lesions``, ``p.unreliable`` and ``p.masks_only``."""
     if p.mask_diameter_mm is None or p.reference is None:
         return
-
     s = p.branch.arc_length_mm
 
     def confirmed(on_masks: Lesion, in_3d: Lesion, fit: ReferenceFit) -> bool:
@@ -569,7 +568,7 @@ def lesion_grade(p: BranchProfile, lesion: Lesion, min_stenosis_pct: float = 20.
     else the 3D sections (module docstring); with both frame measures of it, and whether the masks show it."""
     on_masks = seen_on_masks(p, lesion, min_stenosis_pct)
     if p.frame_diameter_mm is None:
-        if any(lesion is x for x in p.masks_only):  # the 3D sections do not show it: the masks' grade
+        if any(lesion is x for x in p.masks_only):  # found on the masks only: graded on them
             measure = lesion_on_2d_profile(p, p.mask_diameter_mm, lesion, min_stenosis_pct)
             if measure is not None:
                 return LesionGrade(GRADED_ON_MASKS, measure, None, seen_on_masks=True)
