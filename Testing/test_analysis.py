@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import importlib.util
 import json
 import math
 
@@ -574,12 +575,13 @@ def test_without_frames_a_lesion_the_masks_show_on_a_vessel_too_thin_for_the_gri
     masks = [render_mask(phantom.tree, v) for v in views]
 
     def analysed(search_masks):
-        return summary(analyse_volume(volume, grid, views=views, masks=masks, ostium_mm=phantom.truth["ostium_mm"],
-                                      best_view=False, search_masks=search_masks))
+        return analyse_volume(volume, grid, views=views, masks=masks, ostium_mm=phantom.truth["ostium_mm"],
+                              best_view=False, search_masks=search_masks)
 
-    before = analysed(False)
+    before = summary(analysed(False))
     assert before["lesions"] == [] and before["branches"][0]["narrowings_below_resolution"] >= 1
-    data = analysed(True)
+    result = analysed(True)
+    data = summary(result)
     [lesion] = data["lesions"]
     grade = lesion["grade"]
     assert lesion["found_on"] == "masks" and grade["source"] == "masks (two-view diameter)"
@@ -589,6 +591,18 @@ def test_without_frames_a_lesion_the_masks_show_on_a_vessel_too_thin_for_the_gri
     assert lesion["diameter_stenosis_pct"] >= 20.0  # the 3D sections narrow over the masks' extent too
     assert any("found on the masks only" in w and "branch 0" in w and "--frames" in w for w in data["warnings"])
     assert "found on the masks only" in analysis_summary_lines(data)[1]
+    if importlib.util.find_spec("slicer") is not None:  # the Slicer QCA table leads with the masks' grade
+        from SDFCARLib.analysis.mrml_nodes import add_analysis_nodes
+        from SDFCARLib.analysis.outputs import profile_csv_text
+        from SDFCARLib.mrml import new_scene
+
+        (tmp_path / "analysis.json").write_text(json.dumps(data), encoding="utf-8")
+        for p in result.profiles:
+            (tmp_path / f"profile_branch{p.branch.branch_id:02d}.csv").write_text(profile_csv_text(result, p.branch.branch_id))
+        table = add_analysis_nodes(new_scene(), tmp_path)["table"].GetTable()
+        assert table.GetColumnByName("found_on").GetValue(0) == "masks"
+        assert table.GetColumnByName("graded_on").GetValue(0) == "masks (two-view diameter)"
+        assert table.GetColumnByName("diameter_stenosis_pct").GetValue(0) == pytest.approx(grade["diameter_stenosis_pct"])
 
 
 def test_without_frames_a_narrowing_of_the_masks_alone_is_not_a_lesion():
