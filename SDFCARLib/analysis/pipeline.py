@@ -623,8 +623,9 @@ def _found_only_warning(lesions: List[Dict[str, Any]], images: str) -> Optional[
     where = ", ".join(f"branch {d['branch_id']} at {d['grade']['mld_position_mm']:.1f} mm ({images} DS "
                       f"{d['grade']['diameter_stenosis_pct']:.0f}%, 3D sections {d['diameter_stenosis_pct']:.0f}%)" for d in only)
     if images == FOUND_ON_FRAMES:
-        why = ("The reconstruction does not narrow there as the frames do (too coarse or too rough for this vessel): "
-               "the grade is the frames'")
+        why = ("The reconstruction does not narrow there as the frames do: it is too coarse or too rough for this "
+               "vessel, or another vessel overlaps this one in a view (on trees this search also finds such false "
+               "lesions); the grade is the frames'")
     else:
         why = ("The 3D sections narrow there too but did not report it (a vessel thinner than the grid resolves, or a "
                "rough lumen): the grade is the masks' two-view diameter, which reads an eccentric throat up to 20 "
