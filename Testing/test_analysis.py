@@ -592,14 +592,9 @@ def test_without_frames_a_lesion_the_masks_show_on_a_vessel_too_thin_for_the_gri
     assert any("found on the masks only" in w and "branch 0" in w and "--frames" in w for w in data["warnings"])
     assert "found on the masks only" in analysis_summary_lines(data)[1]
     if importlib.util.find_spec("slicer") is not None:  # the Slicer QCA table leads with the masks' grade
-        from SDFCARLib.analysis.mrml_nodes import add_analysis_nodes
-        from SDFCARLib.analysis.outputs import profile_csv_text
-        from SDFCARLib.mrml import new_scene
+        from test_frame_density import _qca_table
 
-        (tmp_path / "analysis.json").write_text(json.dumps(data), encoding="utf-8")
-        for p in result.profiles:
-            (tmp_path / f"profile_branch{p.branch.branch_id:02d}.csv").write_text(profile_csv_text(result, p.branch.branch_id))
-        table = add_analysis_nodes(new_scene(), tmp_path)["table"].GetTable()
+        table = _qca_table(tmp_path / "masks", result, data)
         assert table.GetColumnByName("found_on").GetValue(0) == "masks"
         assert table.GetColumnByName("graded_on").GetValue(0) == "masks (two-view diameter)"
         assert table.GetColumnByName("diameter_stenosis_pct").GetValue(0) == pytest.approx(grade["diameter_stenosis_pct"])
