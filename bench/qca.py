@@ -131,8 +131,8 @@ def score(phantom, volume, grid, level, masks, ostium, view_step_deg, frames=Non
     # Lesions other than the true one (rough surfaces, bridges), and how many the masks do not show (the flag).
     others = [(q, x) for q in r.profiles for x in q.lesions
               if best is None or best[0] > truth["lesion_length_mm"] or x is not best[1]]
-    # the lesions found on the masks only (no frames), each as true/false:root or side branch:branch length:
-    # lesion length:the masks' %DS, to choose what keeps ghost spurs' narrowings out on
+    # the lesions found on the masks only (no frames), each as T(rue)/F(alse):root or side branch:branch mm:
+    # lesion mm:the masks' %DS:the masks' reference mm:the 3D sections' %DS over the same stretch
     details = []
     for q in r.profiles:
         for x in q.masks_only:
@@ -142,7 +142,6 @@ def score(phantom, volume, grid, level, masks, ostium, view_step_deg, frames=Non
             details.append(f"{'T' if true else 'F'}:{'root' if q.branch.parent_id is None else 'side'}:"
                            f"{q.branch.length_mm:.1f}:{g.measure.length_mm:.1f}:{g.measure.diameter_stenosis_pct:.1f}:"
                            f"{g.measure.reference_diameter_mm:.2f}:{x.diameter_stenosis_pct:.1f}")
-    row["masks_only_detail"] = "true/false:root or side branch:branch mm:lesion mm:masks' DS:masks' reference mm:3D DS"
     row["masks_only"] = " ".join(details)
     row.update({"false_lesions": len(others),
                 "false_lesions_unseen_on_masks": sum(lesion_grade(q, x).seen_on_masks is False for q, x in others),
