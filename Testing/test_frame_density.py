@@ -226,16 +226,18 @@ def test_a_lesion_the_frames_show_and_the_reconstruction_does_not_is_reported_fr
     import importlib.util
 
     from SDFCARLib.analysis.outputs import analysis_summary_lines
-    from SDFCARLib.analysis.phantoms import grid_around, straight_tube, voxelize_exact
+    from SDFCARLib.analysis.phantoms import grid_around, stenosed_tube, voxelize_exact
     from SDFCARLib.analysis.pipeline import analyse_volume, summary
 
-    # The frames and masks of a tube with a 50 % lesion over 8 mm; a reconstruction too coarse to narrow there.
+    # The frames and masks of a tube with a 50 % lesion over 8 mm; a reconstruction too smooth to narrow
+    # there by the 20 % of a lesion, as a fit to segmented masks narrows a 30 % lesion by 14 % (RESULTS §45).
     stenosed, realistic = stenosed_tube_frames
-    healthy = straight_tube(30.0, 3.0, (0.2, 0.25, 1.0))
-    grid = grid_around(healthy.tree, 0.3)
+    smoothed = stenosed_tube(length_mm=30.0, diameter_mm=3.0, stenosis_pct=15.0, lesion_length_mm=8.0,
+                             direction=(0.2, 0.25, 1.0))
+    grid = grid_around(smoothed.tree, 0.3)
 
     def analysed(frames):
-        return analyse_volume(voxelize_exact(healthy.tree, grid).astype(np.float32), grid, views=VIEWS,
+        return analyse_volume(voxelize_exact(smoothed.tree, grid).astype(np.float32), grid, views=VIEWS,
                               masks=realistic.masks, frames=realistic.frames if frames else None,
                               ostium_mm=stenosed.truth["ostium_mm"], best_view=False,
                               psf_sigma_mm=AngiogramSettings().psf_sigma_mm)
@@ -249,12 +251,62 @@ def test_a_lesion_the_frames_show_and_the_reconstruction_does_not_is_reported_fr
     assert lesion["found_on"] == "frames" and grade["source"] == "frames (density)"
     assert grade["diameter_stenosis_pct"] == pytest.approx(50.0, abs=8.0)
     assert grade["length_mm"] == pytest.approx(stenosed.truth["lesion_length_mm"], abs=2.0)
-    assert lesion["diameter_stenosis_pct"] < 20.0  # the 3D sections over the frames' extent
+    assert 10.0 <= lesion["diameter_stenosis_pct"] < 20.0  # the 3D sections over the frames' extent
     assert (lesion["start_mm"], lesion["end_mm"]) == (grade["start_mm"], grade["end_mm"])
     assert any("found on the frames only" in w and "branch 0" in w for w in data["warnings"])
     assert "found on the frames only" in analysis_summary_lines(data)[1]
     if importlib.util.find_spec("slicer") is not None:
         assert _qca_table(tmp_path / "frames", result, data).GetColumnByName("found_on").GetValue(0) == "frames"
+
+
+def test_a_narrowing_of_the_frames_that_a_healthy_reconstruction_does_not_show_is_counted_not_reported(
+        stenosed_tube_frames):
+    from SDFCARLib.analysis.phantoms import grid_around, straight_tube, voxelize_exact
+    from SDFCARLib.analysis.pipeline import analyse_volume, summary
+
+    # The frames narrow where the volume, fitted to the same views, does not at all: on a tree, what a
+    # crossing or a neighbouring branch does to a view's profile (RESULTS §45).
+    stenosed, realistic = stenosed_tube_frames
+    healthy = straight_tube(30.0, 3.0, (0.2, 0.25, 1.0))
+    grid = grid_around(healthy.tree, 0.3)
+    data = summary(analyse_volume(voxelize_exact(healthy.tree, grid).astype(np.float32), grid, views=VIEWS,
+                                  masks=realistic.masks, frames=realistic.frames, ostium_mm=stenosed.truth["ostium_mm"],
+                                  best_view=False, psf_sigma_mm=AngiogramSettings().psf_sigma_mm))
+    assert data["lesions"] == [] and data["unreliable_lesions"] == []
+    assert not any("found on the frames only" in w for w in data["warnings"])
+    assert [b["narrowings_2d_unconfirmed"] for b in data["branches"]] == [1]
+
+
+@pytest.mark.parametrize("frames_centre_mm, dip_sd_mm, sections_3d, found", [
+    (20.0, 1.5, "narrowed 15 % with the frames", True),   # smoothed under the lesion threshold, not erased
+    (20.0, 1.5, "healthy", False),                          # the frames narrow alone
+    (20.0, 1.5, "narrowed 8 % with the frames", False),     # under half the threshold
+    (36.0, 1.5, "cut short in the end cap", False),         # the rounded end of a vessel is no lesion
+    (36.0, 1.5, "narrowed 15 % with the frames", True),     # near the end, but the sections outside the cap narrow
+    (20.0, 0.3, "narrowed 15 % with the frames", False),    # ~1 mm long on a 3 mm vessel: shorter than its diameter
+])
+def test_a_lesion_of_the_frames_alone_needs_the_3d_sections_to_narrow_there_and_a_diameter_of_length(
+        frames_centre_mm, dip_sd_mm, sections_3d, found):
+    from SDFCARLib.analysis.centreline import CentrelineBranch
+    from SDFCARLib.analysis.diameter import CrossSections
+    from SDFCARLib.analysis.lesion import ReferenceFit
+    from SDFCARLib.analysis.pipeline import BranchProfile, frames_lesions
+
+    s = np.arange(0.0, 40.0, 0.25)  # a root branch: its free-end caps are its first and last 3 mm
+    branch = CentrelineBranch(branch_id=0, points_mm=np.stack([s, 0 * s, 0 * s], axis=1),
+                              inscribed_radius_mm=np.full(len(s), 1.5))
+    bump = np.exp(-0.5 * ((s - frames_centre_mm) / dip_sd_mm) ** 2)
+    sections_mm = {"healthy": np.full(len(s), 3.0), "narrowed 15 % with the frames": 3.0 * (1 - 0.15 * bump),
+                   "narrowed 8 % with the frames": 3.0 * (1 - 0.08 * bump),
+                   "cut short in the end cap": np.where(s > 37.5, 1.5, 3.0)}[sections_3d]
+    sections = CrossSections(np.pi * sections_mm ** 2 / 4, sections_mm, sections_mm, sections_mm)
+    profile = BranchProfile(branch, sections, np.zeros(len(s), bool))
+    profile.reference = ReferenceFit(3.0, 0.0, np.ones(len(s), bool))
+    profile.frame_diameter_mm = profile.frame_density_diameter_mm = 3.0 * (1 - 0.5 * bump)  # 50 % on the frames
+    frames_lesions(profile, 20.0)
+    assert (len(profile.frames_only), profile.unconfirmed) == ((1, 0) if found else (0, 1))
+    if found:
+        assert profile.frames_only[0].mld_position_mm == pytest.approx(frames_centre_mm, abs=0.5)
 
 
 def _qca_table(folder, result, data):

@@ -269,7 +269,7 @@ def analysis_summary_lines(data: Dict[str, Any]) -> List[str]:
         if seen:
             line += "; " + "; ".join(seen)
         if lesion.get("found_on") == FOUND_ON_FRAMES:
-            line += "; found on the frames only (the reconstruction does not narrow there)"
+            line += "; found on the frames only (the 3D sections narrow less there)"
         elif lesion.get("found_on") == FOUND_ON_MASKS:
             line += "; found on the masks only (the 3D sections did not report it)"
         images = unseen_on(lesion.get("seen_on_frames"), lesion.get("seen_on_masks"))

@@ -40,13 +40,20 @@ Grade of a lesion (``lesion_grade``)
     sample case), and the masks are then the only images to check it on.
 
 Lesions of the frames (``frames_lesions``)
-    Where the frames are given they are searched too (density, else edges): a lesion they show that
-    is none of the 3D sections' (``lesion.is_same_lesion``) is reported with ``found_on`` "frames"
-    and a warning, its 3D measures being the sections' over the frames' extent: a 1.5 mm vessel
-    reconstructed from segmented masks reads 0.7 mm too wide and its 50 % lesion not at all, which
-    the frames show (RESULTS §38b). Several 3D lesions graded as the same lesion of the frames (bumps
-    of a rough reconstruction along one long lesion) are reported once, as the one that narrows most
-    in 3D.
+    Where the frames are given they are searched too (density, else edges): a lesion they show that is
+    none of the 3D sections' (``lesion.is_same_lesion``) is reported with ``found_on`` "frames" and a
+    warning, its 3D measures being the sections' over the frames' extent: a 1.5 mm vessel reconstructed
+    from segmented masks reads 0.7 mm too wide and its 50 % lesion below what the grid resolves, which
+    the frames show (RESULTS §38b, §43). Several 3D lesions graded as the same lesion of the frames
+    (bumps of a rough reconstruction along one long lesion) are reported once, as the one that narrows
+    most in 3D. A lesion of the frames alone is reported only where the 3D sections, their free-end caps
+    left out, narrow over its extent by ``FRAMES_LESION_MIN_3D_SHARE`` of ``min_stenosis_pct``: the
+    reconstruction is fitted to the same views and smooths a true lesion under the threshold without
+    erasing it, while where a branch crosses or runs beside another the frames' profile narrows alone
+    (RESULTS §45); and where it is at least ``LESION_2D_MIN_LENGTH_DIAMETERS`` reference diameters long,
+    as on the masks: at a branch's root its parent's lumen narrows the frames' profile over a millimetre
+    or two. The others are counted per branch (``narrowings_2d_unconfirmed``, with the masks'
+    unconfirmed narrowings where no frames are given).
 
 Lesions of the masks (``masks_lesions``)
     Where no frames are given, the masks' two-view diameter is searched the same way, and a lesion it
@@ -58,7 +65,7 @@ Lesions of the masks (``masks_lesions``)
     widths narrow too): the 3D sections narrow over the same extent by ``min_stenosis_pct`` as well;
     the masks narrow by at least ``MASKS_LESION_MIN_SCATTERS`` times their own scatter about the
     reference on that branch (``lesion.relative_scatter``; the reference fit's own outlier rule); and
-    the narrowing is at least ``MASKS_LESION_MIN_LENGTH_DIAMETERS`` reference diameters long.
+    the narrowing is at least ``LESION_2D_MIN_LENGTH_DIAMETERS`` reference diameters long.
 
 Target segment of the best-view map
     The worst lesion (highest graded %DS over all branches) padded by ``TARGET_PAD_MM`` of reference
@@ -96,8 +103,9 @@ OTHERS_STEP_MM = 1.0  # tree samples kept for the overlap test: finer adds time,
 RESOLVABLE_VOXELS = 2.5  # a lesion's reference diameter and length must span this many voxels
 STRAND_MAX_REACH_DIAMETERS = 1.0  # a strand stays this close to its parent's centreline (× parent diameter)
 STRAND_MIN_ALIGNMENT = 0.75  # … and runs along it: mean |cos| between the two tangents
+FRAMES_LESION_MIN_3D_SHARE = 0.5  # a lesion found on the frames only narrows the 3D sections by this share of the threshold
 MASKS_LESION_MIN_SCATTERS = 2.5  # a lesion found on the masks only narrows them by this many times their scatter
-MASKS_LESION_MIN_LENGTH_DIAMETERS = 1.0  # … and is at least this long (× their reference diameter)
+LESION_2D_MIN_LENGTH_DIAMETERS = 1.0  # a lesion found on the frames or masks only is this long (× its reference diameter)
 
 
 @dataclass
@@ -127,6 +135,7 @@ class BranchProfile:
     masks_only: List[Lesion] = field(default_factory=list)  # … without frames: found on the masks, not in 3D
     unreliable: List[UnreliableLesion] = field(default_factory=list)
     unresolved: int = 0  # narrowings found but below the grid's resolution (not reported as lesions)
+    unconfirmed: int = 0  # narrowings of the frames' (without frames, the masks') profile not reported: unconfirmed in 3D
     warning: str = ""
 
     def __post_init__(self) -> None:
@@ -360,7 +369,15 @@ def frames_lesions(p: BranchProfile, min_stenosis_pct: float, fragments: Optiona
         if kept is None or lesion.diameter_stenosis_pct > kept.diameter_stenosis_pct:
             worst_of[key] = lesion
     p.lesions = [x for x in p.lesions if any(x is y for y in worst_of.values())]
-    p.frames_only += _lesions_missed_in_3d(p, values, min_stenosis_pct, fragments, bridges)
+
+    def confirmed(on_frames: Lesion, in_3d: Lesion, fit: ReferenceFit) -> bool:
+        # the 3D sections without the free-end caps, where a vessel's rounded end narrows but is no lesion
+        sections = np.where(_end_caps(p.branch), np.nan, p.diameter_mm)
+        there = lesion_within(p.branch.arc_length_mm, sections, p.reference, on_frames.start_mm, on_frames.end_mm)
+        return (there is not None and there.diameter_stenosis_pct >= FRAMES_LESION_MIN_3D_SHARE * min_stenosis_pct
+                and on_frames.length_mm >= LESION_2D_MIN_LENGTH_DIAMETERS * on_frames.reference_diameter_mm)
+
+    p.frames_only += _lesions_missed_in_3d(p, values, min_stenosis_pct, fragments, bridges, confirmed)
 
 
 def masks_lesions(p: BranchProfile, min_stenosis_pct: float, fragments: Optional[Fragments] = None,
@@ -375,7 +392,7 @@ def masks_lesions(p: BranchProfile, min_stenosis_pct: float, fragments: Optional
         scatter_pct = 100 * relative_scatter(s, p.mask_diameter_mm, fit)
         return (in_3d.diameter_stenosis_pct >= min_stenosis_pct
                 and on_masks.diameter_stenosis_pct >= MASKS_LESION_MIN_SCATTERS * scatter_pct
-                and on_masks.length_mm >= MASKS_LESION_MIN_LENGTH_DIAMETERS * on_masks.reference_diameter_mm)
+                and on_masks.length_mm >= LESION_2D_MIN_LENGTH_DIAMETERS * on_masks.reference_diameter_mm)
 
     p.masks_only += _lesions_missed_in_3d(p, p.mask_diameter_mm, min_stenosis_pct, fragments, bridges, confirmed)
 
@@ -401,6 +418,7 @@ def _lesions_missed_in_3d(p: BranchProfile, values: np.ndarray, min_stenosis_pct
             continue
         lesion = lesion_within(s, p.diameter_mm, p.reference, x.start_mm, x.end_mm, p.sections.area_mm2)
         if lesion is None or (confirmed is not None and not confirmed(x, lesion, fit)):
+            p.unconfirmed += 1
             continue
         reasons = [] if fragments is None else lesion_reasons(b, lesion.start_mm, lesion.end_mm, p.reference(s) / 2,
                                                               fragments, bridges)
@@ -623,9 +641,9 @@ def _found_only_warning(lesions: List[Dict[str, Any]], images: str) -> Optional[
     where = ", ".join(f"branch {d['branch_id']} at {d['grade']['mld_position_mm']:.1f} mm ({images} DS "
                       f"{d['grade']['diameter_stenosis_pct']:.0f}%, 3D sections {d['diameter_stenosis_pct']:.0f}%)" for d in only)
     if images == FOUND_ON_FRAMES:
-        why = ("The reconstruction does not narrow there as the frames do: it is too coarse or too rough for this "
-               "vessel, or another vessel overlaps this one in a view (on trees this search also finds such false "
-               "lesions); the grade is the frames'")
+        why = ("The 3D sections narrow there less than a lesion, the frames more: the reconstruction is too coarse or "
+               "too rough for this vessel, or a vessel crossing this one in a view narrows the frames' profile (check "
+               "the angiograms); the grade is the frames'")
     else:
         why = ("The 3D sections narrow there too but did not report it (a vessel thinner than the grid resolves, or a "
                "rough lumen): the grade is the masks' two-view diameter, which reads an eccentric throat up to 20 "
@@ -674,6 +692,7 @@ def summary(result: QCAResult) -> Dict[str, Any]:
             "unreliable_lesions": [_lesion_entry(p, u.lesion, min_stenosis, voxel_mm, reliable=False, flag=UNRELIABLE,
                                                  reasons=list(u.reasons)) for u in p.unreliable],
             "narrowings_below_resolution": p.unresolved,
+            "narrowings_2d_unconfirmed": p.unconfirmed,
             "foreshortening_per_view": result.view_foreshortening.get(b.branch_id, []),
             "warning": p.warning or None,
         }
