@@ -131,18 +131,19 @@ def score(phantom, volume, grid, level, masks, ostium, view_step_deg, frames=Non
     # Lesions other than the true one (rough surfaces, bridges), and how many the masks do not show (the flag).
     others = [(q, x) for q in r.profiles for x in q.lesions
               if best is None or best[0] > truth["lesion_length_mm"] or x is not best[1]]
-    # the lesions found on the masks only (no frames), each as T(rue)/F(alse):root or side branch:branch mm:
-    # lesion mm:the masks' %DS:the masks' reference mm:the 3D sections' %DS over the same stretch
-    details = []
-    for q in r.profiles:
-        for x in q.masks_only:
-            pos = q.branch.points_mm[np.argmin(np.abs(q.branch.arc_length_mm - x.mld_position_mm))]
-            true = centre is not None and np.linalg.norm(pos - centre) <= truth["lesion_length_mm"]
-            g = lesion_grade(q, x)
-            details.append(f"{'T' if true else 'F'}:{'root' if q.branch.parent_id is None else 'side'}:"
-                           f"{q.branch.length_mm:.1f}:{g.measure.length_mm:.1f}:{g.measure.diameter_stenosis_pct:.1f}:"
-                           f"{g.measure.reference_diameter_mm:.2f}:{x.diameter_stenosis_pct:.1f}")
-    row["masks_only"] = " ".join(details)
+    # the lesions found on the masks only (no frames) or the frames only, each as T(rue)/F(alse):root or side
+    # branch:branch mm:lesion mm:the 2D %DS:the 2D reference mm:the 3D sections' %DS over the same stretch
+    for field in ("masks_only", "frames_only"):
+        details = []
+        for q in r.profiles:
+            for x in getattr(q, field):
+                pos = q.branch.points_mm[np.argmin(np.abs(q.branch.arc_length_mm - x.mld_position_mm))]
+                true = centre is not None and np.linalg.norm(pos - centre) <= truth["lesion_length_mm"]
+                g = lesion_grade(q, x)
+                details.append(f"{'T' if true else 'F'}:{'root' if q.branch.parent_id is None else 'side'}:"
+                               f"{q.branch.length_mm:.1f}:{g.measure.length_mm:.1f}:{g.measure.diameter_stenosis_pct:.1f}:"
+                               f"{g.measure.reference_diameter_mm:.2f}:{x.diameter_stenosis_pct:.1f}")
+        row[field] = " ".join(details)
     row.update({"false_lesions": len(others),
                 "false_lesions_unseen_on_masks": sum(lesion_grade(q, x).seen_on_masks is False for q, x in others),
                 # each as "3D %DS / the masks' largest %DS there", to choose the masks' rule on
@@ -441,6 +442,11 @@ def summarise(rows: List[Dict]) -> str:
         lines.append(f"masks' %DS / 3D %DS: true lesions min {true_ratio.min():.2f}, below 0.6 in {int(np.sum(true_ratio < 0.6))} "
                      f"of {true_ratio.size}; other lesions " + (f"max {other_ratio.max():.2f}, at or above 0.6 in "
                      f"{int(np.sum(other_ratio >= 0.6))} of {other_ratio.size}" if other_ratio.size else "none"))
+    for field in ("frames_only", "masks_only"):  # T/F:… entries (score)
+        entries = [e for r in rows for e in str(r.get(field) or "").split()]
+        if entries:
+            lines.append(f"found on the {field.split('_')[0]} only: {sum(e.startswith('T') for e in entries)} at the true "
+                         f"lesion, {sum(e.startswith('F') for e in entries)} elsewhere")
     sources = {}
     for r in found:
         sources[r["graded_on"]] = sources.get(r["graded_on"], 0) + 1
