@@ -69,6 +69,83 @@ def test_calibration_and_diameter_without_enough_points():
     assert out[0] == pytest.approx(np.sqrt(4 * 2.0 / np.pi)) and np.isnan(out[1])
 
 
+def test_density_diameter_averages_the_usable_views_where_one_has_an_area():
+    mu = 0.25
+    wide, narrow = mu * np.pi * 3.0 ** 2 / 4, mu * np.pi * 2.0 ** 2 / 4
+    d = np.array([[wide, wide, wide, np.nan], [narrow, narrow, narrow, narrow]])
+    usable = np.array([[True, False, False, False], [True, True, False, False]])
+    out = density_diameter(d, [mu, mu], usable)
+    # both usable: the mean area; view 0 crowded: view 1 alone; neither: both (as without ``usable``);
+    # the only view with an area not usable: it still gives the area
+    assert out == pytest.approx([np.sqrt((9.0 + 4.0) / 2), 2.0, np.sqrt((9.0 + 4.0) / 2), 2.0])
+
+
+def test_other_vessel_clearance_is_the_projected_gap_to_the_other_vessels_edge():
+    from SDFCARLib.analysis.views import other_vessel_clearance
+
+    view = VIEWS[0]  # LAO 30, no angulation: the z axis lies in the detector plane, along its rows
+    z = np.linspace(-10.0, 10.0, 21)
+    a = np.stack([np.zeros_like(z), np.zeros_like(z), z], axis=1)
+    u = np.asarray(view.column_direction)
+    magnification = view.sid_mm / view.sod_mm  # both tubes at the isocenter's depth
+    beside = a + 8.0 * u  # 8 mm to the side in the image, radius 1.2 mm
+    clearance = other_vessel_clearance(a, 1.0, beside, 1.2, view)
+    middle = len(z) // 2  # on the central row the perspective adds nothing to the lateral distance
+    assert clearance[middle] == pytest.approx((8.0 - 1.2) * magnification, rel=1e-6)
+    assert np.all(clearance >= (8.0 - 1.2) * magnification - 1e-9)
+    behind = a[middle] + 30.0 * np.asarray(view.detector_direction)  # on the central ray, 30 mm deeper
+    assert other_vessel_clearance(a[middle:middle + 1], 1.0, behind[None], 1.2, view)[0] < 0  # it overlaps
+    touching = a + 2.5 * u  # within attach_mm (2) + both radii in 3D: the vessel's own continuation or mouth
+    assert np.all(np.isinf(other_vessel_clearance(a, 1.0, touching, 1.2, view)))
+    assert np.all(np.isinf(other_vessel_clearance(a, 1.0, np.zeros((0, 3)), np.zeros(0), view)))
+
+
+def test_a_neighbour_in_one_views_window_is_left_out_of_the_density(tube_pair_frames):
+    """Two parallel 3 mm tubes 20 mm apart that LAO 30 sees 3–4 mm apart and RAO 30 far apart: in LAO 30 the
+    neighbour lies in the measuring window and its iodine raises the background; the density is then RAO 30's."""
+    from SDFCARLib.analysis.views import other_vessel_clearance
+
+    realistic, points, tangents, neighbour = tube_pair_frames
+    psf = AngiogramSettings().psf_sigma_mm
+    per_view, crowded, calibrations = [], [], []
+    for frame, mask, view in zip(realistic.frames, realistic.masks, VIEWS):
+        guesses = projected_widths(points, tangents, mask, view)
+        per_view.append(densities(points, tangents, frame, view, guesses, psf_sigma_mm=psf))
+        clearance = other_vessel_clearance(points, 1.5, neighbour, 1.5, view)
+        magnification = view.sid_mm / view.project(points)[2]
+        crowded.append(clearance < guesses * magnification + 4 * psf)  # the pipeline's rule
+        widths = frame_widths(points, tangents, frame, view, guesses, psf)
+        calibrations.append(attenuation_per_mm(per_view[-1], widths, ~crowded[-1]))
+    crowded = np.array(crowded)
+    assert crowded[0].all() and not crowded[1].any()
+    assert calibrations[0] is None  # no uncrowded point to calibrate LAO 30 on
+    mu = [calibrations[1]] * 2  # one system, one iodine: the same attenuation (the test above)
+    both = density_diameter(np.stack(per_view), mu)
+    chosen = density_diameter(np.stack(per_view), mu, ~crowded)
+    assert np.mean(both) < 3.0 - 0.3  # the neighbour's iodine in the background reads the tube narrow
+    assert np.mean(np.abs(chosen - 3.0)) < 0.1
+
+
+@pytest.fixture(scope="module")
+def tube_pair_frames():
+    from SDFCARLib.analysis.phantoms import grid_around, voxelize_exact
+    from SDFCARLib.geometry import Geometry
+    from SDFCARLib.phantoms import Branch, CentrelineTree
+    from SDFCARLib.realistic import RealisticOptions, realistic_input
+
+    axis = np.array([0.0, 0.15, 1.0]) / np.hypot(0.15, 1.0)
+    angle = np.radians(108.5)  # the pair's offset: nearly along LAO 30's rays, across RAO 30's
+    offset = 20.0 * np.array([np.cos(angle), np.sin(angle), 0.0])
+    s = np.linspace(-15.0, 15.0, 31)
+    first, second = s[:, None] * axis - offset / 2, s[:, None] * axis + offset / 2
+    tree = CentrelineTree([Branch(first, np.full(len(s), 1.5), "a"), Branch(second, np.full(len(s), 1.5), "b")], "pair")
+    grid = grid_around(tree, 0.2)
+    realistic = realistic_input(voxelize_exact(tree, grid), Geometry(grid, VIEWS), 3,
+                                RealisticOptions(max_shift_mm=0.0, max_rotation_deg=0.0))
+    inner = np.linspace(-10.0, 10.0, 21)[:, None] * axis - offset / 2  # clear of the flat ends
+    return realistic, inner, np.repeat(axis[None], len(inner), axis=0), second
+
+
 def test_same_lesion_on_another_profile_is_the_one_inside_the_lesions_extent():
     from SDFCARLib.analysis.lesion import Lesion, same_lesion_on
 
@@ -277,16 +354,18 @@ def test_a_narrowing_of_the_frames_that_a_healthy_reconstruction_does_not_show_i
     assert [b["narrowings_2d_unconfirmed"] for b in data["branches"]] == [1]
 
 
-@pytest.mark.parametrize("frames_centre_mm, dip_sd_mm, sections_3d, found", [
-    (20.0, 1.5, "narrowed 15 % with the frames", True),   # smoothed under the lesion threshold, not erased
-    (20.0, 1.5, "healthy", False),                          # the frames narrow alone
-    (20.0, 1.5, "narrowed 8 % with the frames", False),     # under half the threshold
-    (36.0, 1.5, "cut short in the end cap", False),         # the rounded end of a vessel is no lesion
-    (36.0, 1.5, "narrowed 15 % with the frames", True),     # near the end, but the sections outside the cap narrow
-    (20.0, 0.3, "narrowed 15 % with the frames", False),    # ~1 mm long on a 3 mm vessel: shorter than its diameter
+@pytest.mark.parametrize("frames_centre_mm, dip_sd_mm, sections_3d, crowded, found", [
+    (20.0, 1.5, "narrowed 15 % with the frames", "", True),  # smoothed under the lesion threshold, not erased
+    (20.0, 1.5, "healthy", "", False),                          # the frames narrow alone
+    (20.0, 1.5, "narrowed 8 % with the frames", "", False),     # under half the threshold
+    (36.0, 1.5, "cut short in the end cap", "", False),         # the rounded end of a vessel is no lesion
+    (36.0, 1.5, "narrowed 15 % with the frames", "", True),     # near the end, but the sections outside the cap narrow
+    (20.0, 0.3, "narrowed 15 % with the frames", "", False),    # ~1 mm long on a 3 mm vessel: shorter than its diameter
+    (20.0, 1.5, "narrowed 15 % with the frames", "1", True),   # another vessel beside it in one view: the other sees it
+    (20.0, 1.5, "narrowed 15 % with the frames", "1+2", False),  # … in both views at the throat: neither measures it
 ])
-def test_a_lesion_of_the_frames_alone_needs_the_3d_sections_to_narrow_there_and_a_diameter_of_length(
-        frames_centre_mm, dip_sd_mm, sections_3d, found):
+def test_a_lesion_of_the_frames_alone_needs_the_3d_sections_to_narrow_a_diameter_of_length_and_a_clear_view(
+        frames_centre_mm, dip_sd_mm, sections_3d, crowded, found):
     from SDFCARLib.analysis.centreline import CentrelineBranch
     from SDFCARLib.analysis.diameter import CrossSections
     from SDFCARLib.analysis.lesion import ReferenceFit
@@ -303,6 +382,9 @@ def test_a_lesion_of_the_frames_alone_needs_the_3d_sections_to_narrow_there_and_
     profile = BranchProfile(branch, sections, np.zeros(len(s), bool))
     profile.reference = ReferenceFit(3.0, 0.0, np.ones(len(s), bool))
     profile.frame_diameter_mm = profile.frame_density_diameter_mm = 3.0 * (1 - 0.5 * bump)  # 50 % on the frames
+    profile.frame_views_crowded = np.zeros((2, len(s)), bool)
+    for view in crowded.split("+") if crowded else ():
+        profile.frame_views_crowded[int(view) - 1] = np.abs(s - frames_centre_mm) < 2.0
     frames_lesions(profile, 20.0)
     assert (len(profile.frames_only), profile.unconfirmed) == ((1, 0) if found else (0, 1))
     if found:

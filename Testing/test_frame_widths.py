@@ -91,8 +91,15 @@ def test_analyse_command_fits_the_frames(tmp_path, tube_frames, capsys):
     branch = json.loads((folder / "analysis" / "analysis.json").read_text())["branches"][0]
     assert branch["diameter_frames"]["mean_mm"] == pytest.approx(2.0, abs=0.15)
     assert abs(branch["diameter_masks"]["mean_mm"] - 2.0) > abs(branch["diameter_frames"]["mean_mm"] - 2.0)
-    header = (folder / "analysis" / "profile_branch00.csv").read_text().splitlines()[0].split(",")
-    assert {"diameter_frames_mm", "frame_width_view1_mm", "frame_width_view2_mm", "diameter_frames_density_mm"} <= set(header)
+    import csv
+
+    with open(folder / "analysis" / "profile_branch00.csv", newline="") as f:
+        rows = list(csv.DictReader(f))
+    assert {"diameter_frames_mm", "frame_width_view1_mm", "frame_width_view2_mm", "diameter_frames_density_mm",
+            "density_views", "crowded_views"} <= set(rows[0])
+    # one tube: no other vessel crowds either view, and both views' areas make the density wherever it is read
+    assert all(r["crowded_views"] == "" for r in rows)
+    assert {r["density_views"] for r in rows if r["diameter_frames_density_mm"]} == {"1+2"}
     assert branch["diameter_frames_density"]["mean_mm"] == pytest.approx(2.0, abs=0.15)
     capsys.readouterr()
     assert main(["analyse", str(folder), "--frames", frames[0], "--out", str(tmp_path / "a2")]) == 2

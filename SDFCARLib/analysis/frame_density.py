@@ -22,8 +22,10 @@ Model
     views' mean area.
 
 Limits
-    A branch crossing the window adds its iodine to the area; the edges see that too (a spike in the
-    width), but the area cannot tell which side it came from.
+    A branch crossing or running beside the window adds its iodine to the area or to the background;
+    the edges see that too (a spike in the width), but the area cannot tell which side it came from.
+    ``density_diameter`` therefore takes, per point, the views the caller marks ``usable`` (the
+    analysis: those no other branch of the tree crowds, ``pipeline.py``).
 """
 
 from __future__ import annotations
@@ -78,14 +80,33 @@ def attenuation_per_mm(view_densities: np.ndarray, widths_mm: np.ndarray, health
     return float(np.median(d[use] / (np.pi * w[use] ** 2 / 4.0)))
 
 
-def density_diameter(view_densities: np.ndarray, attenuations: Sequence[Optional[float]]) -> np.ndarray:
-    """Per point, the equivalent diameter (mm) of the mean lumen area over the views whose attenuation
-    is known and whose density is positive; NaN where none is."""
+def _view_areas(view_densities: np.ndarray, attenuations: Sequence[Optional[float]]) -> np.ndarray:
     d = np.asarray(view_densities, float)
     areas = np.full(d.shape, np.nan)
     for n, mu in enumerate(attenuations):
         if mu is not None and mu > 0:
             areas[n] = np.where(d[n] > 0, d[n] / mu, np.nan)
+    return areas
+
+
+def density_views(view_densities: np.ndarray, attenuations: Sequence[Optional[float]],
+                  usable: Optional[np.ndarray] = None) -> np.ndarray:
+    """(views, N) bool: the views whose area ``density_diameter`` averages at each point: those whose
+    attenuation is known and whose density is positive, and among them the ``usable`` ones where there
+    are any."""
+    has_area = np.isfinite(_view_areas(view_densities, attenuations))
+    if usable is None:
+        return has_area
+    chosen = has_area & np.asarray(usable, bool)
+    return np.where(chosen.any(axis=0), chosen, has_area)
+
+
+def density_diameter(view_densities: np.ndarray, attenuations: Sequence[Optional[float]],
+                     usable: Optional[np.ndarray] = None) -> np.ndarray:
+    """Per point, the equivalent diameter (mm) of the mean lumen area over ``density_views``; NaN where
+    no view has an area. ``usable`` ((views, N) bool): the views to average where one of them has an
+    area (e.g. those no other vessel crowds); all of them where none has."""
+    areas = np.where(density_views(view_densities, attenuations, usable), _view_areas(view_densities, attenuations), np.nan)
     counted = np.isfinite(areas).sum(axis=0)
     mean_area = np.where(counted > 0, np.nansum(areas, axis=0) / np.maximum(counted, 1), np.nan)
     return np.sqrt(4.0 * mean_area / np.pi)

@@ -71,6 +71,11 @@ def centrelines_vtk_text(result: QCAResult) -> str:
     return out.getvalue()
 
 
+def _view_numbers(per_view: Optional[np.ndarray], i: int) -> str:
+    """The views (from 1) flagged at point ``i``, as "1+2"; empty where none or unknown."""
+    return "" if per_view is None else "+".join(str(v + 1) for v in np.flatnonzero(per_view[:, i]))
+
+
 def profile_csv_text(result: QCAResult, branch_id: int) -> str:
     p = result.profile(branch_id)
     b = p.branch
@@ -79,7 +84,7 @@ def profile_csv_text(result: QCAResult, branch_id: int) -> str:
     header = ["arc_mm", "diameter_3d_mm", "area_mm2", "min_diameter_mm", "max_diameter_mm", "diameter_masks_mm"]
     header += [f"width_view{v + 1}_mm" for v in range(n_views)]
     header += (["diameter_frames_mm"] + [f"frame_width_view{v + 1}_mm" for v in range(n_frames)]
-               + ["diameter_frames_density_mm"]) if n_frames else []
+               + ["diameter_frames_density_mm", "density_views", "crowded_views"]) if n_frames else []
     header += ["reference_mm", "excluded", "x_mm", "y_mm", "z_mm"]
     ref = p.reference(b.arc_length_mm) if p.reference is not None else np.full(len(b.points_mm), np.nan)
     out = _io.StringIO()
@@ -95,7 +100,8 @@ def profile_csv_text(result: QCAResult, branch_id: int) -> str:
         row += [f(p.view_widths_mm[v, i]) for v in range(n_views)]
         if n_frames:
             row += [f(p.frame_diameter_mm[i])] + [f(p.frame_view_widths_mm[v, i]) for v in range(n_frames)]
-            row += [f(None if p.frame_density_diameter_mm is None else p.frame_density_diameter_mm[i])]
+            row += [f(None if p.frame_density_diameter_mm is None else p.frame_density_diameter_mm[i]),
+                    _view_numbers(p.frame_density_views, i), _view_numbers(p.frame_views_crowded, i)]
         row += [f(ref[i]), int(p.excluded[i])] + [f(c) for c in b.points_mm[i]]
         w.writerow(row)
     return out.getvalue()
