@@ -80,6 +80,16 @@ def test_density_diameter_averages_the_usable_views_where_one_has_an_area():
     assert out == pytest.approx([np.sqrt((9.0 + 4.0) / 2), 2.0, np.sqrt((9.0 + 4.0) / 2), 2.0])
 
 
+def test_the_edges_diameter_leaves_a_crowded_view_out_where_another_has_a_width():
+    from SDFCARLib.analysis.diameter import ellipse_diameter
+    from SDFCARLib.analysis.pipeline import _uncrowded_widths
+
+    widths = np.array([[4.0, 4.0, 4.0, np.nan], [2.0, 2.0, 2.0, 2.0]])
+    crowded = np.array([[False, True, True, False], [False, False, True, True]])
+    # none crowded: the ellipse of both; view 1 crowded: view 2's width; both crowded: both; the only width crowded: kept
+    assert ellipse_diameter(_uncrowded_widths(widths, crowded)) == pytest.approx([np.sqrt(8.0), 2.0, np.sqrt(8.0), 2.0])
+
+
 def test_other_vessel_clearance_is_the_projected_gap_to_the_other_vessels_edge():
     from SDFCARLib.analysis.views import other_vessel_clearance
 

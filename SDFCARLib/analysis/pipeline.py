@@ -65,7 +65,7 @@ The frames' density beside other vessels
     point (``BranchProfile.frame_views_crowded``). The density is then the mean area of the views no
     other vessel crowds, or of all where every view is crowded (leaving those points out lengthened
     lesions by up to 13 mm, §47); each view's attenuation is calibrated on its uncrowded healthy points
-    only. The profile CSV names the views each point's density comes from (``density_views``) and the
+    only. The edges' diameter leaves a crowded view's width out the same way. The profile CSV names the views each point's density comes from (``density_views``) and the
     crowded ones (``crowded_views``).
 
 Lesions of the masks (``masks_lesions``)
@@ -470,7 +470,7 @@ def _fit_frame_widths(profiles: List[BranchProfile], frames: Sequence[np.ndarray
     for p in profiles:
         fitted = np.stack([frame_widths(p.width_branch.points_mm, p.width_branch.tangents(), f, v, w, sigma)
                            for f, v, w, sigma in zip(frames, views, p.view_widths_mm, sigmas)])
-        p.frame_view_widths_mm, p.frame_diameter_mm = fitted, ellipse_diameter(fitted)
+        p.frame_view_widths_mm = fitted
         per_profile.append(np.stack([densities(p.width_branch.points_mm, p.width_branch.tangents(), f, v, w, sigma)
                                      for f, v, w, sigma in zip(frames, views, p.view_widths_mm, sigmas)]))
     crowded = [_crowded_views(p, profiles, views, sigmas) for p in profiles]
@@ -481,9 +481,17 @@ def _fit_frame_widths(profiles: List[BranchProfile], frames: Sequence[np.ndarray
                                        np.concatenate([~p.excluded & ~c[n] for p, c in zip(profiles, crowded)]))
                     for n in range(len(views))]
     for p, d, c in zip(profiles, per_profile, crowded):
+        p.frame_diameter_mm = ellipse_diameter(_uncrowded_widths(p.frame_view_widths_mm, c))
         p.frame_density_diameter_mm = density_diameter(d, attenuations, ~c)
         p.frame_views_crowded, p.frame_density_views = c, density_views(d, attenuations, ~c)
     return {"psf_sigma_mm": sigmas, "psf_sigma_estimated": estimated, "attenuation_per_mm": attenuations}
+
+
+def _uncrowded_widths(view_widths_mm: np.ndarray, crowded: np.ndarray) -> np.ndarray:
+    """The views' widths, a crowded view's left out (NaN) where an uncrowded view has a width."""
+    has = np.isfinite(view_widths_mm) & (view_widths_mm > 0)
+    keep = np.where((has & ~crowded).any(axis=0), has & ~crowded, has)
+    return np.where(keep, view_widths_mm, np.nan)
 
 
 def _crowded_views(p: BranchProfile, profiles: List[BranchProfile], views: Sequence[CArmView],
