@@ -56,17 +56,18 @@ Lesions of the frames (``frames_lesions``)
     no view measures it (RESULTS §47). The others are counted per branch (``narrowings_2d_unconfirmed``,
     with the masks' unconfirmed narrowings where no frames are given).
 
-The frames' density beside other vessels
+The frames' measures beside other vessels
     A view's density reads another vessel's iodine where that vessel's projection comes into the window
     across the measured one (in its integral, or in the background fitted beside it): on the exact trees
-    with segmented masks a view's density erred by 0.3–0.5 mm (median) there and 0.04–0.08 mm elsewhere
-    (RESULTS §47). The tree itself says where: another branch's projected edge nearer than the window's
-    half width less its outermost millimetre (``views.other_vessel_clearance``) crowds that view at that
-    point (``BranchProfile.frame_views_crowded``). The density is then the mean area of the views no
-    other vessel crowds, or of all where every view is crowded (leaving those points out lengthened
-    lesions by up to 13 mm, §47); each view's attenuation is calibrated on its uncrowded healthy points
-    only. The edges' diameter leaves a crowded view's width out the same way. The profile CSV names the views each point's density comes from (``density_views``) and the
-    crowded ones (``crowded_views``).
+    with segmented masks a view's density erred by 0.28–0.53 mm (median) there and 0.05–0.09 mm
+    elsewhere (RESULTS §47). The tree itself says where: another branch's projected edge nearer than
+    the window's half width less its outermost millimetre (``views.other_vessel_clearance``) crowds
+    that view at that point (``BranchProfile.frame_views_crowded``). The density is then the mean area
+    of the views no other vessel crowds, or of all where every view is crowded (leaving those points
+    out lengthened lesions by up to 13 mm, §47); each view's attenuation is calibrated on its
+    uncrowded healthy points only. The edges' diameter leaves a crowded view's width out the same way
+    (§47b). The profile CSV names the views each point's density comes from (``density_views``) and
+    the crowded ones (``crowded_views``).
 
 Lesions of the masks (``masks_lesions``)
     Where no frames are given, the masks' two-view diameter is searched the same way, and a lesion it

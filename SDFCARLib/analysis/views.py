@@ -139,7 +139,7 @@ def other_vessel_clearance(points_mm: np.ndarray, radii_mm: np.ndarray, others_m
     spacing = np.asarray(view.pixel_spacing_mm, float)
     row, col, _ = view.project(seg)
     orow, ocol, odepth = view.project(oth)
-    there_r = np.append(oth_r * view.sid_mm / odepth, 0.0)  # the last: cKDTree's index for "none"
+    there_r = oth_r * view.sid_mm / odepth
     k = min(neighbours, len(oth))
     dist, idx = cKDTree(np.stack([orow * spacing[0], ocol * spacing[1]], axis=1)).query(
         np.stack([row * spacing[0], col * spacing[1]], axis=1), k=k)
