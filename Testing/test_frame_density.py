@@ -113,7 +113,7 @@ def test_other_vessel_clearance_is_the_projected_gap_to_the_other_vessels_edge()
 def test_a_neighbour_in_one_views_window_is_left_out_of_the_density(tube_pair_frames):
     """Two parallel 3 mm tubes 20 mm apart that LAO 30 sees 3–4 mm apart and RAO 30 far apart: in LAO 30 the
     neighbour lies in the measuring window and its iodine raises the background; the density is then RAO 30's."""
-    from SDFCARLib.analysis.views import other_vessel_clearance
+    from SDFCARLib.analysis.pipeline import crowded_in_view
 
     realistic, points, tangents, neighbour = tube_pair_frames
     psf = AngiogramSettings().psf_sigma_mm
@@ -121,9 +121,7 @@ def test_a_neighbour_in_one_views_window_is_left_out_of_the_density(tube_pair_fr
     for frame, mask, view in zip(realistic.frames, realistic.masks, VIEWS):
         guesses = projected_widths(points, tangents, mask, view)
         per_view.append(densities(points, tangents, frame, view, guesses, psf_sigma_mm=psf))
-        clearance = other_vessel_clearance(points, 1.5, neighbour, 1.5, view)
-        magnification = view.sid_mm / view.project(points)[2]
-        crowded.append(clearance < guesses * magnification + 4 * psf)  # the pipeline's rule
+        crowded.append(crowded_in_view(points, 1.5, neighbour, 1.5, view, guesses, psf))  # the pipeline's rule
         widths = frame_widths(points, tangents, frame, view, guesses, psf)
         calibrations.append(attenuation_per_mm(per_view[-1], widths, ~crowded[-1]))
     crowded = np.array(crowded)

@@ -227,6 +227,14 @@ def ellipse_diameter(view_widths_mm: np.ndarray) -> np.ndarray:
         return np.exp(np.nanmean(np.log(np.where(widths > 0, widths, np.nan)), axis=0))
 
 
+def views_to_use(available: np.ndarray, preferred: np.ndarray) -> np.ndarray:
+    """(views, N) bool: per point, the available views that are preferred where any is, else all the
+    available ones (e.g. the views no other vessel crowds, else every view that measured)."""
+    available = np.asarray(available, bool)
+    chosen = available & np.asarray(preferred, bool)
+    return np.where(chosen.any(axis=0), chosen, available)
+
+
 def junction_zones(tree: CentrelineTree, branch: CentrelineBranch, margin: float = 1.0,
                    side_branch_mouths: bool = True) -> np.ndarray:
     """Points of ``branch`` whose cross-section is not its own lumen's: near a junction or a free end.

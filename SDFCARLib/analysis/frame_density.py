@@ -36,6 +36,7 @@ import numpy as np
 
 from ..geometry import CArmView
 from ..lumen_profile import DEFAULT_PSF_SIGMA_MM
+from .diameter import views_to_use
 from .frame_widths import frame_profiles
 
 # Fewest healthy points whose ratio the per-view attenuation takes the median of.
@@ -95,10 +96,7 @@ def density_views(view_densities: np.ndarray, attenuations: Sequence[Optional[fl
     attenuation is known and whose density is positive, and among them the ``usable`` ones where there
     are any."""
     has_area = np.isfinite(_view_areas(view_densities, attenuations))
-    if usable is None:
-        return has_area
-    chosen = has_area & np.asarray(usable, bool)
-    return np.where(chosen.any(axis=0), chosen, has_area)
+    return has_area if usable is None else views_to_use(has_area, usable)
 
 
 def density_diameter(view_densities: np.ndarray, attenuations: Sequence[Optional[float]],

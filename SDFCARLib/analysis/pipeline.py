@@ -101,7 +101,8 @@ from scipy.spatial import cKDTree
 
 from ..geometry import CArmView, VolumeGrid
 from .centreline import CentrelineBranch, CentrelineTree, bifurcation_angles, extract_centrelines
-from .diameter import CrossSections, branch_cross_sections, ellipse_diameter, junction_zones, mask_diameters
+from .diameter import (CrossSections, branch_cross_sections, ellipse_diameter, junction_zones, mask_diameters,
+                       views_to_use)
 from .frame_density import attenuation_per_mm, densities, density_diameter, density_views
 from .frame_widths import DEFAULT_PSF_SIGMA_MM, estimate_psf_sigma_mm, frame_widths
 from .fragments import MIN_COMPONENT_SHARE, UNRELIABLE, Fragments, find_fragments, lesion_reasons
@@ -491,31 +492,31 @@ def _fit_frame_widths(profiles: List[BranchProfile], frames: Sequence[np.ndarray
 def _uncrowded_widths(view_widths_mm: np.ndarray, crowded: np.ndarray) -> np.ndarray:
     """The views' widths, a crowded view's left out (NaN) where an uncrowded view has a width."""
     has = np.isfinite(view_widths_mm) & (view_widths_mm > 0)
-    keep = np.where((has & ~crowded).any(axis=0), has & ~crowded, has)
-    return np.where(keep, view_widths_mm, np.nan)
+    return np.where(views_to_use(has, ~np.asarray(crowded, bool)), view_widths_mm, np.nan)
+
+
+def crowded_in_view(points_mm: np.ndarray, radii_mm, others_mm: np.ndarray, others_radii_mm, view: CArmView,
+                    guess_widths_mm: np.ndarray, psf_sigma_mm: float) -> np.ndarray:
+    """Per point, whether another vessel's projected edge lies inside the frames' window across the vessel
+    in ``view`` (``frame_widths.frame_profiles``, sized by ``guess_widths_mm``, the radii's diameter where
+    NaN), short of the window's outermost millimetre."""
+    radii = np.broadcast_to(np.asarray(radii_mm, float), (len(points_mm),))
+    magnification = view.sid_mm / view.project(points_mm)[2]
+    width = np.where(np.isfinite(guess_widths_mm), guess_widths_mm, 2 * radii)
+    # The window reaches the guessed width + 4σ + 1 mm from the centre; on the exact trees a view's
+    # density errs once another vessel's edge comes nearer than its outermost millimetre (RESULTS §47).
+    window = width * magnification + 4.0 * psf_sigma_mm
+    return other_vessel_clearance(points_mm, radii, others_mm, others_radii_mm, view) < window
 
 
 def _crowded_views(p: BranchProfile, profiles: List[BranchProfile], views: Sequence[CArmView],
                    sigmas: Sequence[float]) -> np.ndarray:
-    """(views, N) bool: where another branch's projected edge lies inside the frames' window across ``p``
-    in that view (``frame_widths.frame_profiles``), short of the window's outermost millimetre."""
-    def radii(q: BranchProfile) -> np.ndarray:
-        r = q.diameter_mm / 2
-        return np.where(np.isfinite(r), r, q.width_branch.inscribed_radius_mm)
-
-    points, own = p.width_branch.points_mm, radii(p)
+    """(views, N) bool: ``crowded_in_view`` of ``p`` among the other branches, per view."""
     rest = [q for q in profiles if q is not p]
     others = np.concatenate([q.width_branch.points_mm for q in rest]) if rest else np.zeros((0, 3))
-    others_r = np.concatenate([radii(q) for q in rest]) if rest else np.zeros(0)
-    out = np.zeros((len(views), len(points)), bool)
-    for n, (view, sigma) in enumerate(zip(views, sigmas)):
-        magnification = view.sid_mm / view.project(points)[2]
-        width = np.where(np.isfinite(p.view_widths_mm[n]), p.view_widths_mm[n], 2 * own)
-        # The window reaches the guessed width + 4σ + 1 mm from the centre; on the exact trees a view's
-        # density errs once another vessel's edge comes nearer than its outermost millimetre (RESULTS §47).
-        window = width * magnification + 4.0 * sigma
-        out[n] = other_vessel_clearance(points, own, others, others_r, view) < window
-    return out
+    others_r = np.concatenate([_profile_radii(q) for q in rest]) if rest else np.zeros(0)
+    return np.stack([crowded_in_view(p.width_branch.points_mm, _profile_radii(p), others, others_r, view,
+                                     p.view_widths_mm[n], sigma) for n, (view, sigma) in enumerate(zip(views, sigmas))])
 
 
 def _median_diameter(diameter_mm: np.ndarray) -> float:
@@ -554,11 +555,16 @@ def _end_caps(branch: CentrelineBranch) -> np.ndarray:
     return cap
 
 
+def _profile_radii(p: BranchProfile) -> np.ndarray:
+    """The 3D sections' radius per point, the centreline's inscribed radius where no section was measured."""
+    r = p.diameter_mm / 2
+    return np.where(np.isfinite(r), r, p.branch.inscribed_radius_mm)
+
+
 def _radii(profiles: List[BranchProfile], branch_id: int) -> np.ndarray:
     for p in profiles:
         if p.branch.branch_id == branch_id:
-            r = p.diameter_mm / 2
-            return np.where(np.isfinite(r), r, p.branch.inscribed_radius_mm)
+            return _profile_radii(p)
     raise KeyError(branch_id)
 
 
