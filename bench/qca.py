@@ -76,6 +76,25 @@ def _truth_samples(phantom):
     return np.concatenate(pts), np.concatenate(dia), np.concatenate(w), np.asarray(names), np.concatenate(arcs)
 
 
+def _truth_span(segment_mm, truth_points, truth_names, kd, min_run=3):
+    """The truth centreline over the span of a measured segment, following it across truth branches: a
+    tree's reconstructed main branch runs on from the truth's main vessel into one of its distal branches,
+    and the samples of all branches are concatenated, so a span between the samples nearest the segment's
+    two ends would run across unrelated branches. Per run of segment points nearest one truth branch, that
+    branch's samples between the run's first and last nearest (runs of fewer than ``min_run`` points, the
+    other child at a junction, are skipped)."""
+    _, nearest = kd.query(segment_mm)
+    names = truth_names[nearest]
+    cuts = np.flatnonzero(names[1:] != names[:-1]) + 1
+    pieces = []
+    for run in np.split(nearest, cuts):
+        if len(run) < min_run and len(run) < len(nearest):
+            continue
+        lo, hi = int(run[0]), int(run[-1])
+        pieces.append(truth_points[lo:hi + 1] if lo <= hi else truth_points[hi:lo + 1][::-1])
+    return np.concatenate(pieces)
+
+
 def score(phantom, volume, grid, level, masks, ostium, view_step_deg, frames=None, views=VIEWS,
           centreline_on_masks=False) -> Dict[str, float]:
     t0 = time.perf_counter()
@@ -206,9 +225,7 @@ def score(phantom, volume, grid, level, masks, ostium, view_step_deg, frames=Non
     idx = np.flatnonzero((b.arc_length_mm >= tg["start_mm"]) & (b.arc_length_mm <= tg["end_mm"]))
     if tg["branch_id"] == b.branch_id and len(idx) > 2:
         seg = b.points_mm[idx]
-        _, ks = kd.query(seg[[0, -1]])
-        lo, hi = sorted(ks)
-        tseg = tp[lo:hi + 1]
+        tseg = _truth_span(seg, tp, tnames, kd)
         fs_err = [foreshortening(seg, v) - foreshortening(tseg, v) for v in VIEWS]
         row["fs_err_pts"] = float(100 * np.max(np.abs(fs_err)))
         if r.view_map is not None:

@@ -1,0 +1,33 @@
+"""The 3D-QCA benchmark's own geometry (bench/qca.py): what it scores against must be the truth's."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
+import qca  # noqa: E402
+
+
+def _line(start, end, step_mm=0.1):
+    start, end = np.asarray(start, float), np.asarray(end, float)
+    n = int(round(np.linalg.norm(end - start) / step_mm)) + 1
+    return start + np.linspace(0.0, 1.0, n)[:, None] * (end - start)
+
+
+def test_the_truth_span_follows_a_segment_across_a_junction():
+    # A main vessel that divides at (20, 0, 0); the samples concatenated as a tree's are, the child the
+    # segment does not follow between the two it crosses.
+    main, other_child, followed = _line([0, 0, 0], [20, 0, 0]), _line([20, 0, 0], [20, -20, 0]), _line([20, 0, 0], [20, 20, 0])
+    points = np.concatenate([main, other_child, followed])
+    names = np.array(["main"] * len(main) + ["other"] * len(other_child) + ["followed"] * len(followed))
+    segment = np.concatenate([_line([10, 0.1, 0], [20, 0.1, 0], 0.25), _line([20.1, 0.25, 0], [20.1, 10, 0], 0.25)])
+    span = qca._truth_span(segment, points, names, cKDTree(points))
+    length_mm = np.linalg.norm(np.diff(span, axis=0), axis=1).sum()
+    assert abs(length_mm - 20.0) < 0.3, length_mm
+    assert cKDTree(segment).query(span)[0].max() < 0.3  # nothing of the other child
+    np.testing.assert_allclose(span[0], [10, 0, 0], atol=0.15)
+    np.testing.assert_allclose(span[-1], [20, 10, 0], atol=0.15)
