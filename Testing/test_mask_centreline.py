@@ -120,6 +120,58 @@ def test_a_vessel_overlapping_in_one_view_does_not_pull_the_centreline():
     assert report[0].measured_share < 0.9
 
 
+def test_a_vessel_running_beside_in_one_view_does_not_pull_the_centreline():
+    # Another branch, 10 mm away in depth, that view 1 sees touching the tube along its whole length: its mask
+    # merges with the tube's there and widens the running median with it, so the width rule cannot tell.
+    axis, s = _axis()
+    ray = VIEWS[0].detector_direction
+    beside = np.cross(DIRECTION, ray)
+    beside /= np.linalg.norm(beside)
+    neighbour = axis + 1.9 * beside + 10.0 * ray  # a 1.2 mm vessel overlapping the 3 mm tube's edge in view 1
+    pair = PhantomTree([Branch(axis, np.full(len(s), 1.5), "tube"), Branch(neighbour, np.full(len(s), 0.6), "beside")], "pair")
+    masks = [render_mask(pair, v) for v in VIEWS]
+    tree = CentrelineTree([CentrelineBranch(0, axis.copy(), np.full(len(s), 1.5)),
+                           CentrelineBranch(1, neighbour.copy(), np.full(len(s), 0.6), tree_id=1)])
+    placed, _ = place_on_masks(tree, masks, VIEWS)
+    unguarded, _ = place_on_masks(tree, masks, VIEWS, crowding_margin_mm=-np.inf)
+    inner = (s > 4.0) & (s < s[-1] - 4.0)
+    assert _distance_to_line(unguarded.branch(0).points_mm[inner], axis[0], DIRECTION).mean() > 0.5  # the trap is real
+    after = _distance_to_line(placed.branch(0).points_mm[inner], axis[0], DIRECTION)
+    assert after.max() < 0.15, after.max()
+
+
+def test_a_branch_seen_inside_the_vessel_leaves_the_view_measured():
+    # A thin branch 8 mm behind the tube on view 1's rays (a reconstruction's ghost spur lies so): inside the
+    # tube's edges in that view, it merges nothing, and the wandering centreline still comes back to the axis.
+    axis, s = _axis()
+    behind = axis + 8.0 * VIEWS[0].detector_direction
+    off = _wandering(axis, s)
+    tree = CentrelineTree([CentrelineBranch(0, off, np.full(len(s), 1.5)),
+                           CentrelineBranch(1, behind, np.full(len(s), 0.3), tree_id=1)])
+    placed, report = place_on_masks(tree, _masks(axis), VIEWS)
+    inner = (s > 4.0) & (s < s[-1] - 4.0)
+    after = _distance_to_line(placed.branch(0).points_mm[inner], axis[0], DIRECTION)
+    assert after.mean() < 0.06 and after.max() < 0.15, (after.mean(), after.max())
+    assert report[0].measured_share > 0.6
+
+
+@pytest.mark.parametrize("foreshortening, measured", [(0.6, True), (0.8, False)])
+def test_a_view_that_sees_the_vessel_end_on_does_not_measure_its_midline(foreshortening, measured):
+    from SDFCARLib.analysis.mask_centreline import MAX_FORESHORTENING, midline_shifts, smooth_tangents
+
+    ray, other_ray = VIEWS[0].detector_direction, VIEWS[1].detector_direction
+    across = -(other_ray - (other_ray @ ray) * ray)  # turned away from view 2's ray: that view sees it nearly whole
+    across /= np.linalg.norm(across)
+    # a straight tube whose parallel-projection foreshortening in view 1 is 1 − √(1 − (t·d)²)
+    along = np.sqrt(1.0 - (1.0 - foreshortening) ** 2)
+    direction = along * ray + np.sqrt(1.0 - along ** 2) * across
+    axis, s = _axis(20.0, direction)
+    shifts = midline_shifts(axis, smooth_tangents(axis, 3.0), _masks(axis), VIEWS)
+    inner = (s > 4.0) & (s < s[-1] - 4.0)
+    assert (foreshortening < MAX_FORESHORTENING) == measured
+    assert np.isfinite(shifts[inner]).all() if measured else np.isnan(shifts).all()
+
+
 def test_bad_input_is_refused():
     axis, s = _axis()
     tree = CentrelineTree([CentrelineBranch(0, axis, np.full(len(s), 1.5))])

@@ -15,10 +15,16 @@ Method (``place_on_masks``)
     view v's detector position, mm, with respect to p; two views, two unknowns in the plane ⟂ t;
     least squares for more).
     A point is measured only where every view finds both edges, foreshortens the tangent by at most
-    ``max_foreshortening``, and shows the vessel within a factor ``MAX_WIDTH_CHANGE`` of that view's
-    running median width (another vessel overlapping in one view, or a side branch's mouth, widens
-    that view's mask there; a lesion narrows it, and its lumen may lie off the axis, which would bend
-    the centreline), outside the branch's own start inside its parent and its free-end cap
+    ``MAX_FORESHORTENING`` (a vessel seen more end-on shows its own neighbouring length across its
+    width, and the midline of that blob would set the depth in the other view), and shows the vessel
+    within a factor ``MAX_WIDTH_CHANGE`` of that view's running median width (another vessel
+    overlapping in one view, or a side branch's mouth, widens that view's mask there; a lesion narrows
+    it, and its lumen may lie off the axis, which would bend the centreline), where neither edge found
+    in that view lies on another branch's projection or within ``CROWDING_MARGIN_MM`` of it
+    (``edge_on_other_vessel``: a vessel running beside over a stretch as long as the width window
+    merges into the mask there and widens the running median with it, so the width rule alone keeps
+    points whose edge is the other vessel's), outside the branch's own start inside its parent and its
+    free-end cap
     (``diameter.junction_zones``), and where |δ| ≤ ``max_shift_mm``. The
     other points take δ interpolated along the arc (the nearest measured value beyond the ends); a
     side branch's first point keeps its parent's junction point. δ is then smoothed along the arc
@@ -34,7 +40,7 @@ Method (``place_on_masks``)
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
-from typing import Dict, List, Sequence, Tuple
+from typing import Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 from scipy import ndimage
@@ -42,6 +48,7 @@ from scipy import ndimage
 from ..geometry import CArmView
 from .centreline import CentrelineBranch, CentrelineTree
 from .diameter import junction_zones, plane_basis, projected_edges
+from .views import distance_to_other_vessels, other_vessels_projected
 
 #: the defaults measured on the QCA suites (bench/RESULTS.md §33f, §35)
 MAX_SHIFT_MM = 1.5
@@ -50,6 +57,8 @@ TANGENT_SMOOTHING_MM = 3.0
 MAX_WIDTH_CHANGE = 1.25  # a view's width over (an overlap) or under (a lesion) its running median
 WIDTH_WINDOW_MM = 10.0
 ANOMALY_MARGIN_MM = 1.0
+MAX_FORESHORTENING = 0.7  # a view that sees the tangent foreshortened more sees its own length across it (0.5: RESULTS §49)
+CROWDING_MARGIN_MM = 0.5  # detector mm that another branch's projection must keep clear of a view's mask edges
 
 
 @dataclass
@@ -93,17 +102,25 @@ def smooth_tangents(points_mm: np.ndarray, smoothing_mm: float) -> np.ndarray:
 
 
 def midline_shifts(points_mm: np.ndarray, tangents: np.ndarray, masks: Sequence[np.ndarray], views: Sequence[CArmView],
-                   max_foreshortening: float = 0.7, max_width_change: float = MAX_WIDTH_CHANGE) -> np.ndarray:
+                   max_foreshortening: Optional[float] = None, max_width_change: float = MAX_WIDTH_CHANGE,
+                   radii_mm=None, others_mm: Optional[np.ndarray] = None, others_radii_mm=None,
+                   crowding_margin_mm: float = CROWDING_MARGIN_MM) -> np.ndarray:
     """(N, 3) displacement ⟂ tangent putting each point's projections on the masks' midlines; NaN where a
-    view gives no clean edge pair (module docstring, without the junction and shift limits)."""
+    view gives no clean edge pair (module docstring, without the junction and shift limits). ``others_mm``
+    (with ``others_radii_mm``, and the vessel's own ``radii_mm``): the tree's other branches, whose
+    projected edges must keep ``crowding_margin_mm`` clear of a view's edges for that view to count."""
     points = np.asarray(points_mm, float)
     t = np.asarray(tangents, float)
     arc = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(points, axis=0), axis=1))]
+    max_foreshortening = MAX_FORESHORTENING if max_foreshortening is None else max_foreshortening
     offsets, rows = [], []
     for mask, view in zip(masks, views):
         plus, minus, projected = projected_edges(points, t, mask, view, edgeless=np.nan)
         width_mm = (plus + minus) / projected.magnification
         usable = (projected.foreshortening <= max_foreshortening) & ~width_anomalies(width_mm, arc, max_width_change)
+        if others_mm is not None and len(others_mm):
+            usable &= ~edge_on_other_vessel(points, plus, minus, projected, view, radii_mm, others_mm, others_radii_mm,
+                                            crowding_margin_mm)
         offsets.append(np.where(usable, 0.5 * (plus - minus), np.nan))
         # the displacement's effect on the offset along n: nᵀ J, (N, 3)
         rows.append(np.einsum("nk,nkj->nj", projected.normal_rc.T, detector_jacobian(view, points)))
@@ -117,6 +134,23 @@ def midline_shifts(points_mm: np.ndarray, tangents: np.ndarray, masks: Sequence[
         solution, *_ = np.linalg.lstsq(system, offsets[:, i], rcond=1e-6)
         shifts[i] = basis @ solution
     return shifts
+
+
+def edge_on_other_vessel(points_mm: np.ndarray, plus_mm: np.ndarray, minus_mm: np.ndarray, projected, view: CArmView,
+                         radii_mm, others_mm: np.ndarray, others_radii_mm, margin_mm: float = CROWDING_MARGIN_MM) -> np.ndarray:
+    """Per point, whether either mask edge found in ``view`` (``projected_edges``) lies on another branch's
+    projection or within ``margin_mm`` of it: there the mask may be two vessels merged. Another branch
+    seen inside the vessel's own edges (a ghost spur of a reconstruction lies on rays through the vessel
+    in every view) does not count."""
+    others_xy, others_r = other_vessels_projected(points_mm, radii_mm, others_mm, others_radii_mm, view)
+    spacing = np.asarray(view.pixel_spacing_mm, float)
+    centre = np.stack([projected.row * spacing[0], projected.col * spacing[1]], axis=1)
+    normal = np.asarray(projected.normal_rc, float).T
+    near = np.zeros(len(centre), bool)
+    for side in (plus_mm[:, None] * normal, -minus_mm[:, None] * normal):
+        with np.errstate(invalid="ignore"):
+            near |= distance_to_other_vessels(centre + side, others_xy, others_r) < margin_mm
+    return near
 
 
 def running_median(values: np.ndarray, arc_mm: np.ndarray, window_mm: float) -> np.ndarray:
@@ -164,7 +198,12 @@ def place_on_masks(tree: CentrelineTree, masks: Sequence[np.ndarray], views: Seq
             report.append(MaskPlacement(branch.branch_id, 0.0, 0.0, False))
             continue
         arc = branch.arc_length_mm
-        shifts = midline_shifts(points, smooth_tangents(points, TANGENT_SMOOTHING_MM), masks, views, **kwargs)
+        rest = [b for b in tree.branches if b.branch_id != branch.branch_id]
+        others = np.concatenate([b.points_mm for b in rest]) if rest else np.zeros((0, 3))
+        others_radii = np.concatenate([b.inscribed_radius_mm for b in rest]) if rest else np.zeros(0)
+        shifts = midline_shifts(points, smooth_tangents(points, TANGENT_SMOOTHING_MM), masks, views,
+                                radii_mm=branch.inscribed_radius_mm, others_mm=others, others_radii_mm=others_radii,
+                                **kwargs)
         # a side branch's mouth on this branch widens the masks there (``width_anomalies``); its own start,
         # inside its parent, and a free end's cap have no edges of their own
         ok = np.isfinite(shifts).all(axis=1) & ~junction_zones(tree, branch, side_branch_mouths=False)

@@ -130,21 +130,45 @@ def other_vessel_clearance(points_mm: np.ndarray, radii_mm: np.ndarray, others_m
     scaled by its magnification. Samples within ``attach_mm`` of the vessel in 3D are not others
     (``overlap_fraction``); the edge is taken over the ``neighbours`` nearest other samples."""
     seg = np.asarray(points_mm, float).reshape(-1, 3)
+    spacing = np.asarray(view.pixel_spacing_mm, float)
+    row, col, _ = view.project(seg)
+    return distance_to_other_vessels(np.stack([row * spacing[0], col * spacing[1]], axis=1),
+                                     *other_vessels_projected(seg, radii_mm, others_mm, others_radii_mm, view, attach_mm),
+                                     neighbours)
+
+
+def other_vessels_projected(points_mm: np.ndarray, radii_mm, others_mm: np.ndarray, others_radii_mm, view: CArmView,
+                            attach_mm: float = 2.0):
+    """The other vessels of ``other_vessel_clearance`` in ``view``: their samples' detector positions (M, 2),
+    (row mm, column mm), and projected radii (M,)."""
+    seg = np.asarray(points_mm, float).reshape(-1, 3)
     seg_r = np.broadcast_to(np.asarray(radii_mm, float), (len(seg),))
     oth = np.asarray(others_mm, float).reshape(-1, 3)
     oth_r = np.broadcast_to(np.asarray(others_radii_mm, float), (len(oth),))
     oth, oth_r = _others_for(seg, seg_r, oth, oth_r, attach_mm)
-    if len(oth) == 0 or len(seg) == 0:
-        return np.full(len(seg), np.inf)
+    if len(oth) == 0:
+        return np.zeros((0, 2)), np.zeros(0)
     spacing = np.asarray(view.pixel_spacing_mm, float)
-    row, col, _ = view.project(seg)
     orow, ocol, odepth = view.project(oth)
-    there_r = oth_r * view.sid_mm / odepth
-    k = min(neighbours, len(oth))
-    dist, idx = cKDTree(np.stack([orow * spacing[0], ocol * spacing[1]], axis=1)).query(
-        np.stack([row * spacing[0], col * spacing[1]], axis=1), k=k)
-    dist, idx = dist.reshape(len(seg), k), idx.reshape(len(seg), k)
-    return np.min(dist - there_r[idx], axis=1)
+    return np.stack([orow * spacing[0], ocol * spacing[1]], axis=1), oth_r * view.sid_mm / odepth
+
+
+def distance_to_other_vessels(detector_mm: np.ndarray, others_detector_mm: np.ndarray, others_radii_mm: np.ndarray,
+                              neighbours: int = 16) -> np.ndarray:
+    """Per detector position (N, 2), the distance to the nearest projected edge of the other vessels
+    (``other_vessels_projected``; negative inside one, inf where none), over the ``neighbours`` nearest samples."""
+    where = np.asarray(detector_mm, float).reshape(-1, 2)
+    if len(others_detector_mm) == 0 or len(where) == 0:
+        return np.full(len(where), np.inf)
+    k = min(neighbours, len(others_detector_mm))
+    known = np.isfinite(where).all(axis=1)
+    out = np.full(len(where), np.nan)
+    if not known.any():
+        return out
+    dist, idx = cKDTree(others_detector_mm).query(where[known], k=k)
+    dist, idx = dist.reshape(-1, k), idx.reshape(-1, k)
+    out[known] = np.min(dist - others_radii_mm[idx], axis=1)
+    return out
 
 
 @dataclass
