@@ -86,12 +86,10 @@ def _truth_span(segment_mm, truth_points, truth_names, kd, min_run=3):
     _, nearest = kd.query(segment_mm)
     names = truth_names[nearest]
     cuts = np.flatnonzero(names[1:] != names[:-1]) + 1
-    pieces = []
-    for run in np.split(nearest, cuts):
-        if len(run) < min_run and len(run) < len(nearest):
-            continue
-        lo, hi = int(run[0]), int(run[-1])
-        pieces.append(truth_points[lo:hi + 1] if lo <= hi else truth_points[hi:lo + 1][::-1])
+    runs = np.split(nearest, cuts)
+    kept = [run for run in runs if len(run) >= min_run] or [max(runs, key=len)]
+    pieces = [truth_points[int(r[0]):int(r[-1]) + 1] if r[0] <= r[-1] else truth_points[int(r[-1]):int(r[0]) + 1][::-1]
+              for r in kept]
     return np.concatenate(pieces)
 
 
