@@ -102,7 +102,7 @@ def smooth_tangents(points_mm: np.ndarray, smoothing_mm: float) -> np.ndarray:
 
 
 def midline_shifts(points_mm: np.ndarray, tangents: np.ndarray, masks: Sequence[np.ndarray], views: Sequence[CArmView],
-                   max_foreshortening: Optional[float] = None, max_width_change: float = MAX_WIDTH_CHANGE,
+                   max_foreshortening: float = MAX_FORESHORTENING, max_width_change: float = MAX_WIDTH_CHANGE,
                    radii_mm=None, others_mm: Optional[np.ndarray] = None, others_radii_mm=None,
                    crowding_margin_mm: float = CROWDING_MARGIN_MM) -> np.ndarray:
     """(N, 3) displacement ⟂ tangent putting each point's projections on the masks' midlines; NaN where a
@@ -112,7 +112,6 @@ def midline_shifts(points_mm: np.ndarray, tangents: np.ndarray, masks: Sequence[
     points = np.asarray(points_mm, float)
     t = np.asarray(tangents, float)
     arc = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(points, axis=0), axis=1))]
-    max_foreshortening = MAX_FORESHORTENING if max_foreshortening is None else max_foreshortening
     offsets, rows = [], []
     for mask, view in zip(masks, views):
         plus, minus, projected = projected_edges(points, t, mask, view, edgeless=np.nan)
@@ -146,11 +145,10 @@ def edge_on_other_vessel(points_mm: np.ndarray, plus_mm: np.ndarray, minus_mm: n
     spacing = np.asarray(view.pixel_spacing_mm, float)
     centre = np.stack([projected.row * spacing[0], projected.col * spacing[1]], axis=1)
     normal = np.asarray(projected.normal_rc, float).T
-    near = np.zeros(len(centre), bool)
-    for side in (plus_mm[:, None] * normal, -minus_mm[:, None] * normal):
-        with np.errstate(invalid="ignore"):
-            near |= distance_to_other_vessels(centre + side, others_xy, others_r) < margin_mm
-    return near
+    edges = np.concatenate([centre + plus_mm[:, None] * normal, centre - minus_mm[:, None] * normal])
+    with np.errstate(invalid="ignore"):
+        near = distance_to_other_vessels(edges, others_xy, others_r) < margin_mm
+    return near[:len(centre)] | near[len(centre):]
 
 
 def running_median(values: np.ndarray, arc_mm: np.ndarray, window_mm: float) -> np.ndarray:
