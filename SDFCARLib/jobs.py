@@ -172,10 +172,10 @@ def run_job(job_dir: PathLike, progress: Optional[Callable[[Dict[str, Any]], Non
         manifest, geometry, targets, settings, kind, frames = _load_job(job_dir)
         result = reconstruct(geometry, targets, settings, target_kind=kind, progress=on_progress,
                              cancel=cancel_flag.exists, frames=frames)
-        on_progress({"phase": "writing", "step": settings.optimisation.steps, "total": settings.optimisation.steps})
+        on_progress({"phase": "writing", "step": settings.optimisation.total_steps, "total": settings.optimisation.total_steps})
         paths = write_reconstruction(result, job_dir / "output", name=manifest.get("name"))
         paths = {k: str(v) for k, v in paths.items()}
-        _finished(job_dir, paths, on_progress, settings.optimisation.steps)
+        _finished(job_dir, paths, on_progress, settings.optimisation.total_steps)
         return paths
     except ReconstructionCancelled as exc:
         write_json(job_dir / "status.json", {"state": "cancelled", "message": str(exc)})

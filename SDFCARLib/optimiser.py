@@ -247,7 +247,7 @@ def build_problem(geometry: Geometry, targets: Sequence[np.ndarray], settings: S
     integrals already read, by ``read_frame_evidence``)."""
     t_start = time.perf_counter()
     arrays = validate_targets(targets, geometry, target_kind)
-    _report(progress, phase="setup", step=0, total=settings.optimisation.steps, elapsed_s=0.0, eta_s=None,
+    _report(progress, phase="setup", step=0, total=settings.optimisation.total_steps, elapsed_s=0.0, eta_s=None,
             device=settings.run.device)
     grid = geometry.volume
     pixels = vessel_pixels(arrays, target_kind)
@@ -270,7 +270,7 @@ def build_problem(geometry: Geometry, targets: Sequence[np.ndarray], settings: S
     evidence_images = evidence.images if settings.loss.frame_evidence else None
     warnings += evidence.warnings
     for message in warnings:
-        _report(progress, phase="warning", message=message, step=0, total=settings.optimisation.steps,
+        _report(progress, phase="warning", message=message, step=0, total=settings.optimisation.total_steps,
                 elapsed_s=0.0, eta_s=None, device=settings.run.device)
     if settings.region.support == "hull":
         support = support_mask(pixels, geometry.views, grid, settings.region.support_margin_mm)
@@ -318,8 +318,9 @@ COARSE_START_LEVELS = 2  # the encoding's levels active at the first step of a c
 
 def optimise(problem: Problem, model: ImplicitField, progress: Progress = None, cancel: Cancel = None,
              progress_interval_s: float = 0.5, snapshot: Optional[Callable[[int, np.ndarray], None]] = None,
-             snapshot_every: int = 0) -> Tuple[List[Dict[str, float]], float]:
-    """Step 2: Adam on ``model`` against the problem's losses. Returns (history, optimisation seconds)."""
+             snapshot_every: int = 0, fit: int = 0) -> Tuple[List[Dict[str, float]], float]:
+    """Step 2: Adam on ``model`` against the problem's losses. Returns (history, optimisation seconds).
+    ``fit``: which of the ``ensemble_fits`` this is (from 0): progress counts the steps of every fit."""
     settings, device = problem.settings, problem.device
     o = settings.optimisation
     encoded = model.prepare(_normalised_points(problem.geometry, problem.voxels, device))
@@ -384,8 +385,9 @@ def optimise(problem: Problem, model: ImplicitField, progress: Progress = None, 
         now = time.perf_counter()
         if now - last_report >= progress_interval_s or step == o.steps:
             elapsed = now - t_loop
-            _report(progress, phase="optimise", step=step, total=o.steps, elapsed_s=elapsed,
-                    eta_s=elapsed / step * (o.steps - step), device=str(device), **losses)
+            done = fit * o.steps + step
+            _report(progress, phase="optimise", step=done, total=o.total_steps, elapsed_s=elapsed,
+                    eta_s=elapsed / step * (o.total_steps - done), device=str(device), **losses)
             last_report = now
     if averaged:
         with torch.no_grad():
@@ -471,13 +473,15 @@ def erase_removed(segmentation: np.ndarray, kept: np.ndarray, occupancy_volume: 
 
 
 def finish(problem: Problem, model: ImplicitField, history: List[Dict[str, float]], optimise_s: float,
-           t_start: float, progress: Progress = None, cancel: Cancel = None) -> Reconstruction:
-    """Step 3: the field on the grid, thresholded and (when asked) pruned, with the report."""
+           t_start: float, progress: Progress = None, cancel: Cancel = None,
+           volumes: Optional[Tuple[np.ndarray, np.ndarray]] = None) -> Reconstruction:
+    """Step 3: the field on the grid, thresholded and (when asked) pruned, with the report. ``volumes``:
+    (occupancy, raw field) to finish instead of the model's (changed in place)."""
     settings, geometry = problem.settings, problem.geometry
-    steps = settings.optimisation.steps
+    steps = settings.optimisation.total_steps
     _report(progress, phase="output", step=steps, total=steps, elapsed_s=optimise_s, eta_s=0.0, device=str(problem.device))
     t_out = time.perf_counter()
-    occupancy_volume, field_volume = evaluate_volume(model, problem)
+    occupancy_volume, field_volume = volumes if volumes is not None else evaluate_volume(model, problem)
     segmentation = occupancy_volume >= settings.region.threshold
     # The fit's projectors already traced every ray through the support, which holds every voxel the
     # steps below keep; over the whole grid (no support) their matrices are too large to reread.
@@ -647,21 +651,26 @@ class FittedField:
     t_start: float
     calibrations: List[Any]
     evidence: FrameEvidence
+    volumes: Optional[Tuple[np.ndarray, np.ndarray]] = None  # (occupancy, raw field) when not the model's (ensemble_fits)
+    # each fit's (occupancy, raw field) where fit_field was asked to keep them (ensemble_fits > 1)
+    members: List[Tuple[np.ndarray, np.ndarray]] = field(default_factory=list)
 
     def finished(self, settings: Optional[Settings] = None, progress: Progress = None,
                  cancel: Cancel = None) -> Reconstruction:
         """``finish`` of this fit; ``settings`` (default: the fit's own) may change what ``finish`` decides —
         threshold, growing, pruning, the fragment steps — so benchmarks compare those rules on one fit."""
         problem = self.problem if settings is None else dataclasses.replace(self.problem, settings=settings)
-        return finish(problem, self.model, self.history, self.optimise_s, self.t_start, progress, cancel)
+        volumes = None if self.volumes is None else (self.volumes[0].copy(), self.volumes[1].copy())
+        return finish(problem, self.model, self.history, self.optimise_s, self.t_start, progress, cancel, volumes)
 
 
 def fit_field(geometry: Geometry, targets: Sequence[np.ndarray], settings: Settings, target_kind: str = "mask",
               frames: Optional[Sequence[np.ndarray]] = None, progress: Progress = None, cancel: Cancel = None,
-              **loop: Any) -> FittedField:
+              keep_members: bool = False, **loop: Any) -> FittedField:
     """``reconstruct`` up to the trained field: the frames' evidence, the calibrations asked for, the
     problem and the optimisation (``reconstruct``'s arguments; ``loop``: ``optimise``'s progress interval
-    and snapshots). ``finish`` makes the result of it."""
+    and snapshots; ``keep_members``: with ``ensemble_fits`` > 1, keep each fit's volumes, for benchmarks).
+    ``finish`` makes the result of it."""
     settings.validate()
     t_start = time.perf_counter()
     if settings.run.threads:
@@ -687,7 +696,46 @@ def fit_field(geometry: Geometry, targets: Sequence[np.ndarray], settings: Setti
         raise ReconstructionCancelled("cancelled before the optimisation started")
     model = ImplicitField(field_config(settings)).to(problem.device)
     history, optimise_s = optimise(problem, model, progress, cancel, **loop)
-    return FittedField(problem, model, history, optimise_s, t_start, calibrations, evidence)
+    volumes, members = None, []
+    if settings.optimisation.ensemble_fits > 1:
+        volumes, optimise_s, members = _ensemble_volumes(problem, model, optimise_s, progress, cancel, keep_members, **loop)
+    return FittedField(problem, model, history, optimise_s, t_start, calibrations, evidence, volumes, members)
+
+
+def _ensemble_volumes(problem: Problem, first: ImplicitField, first_s: float, progress: Progress, cancel: Cancel,
+                      keep_members: bool = False, **loop: Any
+                      ) -> Tuple[Tuple[np.ndarray, np.ndarray], float, List[Tuple[np.ndarray, np.ndarray]]]:
+    """``ensemble_fits`` fits of the problem (``first`` already trained on the run's seed; the others on
+    seed + 1, …, each from its own initialisation, with its own mid-fit exclusion). Returns the mean of their
+    occupancy volumes with the raw field that gives it, the fits' seconds together, and (``keep_members``)
+    each fit's (occupancy, raw field). Afterwards ``problem.excluded`` is None (each fit's exclusion is in
+    its own volume) and ``problem.exclusion`` lists every fit's."""
+    settings = problem.settings
+    first_volumes = evaluate_volume(first, problem)
+    occupancy_sum = first_volumes[0].astype(np.float64)
+    members = [first_volumes] if keep_members else []
+    records = [problem.exclusion]
+    optimise_s = first_s
+    for member in range(1, settings.optimisation.ensemble_fits):
+        problem.excluded, problem.exclusion = None, None
+        torch.manual_seed(settings.run.seed + member)
+        model = ImplicitField(field_config(settings)).to(problem.device)
+        _, seconds = optimise(problem, model, progress, cancel, fit=member, **loop)
+        optimise_s += seconds
+        volumes = evaluate_volume(model, problem)
+        occupancy_sum += volumes[0]
+        if keep_members:
+            members.append(volumes)
+        records.append(problem.exclusion)
+    problem.excluded = None
+    problem.exclusion = {"fits": records} if any(records) else None
+    return volumes_of_occupancy(occupancy_sum / settings.optimisation.ensemble_fits, settings), optimise_s, members
+
+
+def volumes_of_occupancy(occupancy: np.ndarray, settings: Settings) -> Tuple[np.ndarray, np.ndarray]:
+    """(occupancy, the raw field that gives it): what ``finish`` takes, for an occupancy no one field gave."""
+    occupancy = np.asarray(occupancy, dtype=np.float32)
+    return occupancy, field_values(occupancy, settings.mode.field_kind, settings.field.alpha)
 
 
 def reconstruct(
@@ -715,6 +763,8 @@ def reconstruct(
                        progress_interval_s=progress_interval_s, snapshot=snapshot, snapshot_every=snapshot_every)
     calibrations, evidence = fitted.calibrations, fitted.evidence
     result = fitted.finished(progress=progress, cancel=cancel)
+    if settings.optimisation.ensemble_fits > 1:
+        result.report["ensemble_seeds"] = [settings.run.seed + k for k in range(settings.optimisation.ensemble_fits)]
     if calibrations:
         result.report["calibration"] = calibrations[-1].report()
         if len(calibrations) > 1:  # from the frames, then the re-fit search on top
@@ -726,7 +776,7 @@ def reconstruct(
         result.report["warnings"] = calibration.warnings + result.report["warnings"]
         for message in calibration.warnings:
             _report(progress, phase="warning", message=message, step=settings.optimisation.steps,
-                    total=settings.optimisation.steps, elapsed_s=0.0, eta_s=None, device=str(settings.run.device))
+                    total=settings.optimisation.total_steps, elapsed_s=0.0, eta_s=None, device=str(settings.run.device))
     return result
 
 

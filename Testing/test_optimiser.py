@@ -9,8 +9,8 @@ import torch
 from SDFCARLib.geometry import CArmView, Geometry, VolumeGrid
 from SDFCARLib.losses import partial_occupancy_loss, silhouette
 from SDFCARLib.field import ImplicitField
-from SDFCARLib.optimiser import (ReconstructionCancelled, averaging_start, build_problem, field_config, optimise,
-                                   reconstruct, validate_targets)
+from SDFCARLib.optimiser import (ReconstructionCancelled, averaging_start, build_problem, evaluate_volume, field_config,
+                                   fit_field, optimise, reconstruct, validate_targets)
 from SDFCARLib.settings import MODES, ReconstructionError, make_settings
 from SDFCARLib.phantoms import Branch, CentrelineTree, simulate_views, voxelize
 from SDFCARLib.projector import project_volume
@@ -252,6 +252,38 @@ def test_the_averaged_fit_holds_the_mean_of_the_last_iterates(case, monkeypatch)
         mean = torch.stack([step[n] for step in iterates[4:]]).mean(dim=0)
         torch.testing.assert_close(parameter.detach(), mean, rtol=1e-5, atol=1e-6)
     assert not torch.allclose(parameters[0].detach(), iterates[-1][0])  # the table moved over those steps
+
+
+def test_an_ensemble_is_the_mean_occupancy_of_single_fits_of_its_seeds(case):
+    """ensemble_fits: each fit is the one a single run with its seed (the run's, then + 1) makes, with its own
+    mid-fit exclusion, and the result is made from the mean of their occupancies."""
+    common = dict(steps=30, device="cpu", threads=1, width_exclusion_fraction=0.5)
+    fitted = fit_field(case[0], _masks(case), make_settings("fast", seed=3, ensemble_fits=2, **common), keep_members=True)
+    singles = [fit_field(case[0], _masks(case), make_settings("fast", seed=seed, **common)) for seed in (3, 4)]
+    assert len(fitted.members) == 2
+    for (occupancy, raw), single in zip(fitted.members, singles):
+        single_occupancy, single_raw = evaluate_volume(single.model, single.problem)
+        np.testing.assert_allclose(occupancy, single_occupancy, atol=1e-6)
+        np.testing.assert_allclose(raw, single_raw, atol=1e-6)
+    assert not np.allclose(fitted.members[0][0], fitted.members[1][0], atol=1e-3)  # two different fits
+    mean = (fitted.members[0][0] + fitted.members[1][0]) / 2
+    np.testing.assert_allclose(fitted.volumes[0], mean, atol=1e-6)
+    inside = (mean > 1e-4) & (mean < 1 - 1e-4)  # where the raw field is not clipped
+    np.testing.assert_allclose(1 / (1 + np.exp(50.0 * fitted.volumes[1][inside])), mean[inside], rtol=1e-4, atol=1e-6)
+    # each fit took out what its own width check found; the report keeps both records
+    assert [record is not None for record in fitted.problem.exclusion["fits"]] == [True, True]
+
+
+def test_an_ensemble_reports_progress_over_all_its_fits_and_its_seeds(case):
+    seen = []
+    settings = make_settings("fast", steps=40, seed=3, device="cpu", ensemble_fits=2)
+    result = reconstruct(case[0], _masks(case), settings, progress=seen.append, progress_interval_s=0.0)
+    steps = [info["step"] for info in seen if info["phase"] == "optimise"]
+    assert steps == list(range(1, 81))  # the second fit counts on from the first
+    assert {info["total"] for info in seen if "total" in info} == {80}
+    assert result.report["ensemble_seeds"] == [3, 4]
+    assert result.report["timings_s"]["per_step"] == pytest.approx(result.report["timings_s"]["optimise"] / 80)
+    assert (result.segmentation & case[1].astype(bool)).sum() > 0.5 * case[1].sum()
 
 
 def test_partial_occupancy_term_makes_the_fitted_field_more_binary(case):

@@ -47,6 +47,13 @@ def test_fast_preset_keeps_losses_and_representation():
     assert all(set(values) <= set(SETTING_KEYS) for values in PRESETS.values())
 
 
+def test_ensemble_preset_is_fast_fitted_three_times():
+    fast, ensemble = make_settings("fast").to_dict(), make_settings("ensemble").to_dict()
+    assert fast["ensemble_fits"] == 1 and ensemble["ensemble_fits"] == 3
+    assert {key: value for key, value in ensemble.items() if fast[key] != value} == {"preset": "ensemble", "ensemble_fits": 3}
+    assert make_settings("ensemble").optimisation.total_steps == 3 * make_settings("fast").optimisation.steps
+
+
 @pytest.mark.parametrize("preset", sorted(PRESETS))
 @pytest.mark.parametrize("mode, kind, geometric", [
     ("sdfcar", "sdf", True), ("neca", "occupancy", False), ("occ-combined", "occupancy", True), ("sdf-occ", "sdf", False),
@@ -91,6 +98,7 @@ def test_overrides_and_none_values():
     (dict(coarse_to_fine_fraction=1.0), "coarse_to_fine_fraction"),
     (dict(average_last_fraction=1.0), "average_last_fraction is the share of the last steps"),
     (dict(average_last_fraction=-0.1), "average_last_fraction"),
+    (dict(ensemble_fits=0), "ensemble_fits is how many fits are averaged into the result: at least 1"),
     (dict(grow_threshold=0.6), "grow_threshold must be 0 (off) or an occupancy up to threshold (0.5)"),
     (dict(grow_threshold=-0.1), "grow_threshold"),
     (dict(width_agreement_min_ratio=1.0), "width_agreement_min_ratio must be 0 (off) or an agreement"),
