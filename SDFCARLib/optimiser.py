@@ -775,7 +775,7 @@ def reconstruct(
     for calibration in calibrations:
         result.report["warnings"] = calibration.warnings + result.report["warnings"]
         for message in calibration.warnings:
-            _report(progress, phase="warning", message=message, step=settings.optimisation.steps,
+            _report(progress, phase="warning", message=message, step=settings.optimisation.total_steps,
                     total=settings.optimisation.total_steps, elapsed_s=0.0, eta_s=None, device=str(settings.run.device))
     return result
 

@@ -380,6 +380,19 @@ def test_demo_reconstructs_the_sample_case_and_compares_with_the_hull(tmp_path, 
     assert note is None and all(np.array_equal(a, b) for a, b in zip(masks, tiny_case.masks))
 
 
+def test_demo_with_the_ensemble_preset_says_how_many_fits_and_reports_their_seeds(tmp_path, capsys, monkeypatch, tiny_case):
+    import SDFCARLib.sample_data as sample_data
+
+    tiny = sample_data.SampleCase(tiny_case.geometry, tiny_case.masks, tiny_case.label, tmp_path)
+    monkeypatch.setattr(sample_data, "load_sample_case", lambda directory=None: tiny)
+    code, _, err = run(capsys, "demo", "--out", tmp_path / "demo", "--preset", "ensemble", "--steps", 2, "--seed", 7,
+                       "--no-progress")
+    assert code == 0, err
+    assert "ensemble preset, mode sdfcar, 3 fits of 2 steps" in err
+    report = json.loads((tmp_path / "demo" / "report.json").read_text())
+    assert report["settings"]["ensemble_fits"] == 3 and report["ensemble_seeds"] == [7, 8, 9]
+
+
 def test_bundled_sample_case_equals_a_fresh_regeneration(tmp_path):
     import nrrd
 

@@ -282,7 +282,8 @@ def cmd_demo(args: argparse.Namespace) -> int:
     check_destination(args.out, result_file_names(len(case.geometry.views)), args.overwrite)
     settings = settings_from_args(args)
     print(f"SDFCAR demo: bundled sample case ({case.directory}), {settings.run.preset} preset, mode {settings.run.mode}, "
-          f"{settings.optimisation.steps} steps", file=sys.stderr)
+          + (f"{settings.optimisation.ensemble_fits} fits of " if settings.optimisation.ensemble_fits > 1 else "")
+          + f"{settings.optimisation.steps} steps", file=sys.stderr)
     started = time.perf_counter()
     result = run_reconstruction(case.geometry, case.masks, settings, "mask", not args.no_progress)
     files = write_reconstruction(result, args.out, name=args.name or "SDFCAR demo", label=case.label, masks=case.masks,
