@@ -140,6 +140,27 @@ def test_a_vessel_running_beside_in_one_view_does_not_pull_the_centreline():
     assert after.max() < 0.15, after.max()
 
 
+def test_a_neighbour_reconstructed_too_thin_still_guards_the_view():
+    # As above, but the tree holds the neighbour at half its radius (a reconstruction's thin vessel comes out
+    # thinner than its mask shows): the merged mask edge lies 0.5-1 mm (detector) outside the neighbour's
+    # projected edge, so a margin of 0.5 mm lets that view pull the tube, and the default must not.
+    axis, s = _axis()
+    ray = VIEWS[0].detector_direction
+    beside = np.cross(DIRECTION, ray)
+    beside /= np.linalg.norm(beside)
+    neighbour = axis + 1.9 * beside + 10.0 * ray
+    pair = PhantomTree([Branch(axis, np.full(len(s), 1.5), "tube"), Branch(neighbour, np.full(len(s), 0.6), "beside")], "pair")
+    masks = [render_mask(pair, v) for v in VIEWS]
+    tree = CentrelineTree([CentrelineBranch(0, axis.copy(), np.full(len(s), 1.5)),
+                           CentrelineBranch(1, neighbour.copy(), np.full(len(s), 0.3), tree_id=1)])
+    inner = (s > 4.0) & (s < s[-1] - 4.0)
+    narrow, _ = place_on_masks(tree, masks, VIEWS, crowding_margin_mm=0.5)
+    assert _distance_to_line(narrow.branch(0).points_mm[inner], axis[0], DIRECTION).mean() > 0.5  # the trap is real
+    placed, _ = place_on_masks(tree, masks, VIEWS)
+    after = _distance_to_line(placed.branch(0).points_mm[inner], axis[0], DIRECTION)
+    assert after.max() < 0.15, after.max()
+
+
 def test_a_branch_seen_inside_the_vessel_leaves_the_view_measured():
     # A thin branch 8 mm behind the tube on view 1's rays (a reconstruction's ghost spur lies so): inside the
     # tube's edges in that view, it merges nothing, and the wandering centreline still comes back to the axis.

@@ -58,7 +58,7 @@ MAX_WIDTH_CHANGE = 1.25  # a view's width over (an overlap) or under (a lesion) 
 WIDTH_WINDOW_MM = 10.0
 ANOMALY_MARGIN_MM = 1.0
 MAX_FORESHORTENING = 0.7  # a view that sees the tangent foreshortened more sees its own length across it (0.5: RESULTS §49)
-CROWDING_MARGIN_MM = 0.5  # detector mm that another branch's projection must keep clear of a view's mask edges
+CROWDING_MARGIN_MM = 1.0  # detector mm another branch's projection must keep clear of a view's mask edges; 1.0, not 0.5: a reconstructed neighbour comes out thinner than its mask (RESULTS §53)
 
 
 @dataclass
