@@ -183,6 +183,34 @@ def test_a_short_bump_of_the_reconstruction_inside_a_long_lesion_of_the_frames_i
     assert same_lesion_on(s, frames, np.ones(s.shape, bool), apart) is None
 
 
+def test_frames_that_read_another_vessel_over_a_lesion_are_left_out_and_the_lesion_keeps_its_length():
+    """A side branch whose first millimetres run back beside a lesion's distal half in both views (RESULTS §54):
+    the frames read the lumen 2.5 mm wider there than the 3D sections, which ends the frames' lesion halfway.
+    Left out where they exceed 1.4 × the sections, the profile is bridged across and the lesion keeps its
+    10 mm; a frames' reading 30 % over the sections stays. (The rule is off by default: FRAMES_MAX_OVER_3D.)"""
+    from SDFCARLib.analysis.lesion import find_lesions, reference_fit
+    from SDFCARLib.analysis.phantoms import lesion_weight
+    from SDFCARLib.analysis.pipeline import left_out_beyond_sections
+
+    s = np.arange(0.0, 40.0, 0.25)
+    lumen = 3.0 * (1 - 0.5 * lesion_weight(s - 15.0, 10.0))  # 50 % over 15–25 mm
+    sections = lumen + 0.3  # a reconstruction reads a little wide
+    frames = lumen + np.where((s > 20.0) & (s < 25.0), 2.5, 0.0)
+
+    def lesion_length(values):
+        usable = np.isfinite(values)
+        found = find_lesions(s, values, reference_fit(s, values, usable), usable)
+        return max(found, key=lambda x: x.diameter_stenosis_pct).length_mm
+
+    assert lesion_length(frames) < 7.0  # the trap is real
+    kept = left_out_beyond_sections(frames, sections, max_ratio=1.4)
+    assert np.isnan(kept[(s > 20.5) & (s < 24.5)]).all() and np.isfinite(kept[s <= 20.0]).all()
+    assert lesion_length(kept) == pytest.approx(10.0, abs=1.0)
+    wide = 1.3 * sections
+    assert np.array_equal(left_out_beyond_sections(wide, sections, max_ratio=1.4), wide)
+    assert np.array_equal(left_out_beyond_sections(frames, sections), frames)  # off by default
+
+
 def _tube_frames(stenosis_pct: float, seed: int = 4):
     """A 3 mm tube (50 % lesion over 8 mm, or healthy), its simulated angiograms and segmented masks."""
     from SDFCARLib.analysis.phantoms import grid_around, stenosed_tube, straight_tube, voxelize_exact

@@ -149,7 +149,8 @@ def score(phantom, volume, grid, level, masks, ostium, view_step_deg, frames=Non
     others = [(q, x) for q in r.profiles for x in q.lesions
               if best is None or best[0] > truth["lesion_length_mm"] or x is not best[1]]
     # the lesions found on the masks only (no frames) or the frames only, each as T(rue)/F(alse):root or side
-    # branch:branch mm:lesion mm:the 2D %DS:the 2D reference mm:the 3D sections' %DS over the same stretch
+    # branch:branch mm:lesion mm:the 2D %DS:the 2D reference mm:the 3D sections' %DS over the same stretch:where
+    # their narrowest section lies in that stretch (0 its start, 1 its end)
     for field in ("masks_only", "frames_only"):
         details = []
         for q in r.profiles:
@@ -159,7 +160,8 @@ def score(phantom, volume, grid, level, masks, ostium, view_step_deg, frames=Non
                 g = lesion_grade(q, x)
                 details.append(f"{'T' if true else 'F'}:{'root' if q.branch.parent_id is None else 'side'}:"
                                f"{q.branch.length_mm:.1f}:{g.measure.length_mm:.1f}:{g.measure.diameter_stenosis_pct:.1f}:"
-                               f"{g.measure.reference_diameter_mm:.2f}:{x.diameter_stenosis_pct:.1f}")
+                               f"{g.measure.reference_diameter_mm:.2f}:{x.diameter_stenosis_pct:.1f}:"
+                               f"{(x.mld_position_mm - x.start_mm) / max(x.end_mm - x.start_mm, 1e-9):.2f}")
         row[field] = " ".join(details)
     row.update({"false_lesions": len(others),
                 "false_lesions_unseen_on_masks": sum(lesion_grade(q, x).seen_on_masks is False for q, x in others),
@@ -500,6 +502,9 @@ def main(argv=None) -> int:
                     help="with --masks segmented: analyse on the masks alone, as analyse does without --frames")
     ap.add_argument("--no-masks-search", action="store_true",
                     help="without frames, do not search the masks for lesions the 3D sections missed (as before RESULTS §43)")
+    ap.add_argument("--frames-max-over-3d", type=float, default=None, metavar="RATIO",
+                    help="the analysis's FRAMES_MAX_OVER_3D (0: off): the frames' diameter left out where it exceeds "
+                         "this × the 3D section's")
     ap.add_argument("--view-step-deg", type=float, default=2.0)
     ap.add_argument("--csv", help="write the case rows here")
     args = ap.parse_args(argv)
@@ -512,6 +517,10 @@ def main(argv=None) -> int:
     CENTRELINES[:] = args.centreline
     global ANALYSE_WITHOUT_FRAMES, SEARCH_MASKS
     ANALYSE_WITHOUT_FRAMES, SEARCH_MASKS = args.no_frames, not args.no_masks_search
+    if args.frames_max_over_3d is not None:
+        import SDFCARLib.analysis.pipeline as pipeline
+        pipeline.FRAMES_MAX_OVER_3D = args.frames_max_over_3d or None
+        print(f"# FRAMES_MAX_OVER_3D {pipeline.FRAMES_MAX_OVER_3D}", flush=True)
     t0 = time.perf_counter()
     if args.suite == "tubes":
         rows = run_truth(tube_cases(), args.spacing, args.view_step_deg, args.masks)
