@@ -184,7 +184,7 @@ def test_a_short_bump_of_the_reconstruction_inside_a_long_lesion_of_the_frames_i
 
 
 def test_frames_that_read_another_vessel_over_a_lesion_are_left_out_and_the_lesion_keeps_its_length():
-    """A side branch whose first millimetres run back beside a lesion's distal half in both views (RESULTS §54):
+    """A side branch whose first millimetres run back beside a lesion's distal half in both views (RESULTS §54b):
     the frames read the lumen 2.5 mm wider there than the 3D sections, which ends the frames' lesion halfway.
     Left out where they exceed 1.4 × the sections, the profile is bridged across and the lesion keeps its
     10 mm; a frames' reading 30 % over the sections stays. (The rule is off by default: FRAMES_MAX_OVER_3D.)"""

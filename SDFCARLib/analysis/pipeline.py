@@ -72,7 +72,7 @@ The frames' measures beside other vessels
     there the frames read the lumen wider than the 3D sections do. ``FRAMES_MAX_OVER_3D`` (off) leaves
     both frames' diameters out (unmeasured: a lesion's flanks are walked across the gap) where they
     exceed that many times the 3D section's: it mends such a lesion's length on the exact trees, but on
-    reconstructions the sections read thin in places and it takes healthy frames out there (RESULTS §54).
+    reconstructions the sections read thin in places and it takes healthy frames out there (RESULTS §54b).
 
 Lesions of the masks (``masks_lesions``)
     Where no frames are given, the masks' two-view diameter is searched the same way, and a lesion it
@@ -126,7 +126,7 @@ STRAND_MIN_ALIGNMENT = 0.75  # … and runs along it: mean |cos| between the two
 FRAMES_LESION_MIN_3D_SHARE = 0.5  # a lesion found on the frames only narrows the 3D sections by this share of the threshold
 MASKS_LESION_MIN_SCATTERS = 2.5  # a lesion found on the masks only narrows them by this many times their scatter
 LESION_2D_MIN_LENGTH_DIAMETERS = 1.0  # a lesion found on the frames or masks only is this long (× its reference diameter)
-FRAMES_MAX_OVER_3D: Optional[float] = None  # off; e.g. 1.4: a frames' diameter above this × the 3D section's is left out (RESULTS §54)
+FRAMES_MAX_OVER_3D: Optional[float] = None  # off; e.g. 1.4: a frames' diameter above this × the 3D section's is left out (RESULTS §54b)
 
 
 @dataclass
@@ -490,14 +490,14 @@ def _fit_frame_widths(profiles: List[BranchProfile], frames: Sequence[np.ndarray
                     for n in range(len(views))]
     for p, d, c in zip(profiles, per_profile, crowded):
         p.frame_diameter_mm = left_out_beyond_sections(ellipse_diameter(_uncrowded_widths(p.frame_view_widths_mm, c)),
-                                                  p.diameter_mm)
+                                                       p.diameter_mm)
         p.frame_density_diameter_mm = left_out_beyond_sections(density_diameter(d, attenuations, ~c), p.diameter_mm)
         p.frame_views_crowded, p.frame_density_views = c, density_views(d, attenuations, ~c)
     return {"psf_sigma_mm": sigmas, "psf_sigma_estimated": estimated, "attenuation_per_mm": attenuations}
 
 
 def left_out_beyond_sections(frames_diameter_mm: np.ndarray, sections_diameter_mm: np.ndarray,
-                        max_ratio: Optional[float] = None) -> np.ndarray:
+                             max_ratio: Optional[float] = None) -> np.ndarray:
     """The frames' diameter, NaN (unmeasured) where it exceeds ``max_ratio`` (default ``FRAMES_MAX_OVER_3D``) × the
     3D section's equivalent diameter at the same point (module docstring, "The frames' measures beside other vessels")."""
     ratio = FRAMES_MAX_OVER_3D if max_ratio is None else max_ratio
