@@ -120,18 +120,24 @@ def test_a_vessel_overlapping_in_one_view_does_not_pull_the_centreline():
     assert report[0].measured_share < 0.9
 
 
-def test_a_vessel_running_beside_in_one_view_does_not_pull_the_centreline():
-    # Another branch, 10 mm away in depth, that view 1 sees touching the tube along its whole length: its mask
-    # merges with the tube's there and widens the running median with it, so the width rule cannot tell.
+def _tube_with_neighbour_beside(neighbour_radius_in_tree_mm: float):
+    """A 3 mm tube and, 10 mm away in depth, a 1.2 mm vessel that view 1 sees overlapping the tube's edge along
+    its whole length; the masks of both, and the tree holding the neighbour at the radius given."""
     axis, s = _axis()
     ray = VIEWS[0].detector_direction
     beside = np.cross(DIRECTION, ray)
     beside /= np.linalg.norm(beside)
-    neighbour = axis + 1.9 * beside + 10.0 * ray  # a 1.2 mm vessel overlapping the 3 mm tube's edge in view 1
+    neighbour = axis + 1.9 * beside + 10.0 * ray
     pair = PhantomTree([Branch(axis, np.full(len(s), 1.5), "tube"), Branch(neighbour, np.full(len(s), 0.6), "beside")], "pair")
     masks = [render_mask(pair, v) for v in VIEWS]
     tree = CentrelineTree([CentrelineBranch(0, axis.copy(), np.full(len(s), 1.5)),
-                           CentrelineBranch(1, neighbour.copy(), np.full(len(s), 0.6), tree_id=1)])
+                           CentrelineBranch(1, neighbour.copy(), np.full(len(s), neighbour_radius_in_tree_mm), tree_id=1)])
+    return axis, s, masks, tree
+
+
+def test_a_vessel_running_beside_in_one_view_does_not_pull_the_centreline():
+    # Its mask merges with the tube's there and widens the running median with it, so the width rule cannot tell.
+    axis, s, masks, tree = _tube_with_neighbour_beside(0.6)
     placed, _ = place_on_masks(tree, masks, VIEWS)
     unguarded, _ = place_on_masks(tree, masks, VIEWS, crowding_margin_mm=-np.inf)
     inner = (s > 4.0) & (s < s[-1] - 4.0)
@@ -144,15 +150,7 @@ def test_a_neighbour_reconstructed_too_thin_still_guards_the_view():
     # As above, but the tree holds the neighbour at half its radius (a reconstruction's thin vessel comes out
     # thinner than its mask shows): the merged mask edge lies 0.5-1 mm (detector) outside the neighbour's
     # projected edge, so a margin of 0.5 mm lets that view pull the tube, and the default must not.
-    axis, s = _axis()
-    ray = VIEWS[0].detector_direction
-    beside = np.cross(DIRECTION, ray)
-    beside /= np.linalg.norm(beside)
-    neighbour = axis + 1.9 * beside + 10.0 * ray
-    pair = PhantomTree([Branch(axis, np.full(len(s), 1.5), "tube"), Branch(neighbour, np.full(len(s), 0.6), "beside")], "pair")
-    masks = [render_mask(pair, v) for v in VIEWS]
-    tree = CentrelineTree([CentrelineBranch(0, axis.copy(), np.full(len(s), 1.5)),
-                           CentrelineBranch(1, neighbour.copy(), np.full(len(s), 0.3), tree_id=1)])
+    axis, s, masks, tree = _tube_with_neighbour_beside(0.3)
     inner = (s > 4.0) & (s < s[-1] - 4.0)
     narrow, _ = place_on_masks(tree, masks, VIEWS, crowding_margin_mm=0.5)
     assert _distance_to_line(narrow.branch(0).points_mm[inner], axis[0], DIRECTION).mean() > 0.5  # the trap is real
