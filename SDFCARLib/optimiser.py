@@ -269,6 +269,12 @@ def build_problem(geometry: Geometry, targets: Sequence[np.ndarray], settings: S
         evidence = read_frame_evidence(frames, targets, geometry, settings, target_kind)
     evidence_images = evidence.images if settings.loss.frame_evidence else None
     warnings += evidence.warnings
+    if evidence_images is not None and target_kind == "mask" and settings.loss.frame_trim_mask_mm > 0:
+        # the support keeps the masks as given (``pixels``): only what the fit and the finishing read is trimmed
+        from .evidence import border_trimmed_mask
+
+        arrays = [border_trimmed_mask(a > 0, e, settings.loss.frame_trim_mask_mm).astype(np.float32)
+                  for a, e in zip(arrays, evidence_images)]
     for message in warnings:
         _report(progress, phase="warning", message=message, step=0, total=settings.optimisation.total_steps,
                 elapsed_s=0.0, eta_s=None, device=settings.run.device)

@@ -130,6 +130,10 @@ class LossSettings:
     # >0: the detector's blur (Gaussian σ, detector mm) that the frames' path lengths carry; L_occ on the frames
     # then compares the rendering blurred alike (0: off; 0.3 was far worse on realistic trees: RESULTS §33d)
     frame_blur_sigma_mm: float = 0.0
+    # >0: where the frames are given, L_geo, L_occ and the finishing steps read the masks less the border
+    # pixels whose path length on the frame (smoothed over a pixel) is below this (mm); the support stays on
+    # the masks as given (0: off; measured in RESULTS §56)
+    frame_trim_mask_mm: float = 0.0
     # weight of L_bin (losses.partial_occupancy_loss), the field's mass at partial occupancy; 0: off
     lambda_binary: float = 0.0
 
@@ -282,6 +286,8 @@ class Settings:
                             ("lambda_occ_frames", l.lambda_occ_frames), ("lambda_binary", l.lambda_binary)):
             if not value >= 0:
                 raise ReconstructionError(f"{name} is a loss weight and must not be negative, got {value}")
+        if not l.frame_trim_mask_mm >= 0:
+            raise ReconstructionError(f"frame_trim_mask_mm is a path length in mm (0: off), got {l.frame_trim_mask_mm}")
         if not l.frame_blur_sigma_mm >= 0:
             raise ReconstructionError(f"frame_blur_sigma_mm is a detector blur in mm (0: off), got {l.frame_blur_sigma_mm}")
         if o.table_learning_rate is not None and not o.table_learning_rate > 0:

@@ -7,8 +7,8 @@ import pytest
 from scipy import ndimage
 
 from SDFCARLib.angiogram import AngiogramSettings, simulate_angiogram
-from SDFCARLib.evidence import (EvidenceError, absorbance_above_background, estimate_attenuation_per_mm,
-                                view_evidence)
+from SDFCARLib.evidence import (EvidenceError, absorbance_above_background, border_trimmed_mask,
+                                estimate_attenuation_per_mm, view_evidence)
 from SDFCARLib.geometry import CArmView, Geometry, VolumeGrid
 from SDFCARLib.losses import make_target, frame_target, occupancy_loss
 from SDFCARLib.masks import segment_angiogram
@@ -124,6 +124,26 @@ def test_a_frame_target_with_the_detectors_blur_compares_the_blurred_rendering()
     assert torch.equal(target.silhouette, mask)  # L_geo keeps the mask
 
 
+def test_border_pixels_with_little_path_length_are_trimmed_and_the_centreline_stays():
+    # a vertical vessel masked 9 columns wide whose frame shows 1.2 mm of path on its middle 5 columns and
+    # 0.1 mm on the two columns each side (a segmentation a pixel or two outside a blurred lumen)
+    mask = np.zeros((40, 40), bool)
+    mask[5:35, 16:25] = True
+    path = np.zeros((40, 40))
+    path[5:35, 16:25] = 0.1
+    path[5:35, 18:23] = 1.2
+    trimmed = border_trimmed_mask(mask, path, 0.3, smoothing_px=0.0)
+    assert np.array_equal(np.flatnonzero(trimmed[20]), np.arange(18, 23))
+    assert not (trimmed & ~mask).any()  # never wider than the mask
+    # a faint vessel (0.1 mm all across) keeps its centreline: a thin vessel is not removed
+    faint = border_trimmed_mask(mask, np.where(mask, 0.1, 0.0), 0.3)
+    assert faint[20].sum() >= 1 and faint[20, 20]
+    with pytest.raises(ValueError, match="shape"):
+        border_trimmed_mask(mask, path[:, :30], 0.3)
+    with pytest.raises(ValueError, match="positive"):
+        border_trimmed_mask(mask, path, 0.0)
+
+
 # --- in the reconstruction ---------------------------------------------------------------------------
 GRID = VolumeGrid((32, 32, 32), (1.0, 1.0, 1.0))
 VIEWS = [CArmView(30.0, 0.0, 1000.0, 750.0, (0.4, 0.4), (128, 128)),
@@ -165,6 +185,20 @@ def test_the_detectors_blur_reaches_each_frame_target_in_its_pixels(angiogram_ca
     assert [t.blur_sigma_px for t in blurred.view_targets] == [pytest.approx((0.75, 0.75))] * 2  # 0.3 mm / 0.4 mm
     plain = build_problem(geometry, masks, make_settings("fast"), "mask", frames=frames)
     assert [t.blur_sigma_px for t in plain.view_targets] == [(0.0, 0.0)] * 2
+
+
+def test_trimmed_masks_reach_the_losses_and_the_finishing_but_not_the_support(angiogram_case):
+    geometry, _, frames, masks = angiogram_case
+    plain = build_problem(geometry, masks, make_settings("fast"), "mask", frames=frames)
+    trimmed = build_problem(geometry, masks, make_settings("fast", frame_trim_mask_mm=0.3), "mask", frames=frames)
+    assert np.array_equal(trimmed.support, plain.support)  # a vessel a pixel off in one view is not forbidden
+    for before, after, silhouette in zip(plain.targets, trimmed.targets, (t.silhouette for t in trimmed.view_targets)):
+        assert after.sum() < before.sum() and not ((after > 0) & ~(before > 0)).any()
+        assert np.array_equal(silhouette.cpu().numpy() > 0, after > 0)  # L_geo reads the trimmed mask
+    without_frames = build_problem(geometry, masks, make_settings("fast", frame_trim_mask_mm=0.3), "mask")
+    assert all(np.array_equal(a, b) for a, b in zip(without_frames.targets, plain.targets))  # nothing to read it off
+    with pytest.raises(ReconstructionError, match="frame_trim_mask_mm"):
+        make_settings("fast", frame_trim_mask_mm=-0.1)
 
 
 def test_frames_are_ignored_unless_asked_and_checked_when_used(angiogram_case):
