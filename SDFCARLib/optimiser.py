@@ -270,7 +270,8 @@ def build_problem(geometry: Geometry, targets: Sequence[np.ndarray], settings: S
     evidence_images = evidence.images if settings.loss.frame_evidence else None
     warnings += evidence.warnings
     if evidence_images is not None and target_kind == "mask" and settings.loss.frame_trim_mask_mm > 0:
-        # the support keeps the masks as given (``pixels``): only what the fit and the finishing read is trimmed
+        # the support keeps the masks as given (``pixels``): only what the fit, the finishing and the reprojection QA
+        # read is trimmed
         from .evidence import border_trimmed_mask
 
         arrays = [border_trimmed_mask(a > 0, e, settings.loss.frame_trim_mask_mm).astype(np.float32)
