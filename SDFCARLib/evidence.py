@@ -106,8 +106,7 @@ def border_trimmed_mask(mask: np.ndarray, line_integral_mm: np.ndarray, min_path
         raise ValueError(f"the path lengths have shape {np.shape(line_integral_mm)} but the mask {mask.shape}")
     if not min_path_mm > 0:
         raise ValueError(f"min_path_mm must be positive, got {min_path_mm}")
-    smoothed = ndimage.gaussian_filter(np.asarray(line_integral_mm, np.float64), smoothing_px) if smoothing_px > 0 \
-        else np.asarray(line_integral_mm, np.float64)
+    smoothed = ndimage.gaussian_filter(np.asarray(line_integral_mm, np.float64), smoothing_px)  # σ 0: unchanged
     return (mask & (smoothed >= min_path_mm)) | skeletonize(mask)
 
 

@@ -130,7 +130,7 @@ class LossSettings:
     # >0: the detector's blur (Gaussian σ, detector mm) that the frames' path lengths carry; L_occ on the frames
     # then compares the rendering blurred alike (0: off; 0.3 was far worse on realistic trees: RESULTS §33d)
     frame_blur_sigma_mm: float = 0.0
-    # >0: where the frames are given, L_geo, L_occ and the finishing steps read the masks less the border
+    # >0: where the frames are read as evidence (frame_evidence), L_geo, L_occ and the finishing steps read the masks less the border
     # pixels whose path length on the frame (smoothed over a pixel) is below this (mm); the support stays on
     # the masks as given (0: off; 0.3 better on the LAD suites, level on RCA, worse on 721A: RESULTS §56c)
     frame_trim_mask_mm: float = 0.0
