@@ -130,9 +130,10 @@ class LossSettings:
     # >0: the detector's blur (Gaussian σ, detector mm) that the frames' path lengths carry; L_occ on the frames
     # then compares the rendering blurred alike (0: off; 0.3 was far worse on realistic trees: RESULTS §33d)
     frame_blur_sigma_mm: float = 0.0
-    # >0: where the frames are read as evidence (frame_evidence), L_geo, L_occ and the finishing steps read the masks less the border
-    # pixels whose path length on the frame (smoothed over a pixel) is below this (mm); the support stays on
-    # the masks as given (0: off; 0.3 better on the LAD suites, level on RCA, worse on 721A: RESULTS §56c)
+    # >0: where the frames are read as evidence (frame_evidence), L_geo, L_occ and the finishing steps read
+    # the masks less the border pixels whose path length on the frame (smoothed over a pixel) is below this
+    # (mm); the support stays on the masks as given (0: off; 0.3 better on the LAD suites, level on RCA,
+    # worse on 721A: RESULTS §56c)
     frame_trim_mask_mm: float = 0.0
     # weight of L_bin (losses.partial_occupancy_loss), the field's mass at partial occupancy; 0: off
     lambda_binary: float = 0.0
