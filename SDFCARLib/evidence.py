@@ -92,9 +92,12 @@ def absorbance_above_background(frame: np.ndarray, mask: np.ndarray, pixel_spaci
 
 
 def border_trimmed_mask(mask: np.ndarray, line_integral_mm: np.ndarray, min_path_mm: float,
-                        smoothing_px: float = 1.0) -> np.ndarray:
+                        smoothing_px: float = 1.0, centre_fraction: float = 0.0) -> np.ndarray:
     """The mask without the pixels whose path length, read off the frame (``view_evidence``) and smoothed
     by a Gaussian of ``smoothing_px``, is below ``min_path_mm``; the mask's centreline always stays.
+    ``centre_fraction`` > 0 lowers a pixel's threshold to that fraction of the smoothed path length at
+    the nearest centreline pixel where that is less: a thin vessel's whole blurred profile lies below
+    an absolute threshold, and its true border with it.
 
     A segmentation's border falls where a threshold met the blurred, noisy edge: a pixel or so outside
     the lumen on thin vessels. Those pixels show little path length; the mask's own thinning keeps a
@@ -106,8 +109,15 @@ def border_trimmed_mask(mask: np.ndarray, line_integral_mm: np.ndarray, min_path
         raise ValueError(f"the path lengths have shape {np.shape(line_integral_mm)} but the mask {mask.shape}")
     if not min_path_mm > 0:
         raise ValueError(f"min_path_mm must be positive, got {min_path_mm}")
+    if not 0 <= centre_fraction < 1:
+        raise ValueError(f"centre_fraction must lie in [0, 1), got {centre_fraction}")
     smoothed = ndimage.gaussian_filter(np.asarray(line_integral_mm, np.float64), smoothing_px)  # σ 0: unchanged
-    return (mask & (smoothed >= min_path_mm)) | skeletonize(mask)
+    centreline = skeletonize(mask)
+    threshold: Any = min_path_mm
+    if centre_fraction > 0 and centreline.any():
+        _, (rows, cols) = ndimage.distance_transform_edt(~centreline, return_indices=True)
+        threshold = np.minimum(min_path_mm, centre_fraction * smoothed[rows, cols])
+    return (mask & (smoothed >= threshold)) | centreline
 
 
 def _skeleton_directions(skeleton: np.ndarray, spacing: np.ndarray, points: np.ndarray, half_window: int = 3) -> np.ndarray:

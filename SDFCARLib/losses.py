@@ -99,6 +99,7 @@ class DistanceSettings:
     threshold: float = 0.5
     truncation_mm: float = 5.0
     kernel_size: int = 3
+    tolerance_mm: float = 0.0  # a border this close to the target's costs nothing (``GeometricLoss``)
 
 
 #: the soft-minimum temperature of the cascade (kornia's default for distance_transform)
@@ -257,7 +258,11 @@ class GeometricLoss:
     def __call__(self, silhouettes: Sequence[torch.Tensor]) -> torch.Tensor:
         """L_geo averaged over views for rendered silhouettes (H, W) per view."""
         sdt = signed_distance(self._batch(silhouettes), self.step_mm, self.settings)
-        return torch.sum(self.weights * (sdt - self.target) ** 2) / len(self.crops)
+        difference = sdt - self.target
+        if self.settings.tolerance_mm > 0:
+            # A segmented mask's border is known to about a pixel: a distance that differs by less costs nothing.
+            difference = F.softshrink(difference, self.settings.tolerance_mm / self.settings.truncation_mm)
+        return torch.sum(self.weights * difference ** 2) / len(self.crops)
 
 
 @dataclass

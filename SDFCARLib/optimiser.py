@@ -274,7 +274,8 @@ def build_problem(geometry: Geometry, targets: Sequence[np.ndarray], settings: S
         # read is trimmed
         from .evidence import border_trimmed_mask
 
-        arrays = [border_trimmed_mask(a > 0, e, settings.loss.frame_trim_mask_mm).astype(np.float32)
+        arrays = [border_trimmed_mask(a > 0, e, settings.loss.frame_trim_mask_mm,
+                                      centre_fraction=settings.loss.frame_trim_centre_fraction).astype(np.float32)
                   for a, e in zip(arrays, evidence_images)]
     for message in warnings:
         _report(progress, phase="warning", message=message, step=0, total=settings.optimisation.total_steps,
@@ -311,7 +312,8 @@ def build_problem(geometry: Geometry, targets: Sequence[np.ndarray], settings: S
             [t.silhouette for t in view_targets],
             [float(np.mean(v.isocenter_pixel_spacing_mm)) for v in geometry.views],
             [None if support is None else p.pixels for p in projectors],
-            DistanceSettings(loss.dt_downsample, loss.dt_threshold, loss.dt_truncation_mm, loss.dt_kernel_size),
+            DistanceSettings(loss.dt_downsample, loss.dt_threshold, loss.dt_truncation_mm, loss.dt_kernel_size,
+                             loss.dt_tolerance_mm),
         )
     record = dict(evidence.record) if settings.loss.frame_evidence else dict(FRAME_EVIDENCE_OFF)
     if evidence_images is not None:

@@ -121,6 +121,9 @@ class LossSettings:
     dt_threshold: float = 0.5
     dt_truncation_mm: float = 5.0  # distances clipped here
     dt_kernel_size: int = 3
+    # >0: L_geo ignores differences of the signed distance below this (mm at the isocenter): the masks'
+    # borders are uncertain by about a pixel, and with frame_evidence L_occ then sets the width
+    dt_tolerance_mm: float = 0.0
     # where the frames are given with the masks: L_occ on the rays' path lengths read off the frames
     # (evidence.py) instead of the masks, so a ghost in the shadow of a real vessel costs what it adds
     frame_evidence: bool = False
@@ -135,6 +138,9 @@ class LossSettings:
     # (mm); the support stays on the masks as given (0: off; 0.3 better on the LAD suites, level on RCA,
     # worse on 721A: RESULTS §56c)
     frame_trim_mask_mm: float = 0.0
+    # >0: the trim's threshold is lowered to this fraction of the path length at the nearest centreline
+    # pixel where that is less (thin vessels keep their border; evidence.border_trimmed_mask)
+    frame_trim_centre_fraction: float = 0.0
     # weight of L_bin (losses.partial_occupancy_loss), the field's mass at partial occupancy; 0: off
     lambda_binary: float = 0.0
 
@@ -289,6 +295,11 @@ class Settings:
                 raise ReconstructionError(f"{name} is a loss weight and must not be negative, got {value}")
         if not l.frame_trim_mask_mm >= 0:
             raise ReconstructionError(f"frame_trim_mask_mm is a path length in mm (0: off), got {l.frame_trim_mask_mm}")
+        if not 0 <= l.dt_tolerance_mm < l.dt_truncation_mm:
+            raise ReconstructionError(f"dt_tolerance_mm is a distance in mm from 0 (off) up to dt_truncation_mm "
+                                      f"({l.dt_truncation_mm:g}), got {l.dt_tolerance_mm}")
+        if not 0 <= l.frame_trim_centre_fraction < 1:
+            raise ReconstructionError(f"frame_trim_centre_fraction is a fraction in [0, 1) (0: off), got {l.frame_trim_centre_fraction}")
         if not l.frame_blur_sigma_mm >= 0:
             raise ReconstructionError(f"frame_blur_sigma_mm is a detector blur in mm (0: off), got {l.frame_blur_sigma_mm}")
         if o.table_learning_rate is not None and not o.table_learning_rate > 0:

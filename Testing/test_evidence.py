@@ -144,6 +144,28 @@ def test_border_pixels_with_little_path_length_are_trimmed_and_the_centreline_st
         border_trimmed_mask(mask, path, 0.0)
 
 
+def test_a_thin_vessels_border_is_kept_relative_to_its_centre():
+    # a thin vessel masked 5 columns wide whose whole blurred profile lies below the 0.3 mm threshold:
+    # 0.25 mm on its centreline column, 0.15 beside it, 0.05 on the mask's outer columns
+    mask = np.zeros((40, 40), bool)
+    mask[5:35, 18:23] = True
+    path = np.zeros((40, 40))
+    path[5:35, 18:23] = 0.05
+    path[5:35, 19:22] = 0.15
+    path[5:35, 20] = 0.25
+    absolute = border_trimmed_mask(mask, path, 0.3, smoothing_px=0.0)
+    assert np.array_equal(np.flatnonzero(absolute[20]), [20])  # the absolute threshold leaves the centreline alone
+    # at 0.3 of the centre's 0.25 mm the threshold is 0.075: the columns at 0.15 stay, those at 0.05 go
+    relative = border_trimmed_mask(mask, path, 0.3, smoothing_px=0.0, centre_fraction=0.3)
+    assert np.array_equal(np.flatnonzero(relative[20]), [19, 20, 21])
+    # a thick vessel (1.2 mm at its centre) keeps the absolute threshold: min(0.3, 0.3 × 1.2) = 0.3
+    thick = np.where(mask, 0.1, 0.0)
+    thick[5:35, 19:22] = 1.2
+    assert np.array_equal(np.flatnonzero(border_trimmed_mask(mask, thick, 0.3, 0.0, 0.3)[20]), [19, 20, 21])
+    with pytest.raises(ValueError, match="centre_fraction"):
+        border_trimmed_mask(mask, path, 0.3, centre_fraction=1.0)
+
+
 # --- in the reconstruction ---------------------------------------------------------------------------
 GRID = VolumeGrid((32, 32, 32), (1.0, 1.0, 1.0))
 VIEWS = [CArmView(30.0, 0.0, 1000.0, 750.0, (0.4, 0.4), (128, 128)),
@@ -199,6 +221,23 @@ def test_trimmed_masks_reach_the_losses_and_the_finishing_but_not_the_support(an
     assert all(np.array_equal(a, b) for a, b in zip(without_frames.targets, plain.targets))  # nothing to read it off
     with pytest.raises(ReconstructionError, match="frame_trim_mask_mm"):
         make_settings("fast", frame_trim_mask_mm=-0.1)
+    # relative to the centreline the threshold only falls: at least the pixels of the absolute trim stay
+    relative = build_problem(geometry, masks, make_settings("fast", frame_trim_mask_mm=0.3, frame_trim_centre_fraction=0.3),
+                             "mask", frames=frames)
+    for absolute, kept, before in zip(trimmed.targets, relative.targets, plain.targets):
+        assert not ((absolute > 0) & ~(kept > 0)).any() and not ((kept > 0) & ~(before > 0)).any()
+    with pytest.raises(ReconstructionError, match="frame_trim_centre_fraction"):
+        make_settings("fast", frame_trim_centre_fraction=1.0)
+
+
+def test_the_geometric_losss_tolerance_reaches_the_loss_and_is_checked(angiogram_case):
+    geometry, _, frames, masks = angiogram_case
+    problem = build_problem(geometry, masks, make_settings("fast", dt_tolerance_mm=0.28), "mask", frames=frames)
+    assert problem.geometric.settings.tolerance_mm == 0.28
+    assert build_problem(geometry, masks, make_settings("fast"), "mask").geometric.settings.tolerance_mm == 0.0
+    for bad in (-0.1, 5.0):  # negative, or the whole truncated distance
+        with pytest.raises(ReconstructionError, match="dt_tolerance_mm"):
+            make_settings("fast", dt_tolerance_mm=bad)
 
 
 def test_frames_are_ignored_unless_asked_and_checked_when_used(angiogram_case):

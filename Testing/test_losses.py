@@ -227,6 +227,21 @@ def test_geometric_loss_zero_for_perfect_rendering_and_grows_with_shift():
     assert empty > 0.1  # large: kornia alone would give a sourceless image the distance 0
 
 
+def test_geometric_loss_tolerance_ignores_border_shifts_below_it():
+    target = band_image()
+    plain = GeometricLoss([target], [0.5], [None], DistanceSettings())
+    one_pixel = band_image(col=19)  # the band moved by one pixel (0.5 mm)
+    # a tolerance beyond the shift (the cascade's soft distances move by up to 0.83 mm where the band's
+    # ends move diagonally): the rendering costs nothing; one below it: less than without
+    assert float(GeometricLoss([target], [0.5], [None], DistanceSettings(tolerance_mm=1.0))([one_pixel])) == 0.0
+    half = float(GeometricLoss([target], [0.5], [None], DistanceSettings(tolerance_mm=0.25))([one_pixel]))
+    assert 0.0 < half < float(plain([one_pixel]))
+    # a rendering many pixels off still costs, less the tolerance
+    far = band_image(col=26)
+    tolerant = GeometricLoss([target], [0.5], [None], DistanceSettings(tolerance_mm=1.0))
+    assert 0.0 < float(tolerant([far])) < float(plain([far]))
+
+
 def test_geometric_loss_gradient_points_towards_the_target():
     target = band_image(col=18)
     loss = GeometricLoss([target], [0.5], [None], DistanceSettings())
