@@ -124,14 +124,21 @@ def test_a_frame_target_with_the_detectors_blur_compares_the_blurred_rendering()
     assert torch.equal(target.silhouette, mask)  # L_geo keeps the mask
 
 
+def _vertical_vessel(columns, path_on_columns):
+    """A vessel masked on rows 5–34 and ``columns`` (first, stop) of a 40² image, and its path lengths (mm):
+    each (first, stop, mm) of ``path_on_columns`` in turn."""
+    mask = np.zeros((40, 40), bool)
+    mask[5:35, columns[0]:columns[1]] = True
+    path = np.zeros((40, 40))
+    for first, stop, mm in path_on_columns:
+        path[5:35, first:stop] = mm
+    return mask, path
+
+
 def test_border_pixels_with_little_path_length_are_trimmed_and_the_centreline_stays():
     # a vertical vessel masked 9 columns wide whose frame shows 1.2 mm of path on its middle 5 columns and
     # 0.1 mm on the two columns each side (a segmentation a pixel or two outside a blurred lumen)
-    mask = np.zeros((40, 40), bool)
-    mask[5:35, 16:25] = True
-    path = np.zeros((40, 40))
-    path[5:35, 16:25] = 0.1
-    path[5:35, 18:23] = 1.2
+    mask, path = _vertical_vessel((16, 25), [(16, 25, 0.1), (18, 23, 1.2)])
     trimmed = border_trimmed_mask(mask, path, 0.3, smoothing_px=0.0)
     assert np.array_equal(np.flatnonzero(trimmed[20]), np.arange(18, 23))
     assert not (trimmed & ~mask).any()  # never wider than the mask
@@ -147,20 +154,14 @@ def test_border_pixels_with_little_path_length_are_trimmed_and_the_centreline_st
 def test_a_thin_vessels_border_is_kept_relative_to_its_centre():
     # a thin vessel masked 5 columns wide whose whole blurred profile lies below the 0.3 mm threshold:
     # 0.25 mm on its centreline column, 0.15 beside it, 0.05 on the mask's outer columns
-    mask = np.zeros((40, 40), bool)
-    mask[5:35, 18:23] = True
-    path = np.zeros((40, 40))
-    path[5:35, 18:23] = 0.05
-    path[5:35, 19:22] = 0.15
-    path[5:35, 20] = 0.25
+    mask, path = _vertical_vessel((18, 23), [(18, 23, 0.05), (19, 22, 0.15), (20, 21, 0.25)])
     absolute = border_trimmed_mask(mask, path, 0.3, smoothing_px=0.0)
     assert np.array_equal(np.flatnonzero(absolute[20]), [20])  # the absolute threshold leaves the centreline alone
     # at 0.3 of the centre's 0.25 mm the threshold is 0.075: the columns at 0.15 stay, those at 0.05 go
     relative = border_trimmed_mask(mask, path, 0.3, smoothing_px=0.0, centre_fraction=0.3)
     assert np.array_equal(np.flatnonzero(relative[20]), [19, 20, 21])
     # a thick vessel (1.2 mm at its centre) keeps the absolute threshold: min(0.3, 0.3 × 1.2) = 0.3
-    thick = np.where(mask, 0.1, 0.0)
-    thick[5:35, 19:22] = 1.2
+    _, thick = _vertical_vessel((18, 23), [(18, 23, 0.1), (19, 22, 1.2)])
     assert np.array_equal(np.flatnonzero(border_trimmed_mask(mask, thick, 0.3, 0.0, 0.3)[20]), [19, 20, 21])
     with pytest.raises(ValueError, match="centre_fraction"):
         border_trimmed_mask(mask, path, 0.3, centre_fraction=1.0)
