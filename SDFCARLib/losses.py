@@ -40,6 +40,8 @@ L_geo
       around the target and the traced rays — the same loss, less work;
     * the transform may run on a ``downsample``-times max-pooled image (thin vessels survive
       max-pooling), which costs the square less.
+    * ``tolerance_mm`` > 0 (off by default) soft-thresholds each pixel's difference of the two
+      distances by that much, so a border within it of the target's costs nothing.
 
 Why not kornia's function itself (``cascaded_distance``)
     Distances grow by kernel_size // 2 pixels per round; kornia runs the cascade
