@@ -16,7 +16,8 @@ with the frames' evidence and the calibrations asked for, are ``fit_field``):
    (``connectivity.py``) when asked, grows into connected partial occupancy when asked, removes
    the pieces whose views see different widths where the tree stays whole when asked
    (``width_agreement.py``), joins what is still apart once more when asked
-   (``final_reconnect_max_gap_mm``), and writes the report.
+   (``final_reconnect_max_gap_mm``), removes the detached specks below a volume when asked
+   (``min_fragment_volume_mm3``), and writes the report.
 
 Learning rates
     Adam moves every weight by about lr per step. The SDF's occupancy logit is −α·s, so a step of
@@ -59,7 +60,7 @@ from .connectivity import ReconnectSettings, field_values, reconnect_fragments
 from .metrics import component_counts, component_labels
 from .projector import ConeBeamProjector, project_volume
 from .qa import qa_warnings, reprojection_qa
-from .pruning import PruneSettings, prune_redundant_branches, removal_zone, unconfirmed_fragments
+from .pruning import PruneSettings, prune_redundant_branches, removal_zone, small_fragments, unconfirmed_fragments
 from .width_agreement import disagreeing_pieces
 from .settings import MASK_THRESHOLD_MM, TARGET_KINDS, ReconstructionError, RegionSettings, Settings, make_settings
 
@@ -538,6 +539,10 @@ def finish(problem: Problem, model: ImplicitField, history: List[Dict[str, float
             raise ReconstructionCancelled("cancelled before joining the fragments again")
         segmentation, final_reconnection = join_fragments(segmentation, occupancy_volume, field_volume, geometry, problem.support,
                                                           settings, settings.region.final_reconnect_max_gap_mm)
+    small: Optional[Dict[str, Any]] = None
+    if settings.region.min_fragment_volume_mm3 and segmentation.any():
+        removed, small = small_fragments(segmentation, geometry.volume.spacing_mm, settings.region.min_fragment_volume_mm3)
+        segmentation = erase_removed(segmentation, segmentation & ~removed, occupancy_volume, field_volume, geometry, settings)
     projected = reprojected_masks(segmentation, geometry, projectors=traced)
     qa = [reprojection_qa(p, m, v) for p, m, v in zip(projected, references, geometry.views)]
     qa_warned = qa_warnings(qa)
@@ -565,6 +570,7 @@ def finish(problem: Problem, model: ImplicitField, history: List[Dict[str, float
         "reconnection": reconnection,
         "final_reconnection": final_reconnection,
         "unconfirmed_fragments": unconfirmed,
+        "small_fragments": small,
         "components": component_counts(segmentation),
         "projector_nonzeros": [p.nnz for p in problem.projectors],
         "final_losses": {k: v for k, v in history[-1].items() if k != "step"} if history else {},

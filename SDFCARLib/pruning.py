@@ -29,6 +29,12 @@ Unconfirmed fragments (``unconfirmed_fragments``)
     error): it sits in the other view's shadow of some other vessel, so that view has no pixel
     that needs it. A true fragment of the tree is seen on its own somewhere in each view. The
     pieces still attached to the tree are left to the set cover above.
+
+Small fragments (``small_fragments``)
+    What is still detached once everything else is done, and smaller than a few mm³, is removed: a
+    piece of a vessel that small, seen by nothing that joins it to the tree, is noise in a tree a
+    clinician reads, and on realistic input most of these specks lie away from any true vessel
+    (bench/RESULTS.md §58).
 """
 
 from __future__ import annotations
@@ -235,6 +241,24 @@ def unconfirmed_fragments(
     removed = np.isin(components, np.flatnonzero(~confirmed) + 1)
     info.update(removed_fragments=int((~confirmed).sum()), removed_voxels=int(removed.sum()),
                 seconds=time.perf_counter() - t0)
+    return removed, info
+
+
+def small_fragments(segmentation: np.ndarray, spacing_mm: Sequence[float], min_volume_mm3: float) -> Tuple[np.ndarray, Dict[str, Any]]:
+    """Voxels of the 26-connected components other than the largest whose volume is below
+    ``min_volume_mm3``, and a report (fragments, removed fragments and voxels). The largest component
+    always stays, however small; another tree (a second ostium) stays when it is at least that large."""
+    segmentation = np.asarray(segmentation, dtype=bool)
+    if not min_volume_mm3 >= 0:
+        raise ValueError(f"min_volume_mm3 must be 0 (off) or a volume in mm³, got {min_volume_mm3}")
+    components, sizes = component_labels(segmentation)
+    voxel_mm3 = float(np.prod(np.asarray(spacing_mm, dtype=float)))
+    small = sizes * voxel_mm3 < min_volume_mm3
+    if sizes.size:
+        small[int(np.argmax(sizes))] = False
+    removed = np.isin(components, np.flatnonzero(small) + 1)
+    info = {"fragments": max(int(sizes.size) - 1, 0), "removed_fragments": int(small.sum()),
+            "removed_voxels": int(removed.sum()), "min_volume_mm3": float(min_volume_mm3)}
     return removed, info
 
 

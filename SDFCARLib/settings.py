@@ -177,6 +177,9 @@ class RegionSettings:
     # (as reconnect does, inside the support) across gaps up to this many mm: growing brings fragments closer.
     # Fewer pieces for less clDice (bridges take the shortest supported path, not a missed vessel's: RESULTS §32c)
     final_reconnect_max_gap_mm: float = 0.0
+    # 0: off. Otherwise, last, the detached pieces (every component but the largest) smaller than this many mm³
+    # are removed (pruning.small_fragments): specks no step could join to the tree, mostly off any true vessel
+    min_fragment_volume_mm3: float = 0.0
     # 0: off. Otherwise, at this share of the steps, the pieces that width check would remove from the
     # fit's segmentation so far are taken out of the field for the rest of the fit, so that the fit may
     # explain their mask pixels elsewhere (with width_agreement_min_ratio 0, the check off, nothing is taken out)
@@ -326,6 +329,9 @@ class Settings:
                                       f"{r.reconnect_max_gap_mm}; or turn reconnection off with reconnect=false")
         if not r.final_reconnect_max_gap_mm >= 0:
             raise ReconstructionError(f"final_reconnect_max_gap_mm must be 0 (off) or a gap in mm, got {r.final_reconnect_max_gap_mm}")
+        if not r.min_fragment_volume_mm3 >= 0:
+            raise ReconstructionError(f"min_fragment_volume_mm3 must be 0 (off) or a volume in mm³ below which the detached "
+                                      f"pieces are removed, got {r.min_fragment_volume_mm3}")
         if not 0 <= r.reconnect_min_occupancy < 1:
             raise ReconstructionError(
                 f"reconnect_min_occupancy must be an occupancy in [0, 1) (default 0: the support and the gap's length "

@@ -266,3 +266,45 @@ def test_the_final_reconnection_is_wired_into_the_finish_and_reported(small_tree
     assert info["max_gap_mm"] == 40.0
     assert not (plain.segmentation & ~joined.segmentation).any()  # it only adds
     np.testing.assert_array_equal(joined.segmentation, joined.occupancy >= 0.5)  # what the outputs read
+
+
+def test_small_fragments_are_the_detached_pieces_below_the_volume_and_never_the_largest():
+    from SDFCARLib.pruning import small_fragments
+
+    v = np.zeros((30, 30, 30), bool)
+    v[2:28, 5, 5] = True  # the tree: 26 voxels of 0.125 mm³ = 3.25 mm³
+    v[20, 20, 20] = True  # a speck: 0.125 mm³
+    v[10:14, 20:22, 10:12] = True  # a second piece: 16 voxels = 2 mm³
+    spacing = (H, H, H)
+    removed, info = small_fragments(v, spacing, 1.0)
+    assert removed.sum() == 1 and removed[20, 20, 20]
+    assert info == {"fragments": 2, "removed_fragments": 1, "removed_voxels": 1, "min_volume_mm3": 1.0}
+    removed, info = small_fragments(v, spacing, 2.5)  # the second piece too; the tree, though below 4 mm³, stays
+    assert removed.sum() == 17 and not removed[2:28, 5, 5].any() and info["removed_fragments"] == 2
+    assert not small_fragments(v, spacing, 0.0)[0].any()  # 0: off
+    assert not small_fragments(v, spacing, 100.0)[0][2:28, 5, 5].any()
+    assert small_fragments(np.zeros_like(v), spacing, 1.0)[1]["fragments"] == 0
+    with pytest.raises(ValueError, match="min_volume_mm3"):
+        small_fragments(v, spacing, -1.0)
+
+
+def test_the_small_fragment_removal_is_wired_into_the_finish_and_reported(small_tree_case):
+    """min_fragment_volume_mm3: last, the detached pieces below the volume are removed from the result and its outputs."""
+    from SDFCARLib.optimiser import fit_field
+
+    geometry, masks = small_tree_case
+    # nothing joined, so that the fit's detached pieces reach the last step; one fit, finished both ways
+    plain_settings = make_settings("fast", steps=60, reconnect=False, drop_unconfirmed_fragments=False, device="cpu")
+    fitted = fit_field(geometry, masks, plain_settings)
+    plain = fitted.finished()
+    cleaned = fitted.finished(plain_settings.replace(min_fragment_volume_mm3=1e9))  # every piece but the largest
+    assert plain.report["small_fragments"] is None  # 0: off
+    info = cleaned.report["small_fragments"]
+    before = plain.report["components"]["components"]
+    assert before >= 2  # the fit leaves detached pieces: the test means something
+    assert info["fragments"] == before - 1 and info["removed_fragments"] == before - 1
+    assert cleaned.report["components"]["components"] == 1
+    assert not (cleaned.segmentation & ~plain.segmentation).any()  # it only removes ...
+    _, sizes = component_labels(plain.segmentation)
+    assert cleaned.segmentation.sum() == sizes.max()  # ... all but the largest piece
+    np.testing.assert_array_equal(cleaned.segmentation, cleaned.occupancy >= 0.5)  # what the outputs read

@@ -107,6 +107,7 @@ def test_overrides_and_none_values():
     (dict(width_exclusion_fraction=-0.1), "width_exclusion_fraction"),
     (dict(width_exclusion_repeats=0), "width_exclusion_repeats must be at least 1"),
     (dict(final_reconnect_max_gap_mm=-1.0), "final_reconnect_max_gap_mm must be 0 (off) or a gap in mm"),
+    (dict(min_fragment_volume_mm3=-1.0), "min_fragment_volume_mm3 must be 0 (off) or a volume in mm³"),
 ])
 def test_bad_settings(kwargs, fragment):
     kwargs = dict(kwargs)
