@@ -294,7 +294,8 @@ def test_the_small_fragment_removal_is_wired_into_the_finish_and_reported(small_
 
     geometry, masks = small_tree_case
     # nothing joined, so that the fit's detached pieces reach the last step; one fit, finished both ways
-    plain_settings = make_settings("fast", steps=60, reconnect=False, drop_unconfirmed_fragments=False, device="cpu")
+    plain_settings = make_settings("fast", steps=60, reconnect=False, drop_unconfirmed_fragments=False,
+                                   min_fragment_volume_mm3=0.0, device="cpu")
     fitted = fit_field(geometry, masks, plain_settings)
     plain = fitted.finished()
     cleaned = fitted.finished(plain_settings.replace(min_fragment_volume_mm3=1e9))  # every piece but the largest
