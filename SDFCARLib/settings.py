@@ -399,7 +399,7 @@ PRESETS: Dict[str, Dict[str, Any]] = {  # the default first: lists offer it firs
         # on its true course (bench/RESULTS.md §30)
         width_exclusion_fraction=0.6,
         # after all the steps above, the detached specks below 16 mm³ that nothing joined to the tree: as often ghosts
-        # as true vessel, clDice level, the realistic and clean suites in 1.4–1.7 pieces instead of 2.0–7.3 (§58)
+        # as true vessel; clDice level, the realistic and clean suites in 1.4–1.9 pieces instead of 2.0–8.2 (§58)
         min_fragment_volume_mm3=16.0,
         # the result is the mean of the parameters over the last fifth of the steps (after that exclusion), not
         # Adam's last jittering iterate: clDice level, Dice higher and fewer pieces over six suite runs (§37b, §38c)
