@@ -33,7 +33,7 @@ Unconfirmed fragments (``unconfirmed_fragments``)
 Small fragments (``small_fragments``)
     What is still detached once everything else is done, and smaller than a few mm³, is removed: a
     piece of a vessel that small, seen by nothing that joins it to the tree, is noise in a tree a
-    clinician reads, and on realistic input most of these specks lie away from any true vessel
+    clinician reads, and on realistic input two in three of these specks lie away from any true vessel
     (bench/RESULTS.md §58).
 """
 

@@ -179,7 +179,7 @@ class RegionSettings:
     # Fewer pieces for less clDice (bridges take the shortest supported path, not a missed vessel's: RESULTS §32c)
     final_reconnect_max_gap_mm: float = 0.0
     # 0: off. Otherwise, last, the detached pieces (every component but the largest) smaller than this many mm³
-    # are removed (pruning.small_fragments): specks no step could join to the tree, mostly off any true vessel
+    # are removed (pruning.small_fragments): specks no step could join to the tree, two in three off any true vessel
     min_fragment_volume_mm3: float = 0.0
     # 0: off. Otherwise, at this share of the steps, the pieces that width check would remove from the
     # fit's segmentation so far are taken out of the field for the rest of the fit, so that the fit may
@@ -398,8 +398,8 @@ PRESETS: Dict[str, Dict[str, Any]] = {  # the default first: lists offer it firs
         # elsewhere: a ghost removed at the end leaves its vessel missing, removed here it is often re-placed
         # on its true course (bench/RESULTS.md §30)
         width_exclusion_fraction=0.6,
-        # after all the steps above, the detached specks below 16 mm³ that nothing joined to the tree: as often ghosts
-        # as true vessel; clDice level, the realistic and clean suites in 1.4–1.9 pieces instead of 2.0–8.2 (§58)
+        # after all the steps above, the detached specks below 16 mm³ that nothing joined to the tree: two in three
+        # of them ghosts; clDice level, the realistic and clean suites in 1.4–1.9 pieces instead of 2.0–8.2 (§58)
         min_fragment_volume_mm3=16.0,
         # the result is the mean of the parameters over the last fifth of the steps (after that exclusion), not
         # Adam's last jittering iterate: clDice level, Dice higher and fewer pieces over six suite runs (§37b, §38c)
