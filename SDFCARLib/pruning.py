@@ -32,10 +32,9 @@ Unconfirmed fragments (``unconfirmed_fragments``)
 
 Small fragments (``small_fragments``)
     What is still detached once everything else is done, and smaller than ``min_volume_mm3`` (16 mm³
-    in ``fast``: 31 voxels at 0.8 mm), is removed: a
-    piece of a vessel that small, seen by nothing that joins it to the tree, is noise in a tree a
-    clinician reads, and on realistic input two in three of these specks lie away from any true vessel
-    (bench/RESULTS.md §58).
+    in ``fast``: 31 voxels at 0.8 mm), is removed: a piece of a vessel that small, seen by nothing that
+    joins it to the tree, is noise in a tree a clinician reads, and on realistic input two in three of
+    these specks lie away from any true vessel (bench/RESULTS.md §58).
 """
 
 from __future__ import annotations
