@@ -33,11 +33,15 @@ Angiogram masks (``segment_angiogram`` / ``angiogram_mask``), for when no mask e
        vessels connected to the tree are kept and isolated noise is not.
     6. Silhouette: of those, the pixels whose top-hat (σ = 1 pixel smoothed) stands
        ``silhouette_noise_units`` above its own noise (the ridge response is wider than the vessel).
-       That level sits at the foot of the blurred profile, so thin vessels come out wider than they
-       are; ``edge_fraction`` > 0 also asks each pixel for that share of the contrast on the nearest
-       point of the mask's centreline (off by default: no better reconstructions, RESULTS §26b).
     7. Specks: 8-connected components shorter than ``min_length_mm`` along their skeleton, or
        less elongated than ``min_elongation`` (length² / area, i.e. length over mean width), go.
+    8. Edges of thin vessels: step 6's level sits at the foot of the blurred profile, so a thin, faint
+       vessel comes out a pixel wider on each side than it is (a thick one does not). Where the
+       mask's radius at the nearest centreline point is at most ``edge_max_radius_mm``, a pixel also
+       needs ``edge_fraction`` of the contrast on that centreline point; the centreline always stays.
+       (0.2 up to 1.5 mm by default: the extra pixels of the realistic suites' masks 9–10 % → 4–5 % of
+       the silhouette, and better reconstructions, bench/RESULTS.md §59; on every vessel, §26b, it
+       also cut the thick ones.)
 
     A frame where nothing is left (no contrast, a wrong frame) or where half the image would be
     vessel is refused with a ``MaskError`` that names the problem.
@@ -152,7 +156,8 @@ class AngioMaskSettings:
     min_length_mm: float = 6.0  # a component's centreline must be at least this long
     min_elongation: float = 3.0  # and length / mean width at least this (specks are round)
     min_field_fraction: float = 0.25  # refuse frames whose exposed field is smaller than this
-    edge_fraction: float = 0.0  # >0: a vessel's edge where its contrast falls to this share of its centreline's
+    edge_fraction: float = 0.2  # >0: a vessel's edge where its contrast falls to this share of its centreline's
+    edge_max_radius_mm: Optional[float] = 1.5  # the edge rule only on vessels this thin (mask radius); None: all
 
     def check(self) -> None:
         r0, r1 = (float(v) for v in self.vessel_radius_mm)
@@ -170,6 +175,9 @@ class AngioMaskSettings:
         if not 0 <= self.edge_fraction < 1:
             raise MaskError(f"edge_fraction must be in [0, 1) (0: no edge rule; 0.5: half the centreline's contrast), "
                             f"got {self.edge_fraction}")
+        if self.edge_max_radius_mm is not None and not self.edge_max_radius_mm > 0:
+            raise MaskError(f"edge_max_radius_mm must be a positive radius in mm (the edge rule acts on vessels up to it) "
+                            f"or None (on every vessel), got {self.edge_max_radius_mm}")
         if self.min_length_mm < 0 or self.min_elongation < 0:
             raise MaskError("min_length_mm and min_elongation must be 0 or more")
 
@@ -306,16 +314,22 @@ def _ridge(image: np.ndarray, sigmas: Sequence[float], method: str) -> np.ndarra
     return meijering(image, sigmas=sigmas, black_ridges=False)
 
 
-def _trim_to_edges(mask: np.ndarray, contrast: np.ndarray, fraction: float) -> np.ndarray:
+def _trim_to_edges(mask: np.ndarray, contrast: np.ndarray, fraction: float,
+                   max_radius_px: Optional[float] = None) -> np.ndarray:
     """Keep the mask's pixels whose contrast is at least ``fraction`` of the contrast on the nearest
-    point of the mask's centreline; the centreline itself always stays (no vessel is cut)."""
+    point of the mask's centreline; the centreline itself always stays (no vessel is cut). With
+    ``max_radius_px``, only where the mask's radius at that centreline point is at most that: the
+    noise-level border widens the thin, faint vessels, not the thick ones."""
     from skimage.morphology import skeletonize
 
     centreline = skeletonize(mask)
     _, (rows, cols) = ndimage.distance_transform_edt(~centreline, return_indices=True)
     # the centreline's contrast, taken as the largest within one pixel (a skeleton drawn off the ridge)
     peak = ndimage.maximum_filter(contrast, size=3)[rows, cols]
-    return mask & ((contrast >= fraction * peak) | centreline)
+    keep = (contrast >= fraction * peak) | centreline
+    if max_radius_px is not None:
+        keep |= ndimage.distance_transform_edt(mask)[rows, cols] > max_radius_px
+    return mask & keep
 
 
 def _component_shape(mask: np.ndarray) -> Tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -406,7 +420,8 @@ def segment_angiogram(
     keep[0] = False
     mask = keep[labels]
     if s.edge_fraction > 0 and mask.any():
-        mask = _trim_to_edges(mask, contrast - c_median, s.edge_fraction)
+        mask = _trim_to_edges(mask, contrast - c_median, s.edge_fraction,
+                              None if s.edge_max_radius_mm is None else s.edge_max_radius_mm / iso_px_mm)
     if not mask.any():
         raise MaskError("no vessel found: no elongated structure of at least "
                         f"{s.min_length_mm:g} mm stands out of the noise (a frame without contrast, or a wrong "

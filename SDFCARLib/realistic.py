@@ -22,7 +22,7 @@ clDice against the true silhouettes (line integral > ``settings.MASK_THRESHOLD_M
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any, Dict, List
+from typing import Any, Dict, List, Optional
 
 import numpy as np
 
@@ -39,7 +39,9 @@ class RealisticOptions:
     max_shift_mm: float = 3.0  # object motion between the acquisitions, per view after the first
     max_rotation_deg: float = 2.0
     snr: float = 25.0  # background signal-to-noise ratio of the simulated frames
-    mask_edge_fraction: float = 0.0  # the mask pipeline's edge rule (masks.AngioMaskSettings.edge_fraction)
+    # the mask pipeline's edge rule (masks.AngioMaskSettings.edge_fraction, edge_max_radius_mm): its own defaults
+    mask_edge_fraction: float = AngioMaskSettings.edge_fraction
+    mask_edge_max_radius_mm: Optional[float] = AngioMaskSettings.edge_max_radius_mm
 
     def check(self) -> None:
         if self.max_shift_mm < 0 or self.max_rotation_deg < 0 or not self.snr > 0:
@@ -82,7 +84,8 @@ def realistic_input(label: np.ndarray, geometry: Geometry, seed: int,
         frame, _ = simulate_angiogram(li, view.pixel_spacing_mm, rng, AngiogramSettings(snr=options.snr))
         try:
             segmented = segment_angiogram(frame, view.pixel_spacing_mm, view.magnification,
-                                          AngioMaskSettings(edge_fraction=options.mask_edge_fraction))
+                                          AngioMaskSettings(edge_fraction=options.mask_edge_fraction,
+                                                            edge_max_radius_mm=options.mask_edge_max_radius_mm))
         except MaskError as exc:
             raise MaskError(f"view {n}: the simulated angiogram could not be segmented: {exc}") from None
         frames.append(frame)

@@ -165,8 +165,8 @@ def test_edge_fraction_trims_the_blurred_border_to_the_vessel_and_keeps_its_cent
     line_integral = _tubes((128, 160), [((64, 10), (64, 150), 1.5, 1.0)])  # a 3 mm tube along row 64
     silhouette = line_integral > 0
     frame, _ = _frame(line_integral)
-    default = _segment(frame).mask
-    trimmed = _segment(frame, edge_fraction=0.25).mask
+    default = _segment(frame, edge_fraction=0.0).mask  # no edge rule
+    trimmed = _segment(frame, edge_fraction=0.25, edge_max_radius_mm=None).mask  # on every vessel
     columns = slice(30, 130)  # away from the tube's ends and the image border
     assert np.all(trimmed <= default) and _components(trimmed) == 1
     assert trimmed[62:67, columns].all()  # the centre rows stay
@@ -178,6 +178,29 @@ def test_edge_fraction_trims_the_blurred_border_to_the_vessel_and_keeps_its_cent
     assert extra(default) - extra(trimmed) > missed(trimmed) - missed(default)
     with pytest.raises(MaskError, match="edge_fraction must be in"):
         _segment(frame, edge_fraction=1.0)
+
+
+def test_edge_rule_limited_to_thin_vessels_leaves_the_thick_ones_as_they_were():
+    # a thin tube (radius 0.6 mm) along row 40 and a thick one (2 mm) along row 100
+    line_integral = _tubes((140, 160), [((40, 10), (40, 150), 0.6, 1.0), ((100, 10), (100, 150), 2.0, 1.0)])
+    silhouette = line_integral > 0
+    frame, _ = _frame(line_integral)
+    no_rule = _segment(frame, edge_fraction=0.0).mask
+    everywhere = _segment(frame, edge_fraction=0.5, edge_max_radius_mm=None).mask
+    thin_only = _segment(frame, edge_fraction=0.5, edge_max_radius_mm=1.2).mask
+    thin, thick = (slice(25, 56), slice(30, 130)), (slice(80, 121), slice(30, 130))
+    assert not np.array_equal(everywhere[thick], no_rule[thick])  # the rule would trim the thick tube
+    assert np.array_equal(thin_only[thick], no_rule[thick])  # but is told not to
+    assert np.array_equal(thin_only[thin], everywhere[thin]) and thin_only[thin].sum() < no_rule[thin].sum()
+    # The default rule (0.2 of the centreline's contrast up to 1.5 mm) takes extra pixels off the thin
+    # tube, loses fewer of its pixels than it removes outside it, and leaves the thick tube alone.
+    default = _segment(frame).mask
+    extra = lambda m: int((m & ~silhouette)[thin].sum())  # noqa: E731
+    missed = lambda m: int((silhouette & ~m)[thin].sum())  # noqa: E731
+    assert extra(default) < extra(no_rule) and extra(no_rule) - extra(default) > missed(default) - missed(no_rule)
+    assert np.array_equal(default[thick], no_rule[thick]) and _components(default) == 2
+    with pytest.raises(MaskError, match="edge_max_radius_mm must be a positive radius"):
+        _segment(frame, edge_fraction=0.25, edge_max_radius_mm=0.0)
 
 
 def test_scales_follow_the_physical_vessel_size_and_parameters_are_reported():
