@@ -2,6 +2,7 @@
 
     .venv/bin/python bench/mask_edges.py --suite rca --cases 3 --fractions 0 0.15 0.25          # masks only, seconds
     .venv/bin/python bench/mask_edges.py --suite rca --cases 4 --fractions 0 0.15 --reconstruct  # + fast, minutes per case
+    .venv/bin/python bench/mask_edges.py --suite lad --cases 3 --fractions 0 0.2 --max-radius-mm 1.5   # the rule on thin vessels only
 
 Masks segmented from each case's simulated angiograms with each edge fraction, scored against the
 true silhouettes (mask Dice, clDice, extra and missed pixels as shares of the silhouette); with
@@ -38,6 +39,9 @@ def main() -> int:
     parser.add_argument("--protocol", default="realistic-static-lao30-rao30", choices=sorted(REALISTIC_PROTOCOLS))
     parser.add_argument("--fractions", type=float, nargs="+", default=[0.0, 0.15, 0.25])
     parser.add_argument("--reconstruct", action="store_true")
+    parser.add_argument("--max-radius-mm", type=lambda t: None if t.lower() == "none" else float(t), default=None,
+                        help="the rule only on vessels up to this mask radius (AngioMaskSettings.edge_max_radius_mm); "
+                             "default none: on every vessel, as RESULTS §26b measured it")
     args = parser.parse_args()
     torch.set_num_threads(1)
     grid = GridOptions()
@@ -49,7 +53,8 @@ def main() -> int:
     for spec in build_cases(config)[args.first:]:
         truths = None
         for fraction in args.fractions:
-            case = prepare_case(spec, args.protocol, grid, realistic_overrides={"mask_edge_fraction": fraction})
+            case = prepare_case(spec, args.protocol, grid, realistic_overrides={"mask_edge_fraction": fraction,
+                                                                                "mask_edge_max_radius_mm": args.max_radius_mm})
             if truths is None:  # the true silhouettes (of the moved views) do not depend on the masks' rule
                 simulated = realistic_input(case.label, case.geometry, spec.seed,
                                             RealisticOptions(**REALISTIC_PROTOCOLS[args.protocol]))

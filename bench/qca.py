@@ -280,6 +280,10 @@ def run_truth(cases, spacing, view_step_deg, mask_source="clean"):
     return rows
 
 
+#: realistic.RealisticOptions overrides for the segmented masks (``--mask-option``), e.g. the mask pipeline's edge rule
+MASK_OPTIONS: Dict[str, float] = {}
+
+
 def segmented_masks(tree, seed, moving=False):
     """The views' masks segmented from simulated angiograms of ``tree``, their Dice against the true
     silhouettes, the angiograms and the motion of view 2's object (none unless ``moving``: then the
@@ -290,7 +294,7 @@ def segmented_masks(tree, seed, moving=False):
     label_grid = grid_around(tree, 0.2)
     protocol = "realistic-lao30-rao30" if moving else "realistic-static-lao30-rao30"
     realistic = realistic_input(voxelize_exact(tree, label_grid), Geometry(label_grid, VIEWS), seed,
-                                RealisticOptions(**REALISTIC_PROTOCOLS[protocol]))
+                                RealisticOptions(**{**REALISTIC_PROTOCOLS[protocol], **MASK_OPTIONS}))
     return (realistic.masks, [round(v["mask_dice"], 4) for v in realistic.info["views"]], realistic.frames,
             realistic.info["motion"][1])
 
@@ -490,6 +494,9 @@ def main(argv=None) -> int:
                     help="clean masks rendered from the tubes, or masks segmented from their simulated angiograms (then the "
                          "two-view widths and areas are also read from those angiograms: the 'frames' columns); "
                          "segmented-moving (recon suite): the same with the object moved up to 3 mm / 2° between the views")
+    ap.add_argument("--mask-option", action="append", default=[], metavar="KEY=VALUE",
+                    help="segmented masks: a realistic.RealisticOptions field other than the protocol's, repeatable "
+                         "(e.g. mask_edge_fraction=0: the mask pipeline without its edge rule)")
     ap.add_argument("--grow", type=float, nargs="+", default=None,
                     help="recon suite: fit each case once and analyse it finished with each of these grow thresholds "
                          "(0 = the threshold alone; the fast preset grows into 0.3), side by side")
@@ -515,6 +522,14 @@ def main(argv=None) -> int:
     if args.masks == "segmented-moving" and args.suite != "recon":
         ap.error("--masks segmented-moving needs --suite recon (a motion between the views matters to a reconstruction)")
     CENTRELINES[:] = args.centreline
+    for item in args.mask_option:
+        key, _, text = item.partition("=")
+        if args.masks == "clean" or key.strip() not in ("mask_edge_fraction", "mask_edge_max_radius_mm", "snr"):
+            ap.error(f"--mask-option {item!r}: give mask_edge_fraction, mask_edge_max_radius_mm or snr=VALUE "
+                     "(none for no limit), with segmented masks")
+        MASK_OPTIONS[key.strip()] = None if text.strip().lower() == "none" else float(text)
+    if MASK_OPTIONS:
+        print(f"# segmented masks with {MASK_OPTIONS}", flush=True)
     global ANALYSE_WITHOUT_FRAMES, SEARCH_MASKS
     ANALYSE_WITHOUT_FRAMES, SEARCH_MASKS = args.no_frames, not args.no_masks_search
     if args.frames_max_over_3d is not None:

@@ -54,6 +54,9 @@ def main() -> int:
                         help="folder: one .npz per case and variant (occupancy, result, truth label, masks), its geometry .json and its report, to study offline")
     parser.add_argument("--skip-default", action="store_true",
                         help="run only the variants (the preset's own runs already saved; deterministic on one thread)")
+    parser.add_argument("--masks", type=json.loads, default=None,
+                        help='JSON object of realistic.RealisticOptions overrides for every run, e.g. \'{"mask_edge_fraction": 0.2}\' '
+                             '(the masks segmented otherwise; realistic protocols only)')
     parser.add_argument("variants", nargs="*", help="JSON objects of setting overrides")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
@@ -62,11 +65,11 @@ def main() -> int:
     variants = [{}] + [json.loads(text) for text in args.variants]
     print(f"# {platform.processor() or platform.machine()}, {os.cpu_count()} cores, torch {torch.__version__}, "
           f"{args.threads} thread(s); {args.suite} cases {args.case}, {args.protocol}, "
-          f"{'grid80' if args.grid80 else 'paper grid'}", flush=True)
+          f"{'grid80' if args.grid80 else 'paper grid'}{'; masks ' + json.dumps(args.masks) if args.masks else ''}", flush=True)
     scores: dict = {json.dumps(v): [] for v in variants}
     for index in args.case:
         spec = build_cases(config)[index]
-        case = prepare_case(spec, args.protocol, grid)
+        case = prepare_case(spec, args.protocol, grid, realistic_overrides=args.masks)
         for number, variant in enumerate(variants):
             if number == 0 and args.skip_default:
                 continue
