@@ -37,7 +37,7 @@ import json
 import sys
 import time
 from pathlib import Path
-from typing import Dict, List
+from typing import Dict, List, Optional
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -281,7 +281,7 @@ def run_truth(cases, spacing, view_step_deg, mask_source="clean"):
 
 
 #: realistic.RealisticOptions overrides for the segmented masks (``--mask-option``), e.g. the mask pipeline's edge rule
-MASK_OPTIONS: Dict[str, float] = {}
+MASK_OPTIONS: Dict[str, Optional[float]] = {}
 
 
 def segmented_masks(tree, seed, moving=False):
