@@ -523,11 +523,16 @@ def main(argv=None) -> int:
         ap.error("--masks segmented-moving needs --suite recon (a motion between the views matters to a reconstruction)")
     CENTRELINES[:] = args.centreline
     for item in args.mask_option:
-        key, _, text = item.partition("=")
-        if args.masks == "clean" or key.strip() not in ("mask_edge_fraction", "mask_edge_max_radius_mm", "snr"):
-            ap.error(f"--mask-option {item!r}: give mask_edge_fraction, mask_edge_max_radius_mm or snr=VALUE "
-                     "(none for no limit), with segmented masks")
-        MASK_OPTIONS[key.strip()] = None if text.strip().lower() == "none" else float(text)
+        key, _, text = (part.strip() for part in item.partition("="))
+        no_limit = key == "mask_edge_max_radius_mm" and text.lower() == "none"
+        try:
+            value = None if no_limit else float(text)
+        except ValueError:
+            value = key = ""
+        if args.masks == "clean" or key not in ("mask_edge_fraction", "mask_edge_max_radius_mm", "snr"):
+            ap.error(f"--mask-option {item!r}: give mask_edge_fraction, mask_edge_max_radius_mm or snr=NUMBER "
+                     "(mask_edge_max_radius_mm=none: the rule on every vessel), with segmented masks")
+        MASK_OPTIONS[key] = value
     if MASK_OPTIONS:
         print(f"# segmented masks with {MASK_OPTIONS}", flush=True)
     global ANALYSE_WITHOUT_FRAMES, SEARCH_MASKS
