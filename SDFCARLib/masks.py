@@ -35,13 +35,18 @@ Angiogram masks (``segment_angiogram`` / ``angiogram_mask``), for when no mask e
        ``silhouette_noise_units`` above its own noise (the ridge response is wider than the vessel).
     7. Specks: 8-connected components shorter than ``min_length_mm`` along their skeleton, or
        less elongated than ``min_elongation`` (length² / area, i.e. length over mean width), go.
-    8. Edges of thin vessels: step 6's level sits at the foot of the blurred profile, so a thin, faint
-       vessel comes out a pixel wider on each side than it is (a thick one does not). Where the
-       mask's radius at the nearest centreline point is at most ``edge_max_radius_mm``, a pixel also
-       needs ``edge_fraction`` of the contrast on that centreline point; the centreline always stays.
-       (0.2 up to 1.5 mm by default: the extra pixels of the realistic suites' masks 9–10 % → 4–5 % of
-       the silhouette, and better reconstructions, bench/RESULTS.md §59; on every vessel, §26b, it
-       also cut the thick ones.)
+    8. Edges: step 6's level sits at the foot of the blurred profile, so a thin, faint vessel comes
+       out a pixel wider on each side than it is, while the ridge filter's reach leaves a thick
+       vessel's border a pixel short. A pixel's edge level is a share of the contrast on the nearest
+       point of the mask's centreline: ``edge_fraction`` where the mask's radius there is up to
+       ``edge_taper_radius_mm``, falling as (taper radius / radius)² beyond (the blurred border of a
+       wide lumen sits lower on its profile than a narrow one's). Mask pixels below their level go,
+       the centreline always stays, and pixels up to ``edge_grow_mm`` outside the mask that reach
+       it and stand out of the noise as step 6 asks are added. Without a taper the share is
+       constant, and ``edge_max_radius_mm`` limits the rule to the thinner vessels (the rule
+       before, bench/RESULTS.md §59).
+       (Defaults: bench/RESULTS.md §60 — the realistic suites' border errors a quarter fewer, extra
+       and missed pixels alike.)
 
     A frame where nothing is left (no contrast, a wrong frame) or where half the image would be
     vessel is refused with a ``MaskError`` that names the problem.
@@ -156,8 +161,10 @@ class AngioMaskSettings:
     min_length_mm: float = 6.0  # a component's centreline must be at least this long
     min_elongation: float = 3.0  # and length / mean width at least this (specks are round)
     min_field_fraction: float = 0.25  # refuse frames whose exposed field is smaller than this
-    edge_fraction: float = 0.2  # >0: a vessel's edge where its contrast falls to this share of its centreline's
-    edge_max_radius_mm: Optional[float] = 1.5  # the edge rule only on vessels this thin (mask radius); None: all
+    edge_fraction: float = 0.25  # >0: a vessel's edge where its contrast falls to this share of its centreline's
+    edge_taper_radius_mm: Optional[float] = 1.0  # beyond this mask radius the share falls as (this / radius)²; None: constant
+    edge_grow_mm: float = 0.45  # pixels this near the mask that reach the edge level (and the noise level) join; 0: trim only
+    edge_max_radius_mm: Optional[float] = None  # the edge rule only on vessels this thin (mask radius); None: all
 
     def check(self) -> None:
         r0, r1 = (float(v) for v in self.vessel_radius_mm)
@@ -178,6 +185,12 @@ class AngioMaskSettings:
         if self.edge_max_radius_mm is not None and not self.edge_max_radius_mm > 0:
             raise MaskError(f"edge_max_radius_mm must be a positive radius in mm (the edge rule acts on vessels up to it) "
                             f"or None (on every vessel), got {self.edge_max_radius_mm}")
+        if self.edge_taper_radius_mm is not None and not self.edge_taper_radius_mm > 0:
+            raise MaskError(f"edge_taper_radius_mm must be a positive radius in mm (the edge share falls beyond it) "
+                            f"or None (the same share on every vessel), got {self.edge_taper_radius_mm}")
+        if not 0 <= self.edge_grow_mm <= max(self.vessel_radius_mm):
+            raise MaskError(f"edge_grow_mm must be between 0 (no growth) and the largest vessel radius "
+                            f"{max(self.vessel_radius_mm):g} mm, got {self.edge_grow_mm}")
         if self.min_length_mm < 0 or self.min_elongation < 0:
             raise MaskError("min_length_mm and min_elongation must be 0 or more")
 
@@ -314,22 +327,33 @@ def _ridge(image: np.ndarray, sigmas: Sequence[float], method: str) -> np.ndarra
     return meijering(image, sigmas=sigmas, black_ridges=False)
 
 
-def _trim_to_edges(mask: np.ndarray, contrast: np.ndarray, fraction: float,
-                   max_radius_px: Optional[float] = None) -> np.ndarray:
-    """Keep the mask's pixels whose contrast is at least ``fraction`` of the contrast on the nearest
-    point of the mask's centreline; the centreline itself always stays (no vessel is cut). With
-    ``max_radius_px``, only where the mask's radius at that centreline point is at most that: the
-    noise-level border widens the thin, faint vessels, not the thick ones."""
+def _redraw_edges(mask: np.ndarray, contrast: np.ndarray, fraction: float, field: np.ndarray,
+                  taper_radius_px: Optional[float] = None, grow_px: float = 0.0,
+                  max_radius_px: Optional[float] = None, grow_floor: float = 0.0) -> np.ndarray:
+    """The mask's border redrawn where the contrast reaches its edge level: ``fraction`` of the
+    contrast on the nearest point of the mask's centreline, times (``taper_radius_px`` / r)² where
+    the mask's radius r there is larger. Mask pixels below it go (the centreline always stays: no
+    vessel is cut); field pixels up to ``grow_px`` outside the mask that reach it and whose contrast
+    exceeds ``grow_floor`` (step 6's noise level: no noise grows onto a vessel) join. With
+    ``max_radius_px``, nothing changes where r exceeds it."""
     from skimage.morphology import skeletonize
 
     centreline = skeletonize(mask)
     _, (rows, cols) = ndimage.distance_transform_edt(~centreline, return_indices=True)
+    radius = ndimage.distance_transform_edt(mask)[rows, cols]
     # the centreline's contrast, taken as the largest within one pixel (a skeleton drawn off the ridge)
     peak = ndimage.maximum_filter(contrast, size=3)[rows, cols]
-    keep = (contrast >= fraction * peak) | centreline
+    share = np.full(mask.shape, float(fraction))
+    if taper_radius_px is not None:
+        share *= np.minimum(1.0, (taper_radius_px / np.maximum(radius, 1e-6)) ** 2)
+    reaches = contrast >= share * peak
+    candidates = mask
+    if grow_px > 0:
+        candidates = mask | ((ndimage.distance_transform_edt(~mask) <= grow_px) & field & (contrast > grow_floor))
+    redrawn = (candidates & reaches) | centreline
     if max_radius_px is not None:
-        keep |= ndimage.distance_transform_edt(mask)[rows, cols] > max_radius_px
-    return mask & keep
+        redrawn = np.where(radius > max_radius_px, mask, redrawn)
+    return redrawn
 
 
 def _component_shape(mask: np.ndarray) -> Tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -420,8 +444,11 @@ def segment_angiogram(
     keep[0] = False
     mask = keep[labels]
     if s.edge_fraction > 0 and mask.any():
-        mask = _trim_to_edges(mask, contrast - c_median, s.edge_fraction,
-                              None if s.edge_max_radius_mm is None else s.edge_max_radius_mm / iso_px_mm)
+        mask = _redraw_edges(mask, contrast - c_median, s.edge_fraction, field,
+                             None if s.edge_taper_radius_mm is None else s.edge_taper_radius_mm / iso_px_mm,
+                             s.edge_grow_mm / iso_px_mm,
+                             None if s.edge_max_radius_mm is None else s.edge_max_radius_mm / iso_px_mm,
+                             s.silhouette_noise_units * c_spread)
     if not mask.any():
         raise MaskError("no vessel found: no elongated structure of at least "
                         f"{s.min_length_mm:g} mm stands out of the noise (a frame without contrast, or a wrong "

@@ -39,8 +39,10 @@ class RealisticOptions:
     max_shift_mm: float = 3.0  # object motion between the acquisitions, per view after the first
     max_rotation_deg: float = 2.0
     snr: float = 25.0  # background signal-to-noise ratio of the simulated frames
-    # the mask pipeline's edge rule (masks.AngioMaskSettings.edge_fraction, edge_max_radius_mm): its own defaults
+    # the mask pipeline's edge rule (masks.AngioMaskSettings.edge_*): its own defaults
     mask_edge_fraction: float = AngioMaskSettings.edge_fraction
+    mask_edge_taper_radius_mm: Optional[float] = AngioMaskSettings.edge_taper_radius_mm
+    mask_edge_grow_mm: float = AngioMaskSettings.edge_grow_mm
     mask_edge_max_radius_mm: Optional[float] = AngioMaskSettings.edge_max_radius_mm
 
     def check(self) -> None:
@@ -85,6 +87,8 @@ def realistic_input(label: np.ndarray, geometry: Geometry, seed: int,
         try:
             segmented = segment_angiogram(frame, view.pixel_spacing_mm, view.magnification,
                                           AngioMaskSettings(edge_fraction=options.mask_edge_fraction,
+                                                            edge_taper_radius_mm=options.mask_edge_taper_radius_mm,
+                                                            edge_grow_mm=options.mask_edge_grow_mm,
                                                             edge_max_radius_mm=options.mask_edge_max_radius_mm))
         except MaskError as exc:
             raise MaskError(f"view {n}: the simulated angiogram could not be segmented: {exc}") from None

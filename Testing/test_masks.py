@@ -166,7 +166,8 @@ def test_edge_fraction_trims_the_blurred_border_to_the_vessel_and_keeps_its_cent
     silhouette = line_integral > 0
     frame, _ = _frame(line_integral)
     default = _segment(frame, edge_fraction=0.0).mask  # no edge rule
-    trimmed = _segment(frame, edge_fraction=0.25, edge_max_radius_mm=None).mask  # on every vessel
+    # a constant share on every vessel, trimming only
+    trimmed = _segment(frame, edge_fraction=0.25, edge_taper_radius_mm=None, edge_grow_mm=0.0).mask
     columns = slice(30, 130)  # away from the tube's ends and the image border
     assert np.all(trimmed <= default) and _components(trimmed) == 1
     assert trimmed[62:67, columns].all()  # the centre rows stay
@@ -186,21 +187,66 @@ def test_edge_rule_limited_to_thin_vessels_leaves_the_thick_ones_as_they_were():
     silhouette = line_integral > 0
     frame, _ = _frame(line_integral)
     no_rule = _segment(frame, edge_fraction=0.0).mask
-    everywhere = _segment(frame, edge_fraction=0.5, edge_max_radius_mm=None).mask
-    thin_only = _segment(frame, edge_fraction=0.5, edge_max_radius_mm=1.2).mask
+    constant = dict(edge_taper_radius_mm=None, edge_grow_mm=0.0)
+    everywhere = _segment(frame, edge_fraction=0.5, edge_max_radius_mm=None, **constant).mask
+    thin_only = _segment(frame, edge_fraction=0.5, edge_max_radius_mm=1.2, **constant).mask
     thin, thick = (slice(25, 56), slice(30, 130)), (slice(80, 121), slice(30, 130))
     assert not np.array_equal(everywhere[thick], no_rule[thick])  # the rule would trim the thick tube
     assert np.array_equal(thin_only[thick], no_rule[thick])  # but is told not to
     assert np.array_equal(thin_only[thin], everywhere[thin]) and thin_only[thin].sum() < no_rule[thin].sum()
-    # The default rule (0.2 of the centreline's contrast up to 1.5 mm) takes extra pixels off the thin
-    # tube, loses fewer of its pixels than it removes outside it, and leaves the thick tube alone.
-    default = _segment(frame).mask
+    # The rule of RESULTS §59 (0.2 of the centreline's contrast up to 1.5 mm) takes extra pixels off the
+    # thin tube, loses fewer of its pixels than it removes outside it, and leaves the thick tube alone.
+    default = _segment(frame, edge_fraction=0.2, edge_max_radius_mm=1.5, **constant).mask
     extra = lambda m: int((m & ~silhouette)[thin].sum())  # noqa: E731
     missed = lambda m: int((silhouette & ~m)[thin].sum())  # noqa: E731
     assert extra(default) < extra(no_rule) and extra(no_rule) - extra(default) > missed(default) - missed(no_rule)
     assert np.array_equal(default[thick], no_rule[thick]) and _components(default) == 2
     with pytest.raises(MaskError, match="edge_max_radius_mm must be a positive radius"):
         _segment(frame, edge_fraction=0.25, edge_max_radius_mm=0.0)
+
+
+def test_edge_share_tapers_with_the_radius_so_a_thick_vessel_keeps_its_border():
+    # a thin tube (radius 0.6 mm) along row 40 and a thick one (2 mm) along row 100
+    line_integral = _tubes((140, 160), [((40, 10), (40, 150), 0.6, 1.0), ((100, 10), (100, 150), 2.0, 1.0)])
+    silhouette = line_integral > 0
+    frame, _ = _frame(line_integral)
+    thin, thick = (slice(25, 56), slice(30, 130)), (slice(80, 121), slice(30, 130))
+    extra = lambda m, part: int((m & ~silhouette)[part].sum())  # noqa: E731
+    missed = lambda m, part: int((silhouette & ~m)[part].sum())  # noqa: E731
+    no_rule = _segment(frame, edge_fraction=0.0).mask
+    constant = _segment(frame, edge_fraction=0.5, edge_taper_radius_mm=None, edge_grow_mm=0.0).mask
+    tapered = _segment(frame, edge_fraction=0.5, edge_taper_radius_mm=1.0, edge_grow_mm=0.0).mask
+    # Half the centreline's contrast is right for the thin tube's blurred profile but cuts into the
+    # thick tube; falling as (1 mm / radius)² it leaves the thick tube's border where it was.
+    assert missed(constant, thick) > missed(no_rule, thick)
+    assert missed(tapered, thick) == missed(no_rule, thick) and extra(tapered, thick) == extra(no_rule, thick)
+    assert extra(tapered, thin) < 0.25 * extra(no_rule, thin) and missed(tapered, thin) == 0
+    with pytest.raises(MaskError, match="edge_taper_radius_mm must be a positive radius"):
+        _segment(frame, edge_taper_radius_mm=0.0)
+
+
+def test_edge_growth_restores_the_thick_vessels_border_that_the_ridge_filter_leaves_short():
+    line_integral = _tubes((140, 160), [((40, 10), (40, 150), 0.6, 1.0), ((100, 10), (100, 150), 2.0, 1.0)])
+    silhouette = line_integral > 0
+    thin, thick = (slice(25, 56), slice(30, 130)), (slice(80, 121), slice(30, 130))
+    extra = lambda m, part: int((m & ~silhouette)[part].sum())  # noqa: E731
+    missed = lambda m, part: int((silhouette & ~m)[part].sum())  # noqa: E731
+    for seed in (0, 1):
+        frame, _ = _frame(line_integral, seed=seed)
+        no_rule = _segment(frame, edge_fraction=0.0).mask
+        trim_only = _segment(frame, edge_grow_mm=0.0).mask
+        default = _segment(frame).mask
+        # The ridge filter's reach leaves a one-pixel rim of the 4 mm tube out (about 2 × 100 pixels);
+        # the default rule adds it back from the frame's contrast with hardly a pixel beyond the tube.
+        assert missed(trim_only, thick) > 150 and missed(trim_only, thick) == missed(no_rule, thick)
+        assert missed(default, thick) < 0.1 * missed(trim_only, thick)
+        assert extra(default, thick) < 0.1 * missed(trim_only, thick)
+        # and the thin tube is not widened by it
+        assert extra(default, thin) <= extra(no_rule, thin) and missed(default, thin) == 0
+        assert _components(default) == 2
+    for bad in (-0.1, 10.0):
+        with pytest.raises(MaskError, match="edge_grow_mm must be between 0"):
+            _segment(frame, edge_grow_mm=bad)
 
 
 def test_scales_follow_the_physical_vessel_size_and_parameters_are_reported():
