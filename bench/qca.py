@@ -478,6 +478,10 @@ def summarise(rows: List[Dict]) -> str:
     return "\n".join(lines)
 
 
+NUMERIC_MASK_OPTIONS = ("mask_edge_fraction", "mask_edge_grow_mm", "snr")
+OPTIONAL_MASK_OPTIONS = ("mask_edge_max_radius_mm", "mask_edge_taper_radius_mm")  # these also take none
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--suite", choices=("tubes", "trees", "recon"), default="tubes")
@@ -524,14 +528,14 @@ def main(argv=None) -> int:
     CENTRELINES[:] = args.centreline
     for item in args.mask_option:
         key, _, text = (part.strip() for part in item.partition("="))
-        no_limit = key == "mask_edge_max_radius_mm" and text.lower() == "none"
+        no_limit = key in OPTIONAL_MASK_OPTIONS and text.lower() == "none"
         try:
             value = None if no_limit else float(text)
         except ValueError:
             value = key = ""
-        if args.masks == "clean" or key not in ("mask_edge_fraction", "mask_edge_max_radius_mm", "snr"):
-            ap.error(f"--mask-option {item!r}: give mask_edge_fraction, mask_edge_max_radius_mm or snr=NUMBER "
-                     "(mask_edge_max_radius_mm=none: the rule on every vessel), with segmented masks")
+        if args.masks == "clean" or key not in NUMERIC_MASK_OPTIONS + OPTIONAL_MASK_OPTIONS:
+            ap.error(f"--mask-option {item!r}: give {', '.join(NUMERIC_MASK_OPTIONS + OPTIONAL_MASK_OPTIONS)}=NUMBER "
+                     f"({' or '.join(OPTIONAL_MASK_OPTIONS)}=none: no radius limit / no taper), with segmented masks")
         MASK_OPTIONS[key] = value
     if MASK_OPTIONS:
         print(f"# segmented masks with {MASK_OPTIONS}", flush=True)
