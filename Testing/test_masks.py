@@ -181,16 +181,20 @@ def test_edge_fraction_trims_the_blurred_border_to_the_vessel_and_keeps_its_cent
         _segment(frame, edge_fraction=1.0)
 
 
-def test_edge_rule_limited_to_thin_vessels_leaves_the_thick_ones_as_they_were():
-    # a thin tube (radius 0.6 mm) along row 40 and a thick one (2 mm) along row 100
+def _thin_and_thick_tubes():
+    """A thin tube (radius 0.6 mm) along row 40 and a thick one (2 mm) along row 100: line integral,
+    silhouette, and the regions of each tube away from their ends."""
     line_integral = _tubes((140, 160), [((40, 10), (40, 150), 0.6, 1.0), ((100, 10), (100, 150), 2.0, 1.0)])
-    silhouette = line_integral > 0
+    return line_integral, line_integral > 0, (slice(25, 56), slice(30, 130)), (slice(80, 121), slice(30, 130))
+
+
+def test_edge_rule_limited_to_thin_vessels_leaves_the_thick_ones_as_they_were():
+    line_integral, silhouette, thin, thick = _thin_and_thick_tubes()
     frame, _ = _frame(line_integral)
     no_rule = _segment(frame, edge_fraction=0.0).mask
     constant = dict(edge_taper_radius_mm=None, edge_grow_mm=0.0)
     everywhere = _segment(frame, edge_fraction=0.5, edge_max_radius_mm=None, **constant).mask
     thin_only = _segment(frame, edge_fraction=0.5, edge_max_radius_mm=1.2, **constant).mask
-    thin, thick = (slice(25, 56), slice(30, 130)), (slice(80, 121), slice(30, 130))
     assert not np.array_equal(everywhere[thick], no_rule[thick])  # the rule would trim the thick tube
     assert np.array_equal(thin_only[thick], no_rule[thick])  # but is told not to
     assert np.array_equal(thin_only[thin], everywhere[thin]) and thin_only[thin].sum() < no_rule[thin].sum()
@@ -206,11 +210,8 @@ def test_edge_rule_limited_to_thin_vessels_leaves_the_thick_ones_as_they_were():
 
 
 def test_edge_share_tapers_with_the_radius_so_a_thick_vessel_keeps_its_border():
-    # a thin tube (radius 0.6 mm) along row 40 and a thick one (2 mm) along row 100
-    line_integral = _tubes((140, 160), [((40, 10), (40, 150), 0.6, 1.0), ((100, 10), (100, 150), 2.0, 1.0)])
-    silhouette = line_integral > 0
+    line_integral, silhouette, thin, thick = _thin_and_thick_tubes()
     frame, _ = _frame(line_integral)
-    thin, thick = (slice(25, 56), slice(30, 130)), (slice(80, 121), slice(30, 130))
     extra = lambda m, part: int((m & ~silhouette)[part].sum())  # noqa: E731
     missed = lambda m, part: int((silhouette & ~m)[part].sum())  # noqa: E731
     no_rule = _segment(frame, edge_fraction=0.0).mask
@@ -226,9 +227,7 @@ def test_edge_share_tapers_with_the_radius_so_a_thick_vessel_keeps_its_border():
 
 
 def test_edge_growth_restores_the_thick_vessels_border_that_the_ridge_filter_leaves_short():
-    line_integral = _tubes((140, 160), [((40, 10), (40, 150), 0.6, 1.0), ((100, 10), (100, 150), 2.0, 1.0)])
-    silhouette = line_integral > 0
-    thin, thick = (slice(25, 56), slice(30, 130)), (slice(80, 121), slice(30, 130))
+    line_integral, silhouette, thin, thick = _thin_and_thick_tubes()
     extra = lambda m, part: int((m & ~silhouette)[part].sum())  # noqa: E731
     missed = lambda m, part: int((silhouette & ~m)[part].sum())  # noqa: E731
     for seed in (0, 1):
