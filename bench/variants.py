@@ -30,7 +30,7 @@ import torch  # noqa: E402
 from SDFCARLib.benchmark import BenchmarkConfig, GridOptions, build_cases, prepare_case  # noqa: E402
 from SDFCARLib.metrics import evaluate  # noqa: E402
 from SDFCARLib.optimiser import reconstruct  # noqa: E402
-from SDFCARLib.settings import PROTOCOLS, make_settings  # noqa: E402
+from SDFCARLib.settings import PROTOCOLS, REALISTIC_PROTOCOLS, make_settings  # noqa: E402
 
 
 def save_run(folder: Path, stem: str, case, result) -> None:
@@ -59,6 +59,9 @@ def main() -> int:
                              '(the masks segmented otherwise; realistic protocols only)')
     parser.add_argument("variants", nargs="*", help="JSON objects of setting overrides")
     args = parser.parse_args()
+    if args.masks and args.protocol not in REALISTIC_PROTOCOLS:
+        parser.error(f"--masks changes masks segmented from simulated angiograms; {args.protocol} projects its masks "
+                     f"from the truth: give a realistic protocol ({', '.join(sorted(REALISTIC_PROTOCOLS))})")
     torch.set_num_threads(args.threads)
     grid = GridOptions((80, 80, 80), 1.3, (192, 192), 0.8) if args.grid80 else GridOptions()
     config = BenchmarkConfig(args.suite, Path("unused"), cases=max(args.case) + 1, grid=grid, protocol=args.protocol)
