@@ -159,6 +159,9 @@ class Problem:
     # bool volume: voxels taken out of the field during the fit (width_exclusion_fraction), None: none
     excluded: Optional[np.ndarray] = None
     exclusion: Optional[Dict[str, Any]] = None  # what was taken out, for report.json
+    # where L_occ fits the frames' path lengths: the masks' own targets, which it fits after
+    # frame_evidence_until_fraction of the steps (None: L_occ fits view_targets throughout)
+    mask_targets: Optional[List[ViewTarget]] = None
 
 
 def _normalised_points(geometry: Geometry, flat: np.ndarray, device: torch.device) -> torch.Tensor:
@@ -300,6 +303,7 @@ def build_problem(geometry: Geometry, targets: Sequence[np.ndarray], settings: S
     ]
     view_targets = [make_target(torch.as_tensor(a, device=device), target_kind, settings.loss.silhouette_length_mm)
                     for a in arrays]
+    mask_targets = view_targets if evidence_images is not None else None
     if evidence_images is not None:
         # L_occ on the frames' path lengths; L_geo and the support stay on the masks.
         blur_mm = settings.loss.frame_blur_sigma_mm
@@ -319,8 +323,23 @@ def build_problem(geometry: Geometry, targets: Sequence[np.ndarray], settings: S
     record = dict(evidence.record) if settings.loss.frame_evidence else dict(FRAME_EVIDENCE_OFF)
     if evidence_images is not None:
         record["lambda_occ"] = settings.loss.lambda_occ_frames  # the weight L_occ has on the frames' path lengths
+        record["until_step"] = frames_until_step(settings)  # after it L_occ fits the masks
     return Problem(geometry, settings, target_kind, arrays, support, voxels, device, device_reason, needed_bytes,
-                   projectors, view_targets, geometric, time.perf_counter() - t_start, warnings, consistency, record)
+                   projectors, view_targets, geometric, time.perf_counter() - t_start, warnings, consistency, record,
+                   mask_targets=mask_targets)
+
+
+def frames_until_step(settings: Settings) -> int:
+    """The last step at which L_occ fits the frames' path lengths (where they are used; ``frame_evidence_until_fraction``)."""
+    return int(round(settings.loss.frame_evidence_until_fraction * settings.optimisation.steps))
+
+
+def occupancy_targets(problem: Problem, step: int) -> Tuple[List[ViewTarget], float]:
+    """L_occ's targets and weight at ``step`` (from 1): the frames' path lengths (λ_occ_frames) up to
+    ``frames_until_step``, the masks (λ_occ) after it; without frames the problem's targets throughout."""
+    if problem.mask_targets is not None and step > frames_until_step(problem.settings):
+        return problem.mask_targets, problem.settings.loss.lambda_occ
+    return problem.view_targets, problem.evidence.get("lambda_occ", problem.settings.loss.lambda_occ)
 
 
 COARSE_START_LEVELS = 2  # the encoding's levels active at the first step of a coarse-to-fine fit
@@ -345,7 +364,6 @@ def optimise(problem: Problem, model: ImplicitField, progress: Progress = None, 
     fade_steps = o.coarse_to_fine_fraction * o.steps
     exclusion_steps = exclusion_schedule(settings)
     allowed: Optional[torch.Tensor] = None
-    lambda_occ = problem.evidence.get("lambda_occ", settings.loss.lambda_occ)
     averaging_from = averaging_start(settings)
     parameters = [p for group in optimiser.param_groups for p in group["params"]]  # what Adam trains
     averaged: List[torch.Tensor] = []
@@ -367,8 +385,9 @@ def optimise(problem: Problem, model: ImplicitField, progress: Progress = None, 
         if allowed is not None:
             occupancy = occupancy * allowed
         line_integrals = [projector.render(occupancy) for projector in problem.projectors]
+        occupancy_view_targets, lambda_occ = occupancy_targets(problem, step)
         l_occ = sum(occupancy_loss(t.rendered(li), t.image)
-                    for li, t in zip(line_integrals, problem.view_targets)) / len(problem.projectors)
+                    for li, t in zip(line_integrals, occupancy_view_targets)) / len(problem.projectors)
         loss = lambda_occ * l_occ
         l_geo = torch.zeros((), device=device)
         if problem.geometric is not None:

@@ -132,6 +132,10 @@ class LossSettings:
     # λ2 when L_occ fits the frames' path lengths (they say how much vessel a ray crossed, which a mask
     # does not); 0.5 was better on static realistic cases but worse on moving LAD ones (RESULTS §18b)
     lambda_occ_frames: float = 0.25
+    # the share of the steps over which L_occ fits the frames' path lengths; after it L_occ fits the masks'
+    # silhouettes (weighed lambda_occ), so the path lengths settle which voxels are vessel and then stop
+    # bending the lumen (they cost exact masks 5 clDice points: RESULTS §61c); 1: the whole fit
+    frame_evidence_until_fraction: float = 1.0
     # >0: the detector's blur (Gaussian σ, detector mm) that the frames' path lengths carry; L_occ on the frames
     # then compares the rendering blurred alike (0: off; 0.3 was far worse on realistic trees: RESULTS §33d)
     frame_blur_sigma_mm: float = 0.0
@@ -306,6 +310,9 @@ class Settings:
                                       f"({l.dt_truncation_mm:g}), got {l.dt_tolerance_mm}")
         if not 0 <= l.frame_trim_centre_fraction < 1:
             raise ReconstructionError(f"frame_trim_centre_fraction is a fraction in [0, 1) (0: off), got {l.frame_trim_centre_fraction}")
+        if not 0 < l.frame_evidence_until_fraction <= 1:
+            raise ReconstructionError(f"frame_evidence_until_fraction is the share of the steps that fit the frames, in (0, 1] "
+                                      f"(1: every step; frame_evidence=false fits none), got {l.frame_evidence_until_fraction}")
         if not l.frame_blur_sigma_mm >= 0:
             raise ReconstructionError(f"frame_blur_sigma_mm is a detector blur in mm (0: off), got {l.frame_blur_sigma_mm}")
         if o.table_learning_rate is not None and not o.table_learning_rate > 0:

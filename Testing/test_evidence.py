@@ -12,7 +12,7 @@ from SDFCARLib.evidence import (EvidenceError, absorbance_above_background, bord
 from SDFCARLib.geometry import CArmView, Geometry, VolumeGrid
 from SDFCARLib.losses import make_target, frame_target, occupancy_loss
 from SDFCARLib.masks import segment_angiogram
-from SDFCARLib.optimiser import build_problem, reconstruct
+from SDFCARLib.optimiser import build_problem, occupancy_targets, reconstruct
 from SDFCARLib.phantoms import Branch, CentrelineTree, simulate_views, voxelize
 from SDFCARLib.settings import ReconstructionError, make_settings
 
@@ -200,6 +200,30 @@ def test_reconstruction_fits_the_frames_when_asked(angiogram_case):
         assert view["attenuation_per_mm"] == pytest.approx(0.25, rel=0.2)
     overlap = np.sum(result.segmentation & label) / np.sum(label)
     assert overlap > 0.6 and result.segmentation.sum() < 2.0 * label.sum()
+
+
+def test_occupancy_loss_fits_the_frames_then_the_masks_when_asked(angiogram_case):
+    geometry, _, frames, masks = angiogram_case
+    settings = make_settings("fast", steps=20, warmup_steps=2, frame_evidence=True, lambda_occ_frames=0.5,
+                             frame_evidence_until_fraction=0.5, width_exclusion_fraction=0.0)
+    result = reconstruct(geometry, masks, settings, "mask", frames=frames)
+    assert result.report["frame_evidence"]["until_step"] == 10
+    for entry in result.history:  # λ_occ_frames on the path lengths up to step 10, the masks' λ_occ after it
+        weight = 0.5 if entry["step"] <= 10 else settings.loss.lambda_occ
+        assert entry["loss"] == pytest.approx(weight * entry["l_occ"] + settings.loss.lambda_geo * entry["l_geo"], rel=1e-5)
+    problem = build_problem(geometry, masks, settings, "mask", frames=frames)
+    frames_targets, frames_weight = occupancy_targets(problem, 10)
+    masks_targets, masks_weight = occupancy_targets(problem, 11)
+    assert frames_targets is problem.view_targets and frames_weight == 0.5
+    assert masks_targets is problem.mask_targets and masks_weight == settings.loss.lambda_occ
+    for on_frames, on_masks, mask in zip(frames_targets, masks_targets, masks):
+        assert np.array_equal(on_masks.image.cpu().numpy() > 0, mask > 0)  # the mask itself ...
+        assert not np.array_equal(on_frames.image.cpu().numpy(), on_masks.image.cpu().numpy())  # ... not the path lengths
+    no_frames = build_problem(geometry, masks, settings, "mask")
+    assert no_frames.mask_targets is None and occupancy_targets(no_frames, 11)[0] is no_frames.view_targets
+    for bad in (0.0, 1.5, -0.2):
+        with pytest.raises(ReconstructionError, match="frame_evidence_until_fraction"):
+            make_settings("fast", frame_evidence_until_fraction=bad)
 
 
 def test_the_detectors_blur_reaches_each_frame_target_in_its_pixels(angiogram_case):
