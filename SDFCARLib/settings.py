@@ -133,8 +133,7 @@ class LossSettings:
     # does not); 0.5 was better on static realistic cases but worse on moving LAD ones (RESULTS §18b)
     lambda_occ_frames: float = 0.25
     # the share of the steps over which L_occ fits the frames' path lengths; after it L_occ fits the masks'
-    # silhouettes (weighed lambda_occ), so the path lengths settle which voxels are vessel and then stop
-    # bending the lumen (they cost exact masks 5 clDice points: RESULTS §61c); 1: the whole fit
+    # silhouettes (weighed lambda_occ). 1: the whole fit; 0.8: LAD level, RCA −0.9, Dice lower (RESULTS §61e)
     frame_evidence_until_fraction: float = 1.0
     # >0: the detector's blur (Gaussian σ, detector mm) that the frames' path lengths carry; L_occ on the frames
     # then compares the rendering blurred alike (0: off; 0.3 was far worse on realistic trees: RESULTS §33d)
