@@ -16,6 +16,11 @@ Image model
 L_occ
     Mean over the image of (target − image)², Eq. (3) of the paper, averaged over views.
 
+L_excess (``frame_excess_factor`` > 0, off by default)
+    With the frames: L_occ fits the masks, and ``excess_path_loss`` charges each ray only the path length
+    it crosses beyond factor × the frame's + a tolerance, so the frames' blurred profile caps ghosts
+    without shaping the lumen.
+
 L_bin (``lambda_binary``, off by default)
     ``partial_occupancy_loss``: the share of the occupancy's mass that is neither 0 nor 1.
 
@@ -86,6 +91,12 @@ def gaussian_blur(image: torch.Tensor, sigma_px: Tuple[float, float]) -> torch.T
 
 def occupancy_loss(image: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
     return torch.mean((target - image) ** 2)
+
+
+def excess_path_loss(rendered: torch.Tensor, target: torch.Tensor, factor: float, tolerance: float) -> torch.Tensor:
+    """Mean over the image of max(rendered − factor·target − tolerance, 0)²: only what a ray crosses beyond
+    the target's allowance costs (all in the target's units, L / L_ref for the frames' path lengths)."""
+    return torch.mean(torch.relu(rendered - factor * target - tolerance) ** 2)
 
 
 def partial_occupancy_loss(occupancy: torch.Tensor) -> torch.Tensor:

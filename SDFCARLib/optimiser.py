@@ -51,8 +51,8 @@ from .device import available_memory_bytes, check_host_memory, choose_device, de
 from .field import FieldConfig, ImplicitField
 from .geometry import Geometry
 from .hull import support_mask
-from .losses import (DistanceSettings, GeometricLoss, ViewTarget, frame_target, make_target, occupancy_loss,
-                     partial_occupancy_loss)
+from .losses import (DistanceSettings, GeometricLoss, ViewTarget, excess_path_loss, frame_target, make_target,
+                     occupancy_loss, partial_occupancy_loss)
 from .consistency import consistency_warnings, view_consistency
 from .mask_checks import mask_warnings, support_masks
 from .masks import MaskError, binarise_mask
@@ -324,6 +324,9 @@ def build_problem(geometry: Geometry, targets: Sequence[np.ndarray], settings: S
     if evidence_images is not None:
         record["lambda_occ"] = settings.loss.lambda_occ_frames  # the weight L_occ has on the frames' path lengths
         record["until_step"] = frames_until_step(settings)  # after it L_occ fits the masks
+        if settings.loss.frame_excess_factor > 0:  # L_occ fits the masks; the frames cap the path length
+            record["excess_factor"] = settings.loss.frame_excess_factor
+            record["excess_tolerance_mm"] = settings.loss.frame_excess_tolerance_mm
     return Problem(geometry, settings, target_kind, arrays, support, voxels, device, device_reason, needed_bytes,
                    projectors, view_targets, geometric, time.perf_counter() - t_start, warnings, consistency, record,
                    mask_targets=mask_targets)
@@ -340,6 +343,36 @@ def occupancy_targets(problem: Problem, step: int) -> Tuple[List[ViewTarget], fl
     if problem.mask_targets is not None and step > frames_until_step(problem.settings):
         return problem.mask_targets, problem.settings.loss.lambda_occ
     return problem.view_targets, problem.evidence.get("lambda_occ", problem.settings.loss.lambda_occ)
+
+
+def caps_path_length(problem: Problem) -> bool:
+    """Whether the frames only cap the path length (``frame_excess_factor`` > 0) while L_occ fits the masks."""
+    return problem.mask_targets is not None and problem.settings.loss.frame_excess_factor > 0
+
+
+def occupancy_terms(problem: Problem, step: int, line_integrals: Sequence[torch.Tensor]) -> Dict[str, torch.Tensor]:
+    """The occupancy terms of the loss at ``step``: ``weighted`` (what the loss adds), ``l_occ`` (L_occ, mean
+    over views) and, where the frames cap the path length, ``l_excess`` (``losses.excess_path_loss``), where the
+    masks are fitted alongside the frames' path lengths, ``l_occ_masks``."""
+    count = len(line_integrals)
+    loss = problem.settings.loss
+    if caps_path_length(problem):
+        assert problem.mask_targets is not None
+        l_occ = sum(occupancy_loss(t.rendered(li), t.image) for li, t in zip(line_integrals, problem.mask_targets)) / count
+        if step > frames_until_step(problem.settings):
+            return {"weighted": loss.lambda_occ * l_occ, "l_occ": l_occ}
+        l_excess = sum(excess_path_loss(t.rendered(li), t.image, loss.frame_excess_factor,
+                                        loss.frame_excess_tolerance_mm / t.reference_mm)
+                       for li, t in zip(line_integrals, problem.view_targets)) / count
+        return {"weighted": loss.lambda_occ * l_occ + loss.lambda_occ_frames * l_excess, "l_occ": l_occ,
+                "l_excess": l_excess}
+    targets, weight = occupancy_targets(problem, step)
+    l_occ = sum(occupancy_loss(t.rendered(li), t.image) for li, t in zip(line_integrals, targets)) / count
+    terms = {"weighted": weight * l_occ, "l_occ": l_occ}
+    if targets is not problem.mask_targets and problem.mask_targets is not None and loss.lambda_occ_masks_with_frames > 0:
+        l_masks = sum(occupancy_loss(t.rendered(li), t.image) for li, t in zip(line_integrals, problem.mask_targets)) / count
+        terms.update(weighted=terms["weighted"] + loss.lambda_occ_masks_with_frames * l_masks, l_occ_masks=l_masks)
+    return terms
 
 
 COARSE_START_LEVELS = 2  # the encoding's levels active at the first step of a coarse-to-fine fit
@@ -385,10 +418,8 @@ def optimise(problem: Problem, model: ImplicitField, progress: Progress = None, 
         if allowed is not None:
             occupancy = occupancy * allowed
         line_integrals = [projector.render(occupancy) for projector in problem.projectors]
-        occupancy_view_targets, lambda_occ = occupancy_targets(problem, step)
-        l_occ = sum(occupancy_loss(t.rendered(li), t.image)
-                    for li, t in zip(line_integrals, occupancy_view_targets)) / len(problem.projectors)
-        loss = lambda_occ * l_occ
+        terms = occupancy_terms(problem, step, line_integrals)
+        loss = terms["weighted"]
         l_geo = torch.zeros((), device=device)
         if problem.geometric is not None:
             l_geo = problem.geometric([t.silhouette_of(li) for li, t in zip(line_integrals, problem.view_targets)])
@@ -405,7 +436,10 @@ def optimise(problem: Problem, model: ImplicitField, progress: Progress = None, 
                 else:
                     for mean, p in zip(averaged, parameters):
                         mean.lerp_(p, 1.0 / (step - averaging_from))
-        losses = {"loss": float(loss.detach()), "l_occ": float(l_occ.detach()), "l_geo": float(l_geo.detach())}
+        losses = {"loss": float(loss.detach()), "l_occ": float(terms["l_occ"].detach()), "l_geo": float(l_geo.detach())}
+        for extra in ("l_excess", "l_occ_masks"):
+            if extra in terms:
+                losses[extra] = float(terms[extra].detach())
         history.append({"step": step, **losses})
         if snapshot is not None and snapshot_every > 0 and step % snapshot_every == 0:
             paused = time.perf_counter()

@@ -135,6 +135,15 @@ class LossSettings:
     # the share of the steps over which L_occ fits the frames' path lengths; after it L_occ fits the masks'
     # silhouettes (weighed lambda_occ). 1: the whole fit; 0.8: LAD level, RCA −0.9, Dice lower (RESULTS §61e)
     frame_evidence_until_fraction: float = 1.0
+    # >0: L_occ fits the masks' silhouettes (weighed lambda_occ) and the frames only cap the path length: a ray
+    # costs (weighed lambda_occ_frames) only where it crosses more than this × the frame's path length +
+    # frame_excess_tolerance_mm — a ghost in a real vessel's shadow still costs what it adds, but the frames'
+    # blurred profile no longer shapes the lumen (0: off, L_occ fits the frames' path lengths)
+    frame_excess_factor: float = 0.0
+    frame_excess_tolerance_mm: float = 0.3
+    # >0 (with the frames' path lengths fitted, frame_excess_factor 0): L_occ on the masks' silhouettes too,
+    # weighed this, alongside the frames' (their sharp border against the frames' blurred profile; 0: off)
+    lambda_occ_masks_with_frames: float = 0.0
     # >0: the detector's blur (Gaussian σ, detector mm) that the frames' path lengths carry; L_occ on the frames
     # then compares the rendering blurred alike (0: off; 0.3 was far worse on realistic trees: RESULTS §33d)
     frame_blur_sigma_mm: float = 0.0
@@ -299,7 +308,8 @@ class Settings:
             if not value > 0:
                 raise ReconstructionError(f"{name} must be positive, got {value}")
         for name, value in (("lambda_geo", l.lambda_geo), ("lambda_occ", l.lambda_occ),
-                            ("lambda_occ_frames", l.lambda_occ_frames), ("lambda_binary", l.lambda_binary)):
+                            ("lambda_occ_frames", l.lambda_occ_frames), ("lambda_binary", l.lambda_binary),
+                            ("lambda_occ_masks_with_frames", l.lambda_occ_masks_with_frames)):
             if not value >= 0:
                 raise ReconstructionError(f"{name} is a loss weight and must not be negative, got {value}")
         if not l.frame_trim_mask_mm >= 0:
@@ -312,6 +322,13 @@ class Settings:
         if not 0 < l.frame_evidence_until_fraction <= 1:
             raise ReconstructionError(f"frame_evidence_until_fraction is the share of the steps that fit the frames, in (0, 1] "
                                       f"(1: every step; frame_evidence=false fits none), got {l.frame_evidence_until_fraction}")
+        if not (l.frame_excess_factor == 0 or l.frame_excess_factor >= 1):
+            raise ReconstructionError(f"frame_excess_factor is how many times the frame's path length a ray may cross "
+                                      f"before it costs: at least 1, or 0 (off: L_occ fits the frames' path lengths), "
+                                      f"got {l.frame_excess_factor}")
+        if not l.frame_excess_tolerance_mm >= 0:
+            raise ReconstructionError(f"frame_excess_tolerance_mm is a path length in mm, 0 or more, got "
+                                      f"{l.frame_excess_tolerance_mm}")
         if not l.frame_blur_sigma_mm >= 0:
             raise ReconstructionError(f"frame_blur_sigma_mm is a detector blur in mm (0: off), got {l.frame_blur_sigma_mm}")
         if o.table_learning_rate is not None and not o.table_learning_rate > 0:

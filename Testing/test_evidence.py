@@ -12,7 +12,7 @@ from SDFCARLib.evidence import (EvidenceError, absorbance_above_background, bord
 from SDFCARLib.geometry import CArmView, Geometry, VolumeGrid
 from SDFCARLib.losses import make_target, frame_target, occupancy_loss
 from SDFCARLib.masks import segment_angiogram
-from SDFCARLib.optimiser import build_problem, occupancy_targets, reconstruct
+from SDFCARLib.optimiser import build_problem, occupancy_targets, occupancy_terms, reconstruct
 from SDFCARLib.phantoms import Branch, CentrelineTree, simulate_views, voxelize
 from SDFCARLib.settings import ReconstructionError, make_settings
 
@@ -224,6 +224,48 @@ def test_occupancy_loss_fits_the_frames_then_the_masks_when_asked(angiogram_case
     for bad in (0.0, 1.5, -0.2):
         with pytest.raises(ReconstructionError, match="frame_evidence_until_fraction"):
             make_settings("fast", frame_evidence_until_fraction=bad)
+
+
+def test_the_frames_only_cap_the_path_length_when_asked(angiogram_case):
+    geometry, _, frames, masks = angiogram_case
+    settings = make_settings("fast", steps=20, warmup_steps=2, frame_evidence=True, lambda_occ_frames=0.5,
+                             frame_excess_factor=1.5, frame_excess_tolerance_mm=0.2,
+                             frame_evidence_until_fraction=0.5, width_exclusion_fraction=0.0)
+    result = reconstruct(geometry, masks, settings, "mask", frames=frames)
+    record = result.report["frame_evidence"]
+    assert record["excess_factor"] == 1.5 and record["excess_tolerance_mm"] == 0.2 and record["until_step"] == 10
+    for entry in result.history:  # L_occ on the masks throughout (λ_occ), the cap (λ_occ_frames) up to step 10
+        assert ("l_excess" in entry) == (entry["step"] <= 10)
+        expected = settings.loss.lambda_occ * entry["l_occ"] + 0.5 * entry.get("l_excess", 0.0)
+        assert entry["loss"] == pytest.approx(expected + settings.loss.lambda_geo * entry["l_geo"], rel=1e-5)
+    # the frames' term charges only the path length beyond the cap: far below it, nothing
+    problem = build_problem(geometry, masks, settings, "mask", frames=frames)
+    below = [0.5 * t.image * t.reference_mm for t in problem.view_targets]
+    assert float(occupancy_terms(problem, 1, below)["l_excess"]) == 0.0
+    above = [3.0 * t.image * t.reference_mm + 1.0 for t in problem.view_targets]
+    assert float(occupancy_terms(problem, 1, above)["l_excess"]) > 0.0
+    for bad in (0.5, -1.0):
+        with pytest.raises(ReconstructionError, match="frame_excess_factor"):
+            make_settings("fast", frame_excess_factor=bad)
+    with pytest.raises(ReconstructionError, match="frame_excess_tolerance_mm"):
+        make_settings("fast", frame_excess_tolerance_mm=-0.1)
+
+
+def test_the_masks_are_fitted_beside_the_frames_path_lengths_when_asked(angiogram_case):
+    geometry, _, frames, masks = angiogram_case
+    settings = make_settings("fast", steps=12, warmup_steps=2, frame_evidence=True, lambda_occ_frames=0.5,
+                             lambda_occ_masks_with_frames=0.3, frame_evidence_until_fraction=0.5,
+                             width_exclusion_fraction=0.0)
+    result = reconstruct(geometry, masks, settings, "mask", frames=frames)
+    for entry in result.history:  # both up to step 6; after it the masks alone, weighed λ_occ as before
+        if entry["step"] <= 6:
+            expected = 0.5 * entry["l_occ"] + 0.3 * entry["l_occ_masks"]
+        else:
+            assert "l_occ_masks" not in entry
+            expected = settings.loss.lambda_occ * entry["l_occ"]
+        assert entry["loss"] == pytest.approx(expected + settings.loss.lambda_geo * entry["l_geo"], rel=1e-5)
+    with pytest.raises(ReconstructionError, match="lambda_occ_masks_with_frames"):
+        make_settings("fast", lambda_occ_masks_with_frames=-0.1)
 
 
 def test_the_detectors_blur_reaches_each_frame_target_in_its_pixels(angiogram_case):

@@ -15,6 +15,7 @@ from SDFCARLib.losses import (
     DistanceSettings,
     GeometricLoss,
     cascaded_distance,
+    excess_path_loss,
     gaussian_blur,
     make_target,
     occupancy_loss,
@@ -47,6 +48,19 @@ def test_occupancy_loss_is_mean_squared_difference():
     target = torch.tensor([[0.0, 1.0], [1.0, 0.0]])
     assert float(occupancy_loss(image, target)) == pytest.approx((0.25 + 0.0625) / 4)
     assert float(occupancy_loss(target, target)) == 0.0
+
+
+def test_excess_path_loss_charges_only_what_a_ray_crosses_beyond_its_allowance():
+    target = torch.tensor([[0.0, 1.0], [2.0, 1.0]])
+    # allowance 1.5·target + 0.2: 0.2, 1.7, 3.2, 1.7
+    rendered = torch.tensor([[0.5, 1.0], [3.0, 2.7]], requires_grad=True)
+    loss = excess_path_loss(rendered, target, 1.5, 0.2)
+    assert float(loss.detach()) == pytest.approx((0.3 ** 2 + 1.0 ** 2) / 4)  # a ghost on empty sky, one over its cap
+    loss.backward()
+    # less than the frame shows (the lumen's shape) costs nothing and is not pushed either way
+    assert rendered.grad[0, 1] == 0 and rendered.grad[1, 0] == 0
+    assert float(rendered.grad[0, 0]) == pytest.approx(2 * 0.3 / 4) and float(rendered.grad[1, 1]) == pytest.approx(2 * 1.0 / 4)
+    assert float(excess_path_loss(target, target, 1.0, 0.0)) == 0.0
 
 
 def test_partial_occupancy_loss_is_the_mass_weighted_mean_of_one_minus_occupancy():

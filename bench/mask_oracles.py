@@ -2,6 +2,7 @@
 masks less their extra pixels / plus their missed ones, with or without the frames (paper grid, one thread).
 
     .venv/bin/python bench/mask_oracles.py lad 0,1 default,truemasks,noextra,nomissed     # suite, cases, variants
+    .venv/bin/python bench/mask_oracles.py lad 0,1 truemasks '{"frame_excess_factor": 1.5}'   # settings on `fast`
 
 Variants: default (the segmented masks and frames, as the benchmark gives them), truemasks (the true
 silhouettes, same frames), noframes, truenoframes, noextra (segmented ∩ true), nomissed (segmented ∪ true),
@@ -12,6 +13,7 @@ SIGMA px, is below T mm removed). The true silhouettes are for these oracles onl
 
 from __future__ import annotations
 
+import json
 import sys
 import time
 from pathlib import Path
@@ -48,6 +50,7 @@ def variant_masks(name, case, segmented, true):
 
 def main() -> None:
     suite, cases, names = sys.argv[1], [int(c) for c in sys.argv[2].split(",")], sys.argv[3].split(",")
+    overrides = json.loads(sys.argv[4]) if len(sys.argv) > 4 else {}
     torch.set_num_threads(1)
     grid = GridOptions()
     specs = build_cases(BenchmarkConfig(suite, Path("unused"), cases=max(cases) + 1, grid=grid, protocol=PROTOCOL))
@@ -66,7 +69,7 @@ def main() -> None:
                   f"missed {[int((t & ~a).sum()) for a, t in zip(masks, true)]}", flush=True)
             t0 = time.perf_counter()
             result = reconstruct(case.geometry, [m.astype(np.float32) for m in masks],
-                                 make_settings("fast", seed=spec.seed), "mask", frames=frames)
+                                 make_settings("fast", seed=spec.seed, **overrides), "mask", frames=frames)
             m = evaluate(result.segmentation, case.label, case.geometry.volume, case.geometry.views, segmented)
             print(f"{spec.name} {name:12s} clDice {m['cldice']:.3f} Tprec {m['tprec']:.3f} Tsens {m['tsens']:.3f} "
                   f"Dice {m['dice']:.3f} pieces {m.get('components')} {time.perf_counter() - t0:.0f} s", flush=True)
