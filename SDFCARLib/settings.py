@@ -129,6 +129,8 @@ class LossSettings:
     # where the frames are given with the masks: L_occ on the rays' path lengths read off the frames
     # (evidence.py) instead of the masks, so a ghost in the shadow of a real vessel costs what it adds
     frame_evidence: bool = False
+    # the frames' path lengths are kept on the masks widened by this many pixels, 0 outside (evidence.py)
+    frame_evidence_reach_px: int = 2
     # λ2 when L_occ fits the frames' path lengths (they say how much vessel a ray crossed, which a mask
     # does not); 0.5 was better on static realistic cases but worse on moving LAD ones (RESULTS §18b)
     lambda_occ_frames: float = 0.25
@@ -326,6 +328,9 @@ class Settings:
             raise ReconstructionError(f"frame_excess_factor is how many times the frame's path length a ray may cross "
                                       f"before it costs: at least 1, or 0 (off: L_occ fits the frames' path lengths), "
                                       f"got {l.frame_excess_factor}")
+        if not (isinstance(l.frame_evidence_reach_px, int) and l.frame_evidence_reach_px >= 0):
+            raise ReconstructionError(f"frame_evidence_reach_px is how many pixels beyond the masks the frames' path lengths "
+                                      f"are kept, a whole number from 0, got {l.frame_evidence_reach_px!r}")
         if not l.frame_excess_tolerance_mm >= 0:
             raise ReconstructionError(f"frame_excess_tolerance_mm is a path length in mm, 0 or more, got "
                                       f"{l.frame_excess_tolerance_mm}")

@@ -268,6 +268,22 @@ def test_the_masks_are_fitted_beside_the_frames_path_lengths_when_asked(angiogra
         make_settings("fast", lambda_occ_masks_with_frames=-0.1)
 
 
+def test_the_frames_path_lengths_reach_as_far_beyond_the_masks_as_asked(angiogram_case):
+    geometry, _, frames, masks = angiogram_case
+    for reach in (0, 2):
+        problem = build_problem(geometry, masks, make_settings("fast", frame_evidence_reach_px=reach), "mask",
+                                frames=frames)
+        assert problem.evidence["reach_px"] == reach  # report.json says how far
+        for target, mask in zip(problem.view_targets, masks):
+            kept = target.image.cpu().numpy() > 0
+            allowed = ndimage.binary_dilation(mask > 0, iterations=reach) if reach else mask > 0
+            assert not (kept & ~allowed).any()  # nothing beyond the reach ...
+            assert (kept & ~(mask > 0)).any() == (reach > 0)  # ... and the blurred rim kept where it reaches
+    for bad in (-1, 1.5):
+        with pytest.raises(ReconstructionError, match="frame_evidence_reach_px"):
+            make_settings("fast", frame_evidence_reach_px=bad)
+
+
 def test_the_detectors_blur_reaches_each_frame_target_in_its_pixels(angiogram_case):
     geometry, _, frames, masks = angiogram_case
     blurred = build_problem(geometry, masks, make_settings("fast", frame_blur_sigma_mm=0.3), "mask", frames=frames)
