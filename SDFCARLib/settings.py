@@ -129,7 +129,8 @@ class LossSettings:
     # where the frames are given with the masks: L_occ on the rays' path lengths read off the frames
     # (evidence.py) instead of the masks, so a ghost in the shadow of a real vessel costs what it adds
     frame_evidence: bool = False
-    # the frames' path lengths are kept on the masks widened by this many pixels, 0 outside (evidence.py)
+    # the frames' path lengths are kept on the masks widened by this many pixels, 0 outside (evidence.py;
+    # `fast` 0, RESULTS §62d–e)
     frame_evidence_reach_px: int = 2
     # λ2 when L_occ fits the frames' path lengths (they say how much vessel a ray crossed, which a mask
     # does not); 0.5 was better on static realistic cases but worse on moving LAD ones (RESULTS §18b)
@@ -140,11 +141,13 @@ class LossSettings:
     # >0: L_occ fits the masks' silhouettes (weighed lambda_occ) and the frames only cap the path length: a ray
     # costs (weighed lambda_occ_frames) only where it crosses more than this × the frame's path length +
     # frame_excess_tolerance_mm — a ghost in a real vessel's shadow still costs what it adds, but the frames'
-    # blurred profile no longer shapes the lumen (0: off, L_occ fits the frames' path lengths)
+    # blurred profile no longer shapes the lumen (0: off, L_occ fits the frames' path lengths; 1.2–1.5 far
+    # worse: the frames' path lengths must also ask for vessel, RESULTS §62b)
     frame_excess_factor: float = 0.0
     frame_excess_tolerance_mm: float = 0.3
     # >0 (with the frames' path lengths fitted, frame_excess_factor 0): L_occ on the masks' silhouettes too,
-    # weighed this, alongside the frames' (their sharp border against the frames' blurred profile; 0: off)
+    # weighed this, alongside the frames' (their sharp border against the frames' blurred profile; 0: off;
+    # 0.25 lower on both suites, the lumen wider: RESULTS §62c)
     lambda_occ_masks_with_frames: float = 0.0
     # >0: the detector's blur (Gaussian σ, detector mm) that the frames' path lengths carry; L_occ on the frames
     # then compares the rendering blurred alike (0: off; 0.3 was far worse on realistic trees: RESULTS §33d)
@@ -434,6 +437,9 @@ PRESETS: Dict[str, Dict[str, Any]] = {  # the default first: lists offer it firs
         average_last_fraction=0.2,
         # where the frames come with the masks, fit the path lengths they show (ghosts add path the frame lacks)
         frame_evidence=True,
+        # on the masks' pixels only: the blurred rim beyond them asked for vessel the masks refuse (clDice level
+        # to higher, Dice higher over two draws of both static suites, 3D-QCA sections narrower: §62d–e)
+        frame_evidence_reach_px=0,
         # and correct the motion between the views that two views observe, read off the same frames
         calibrate_from_frames=True,
     ),
