@@ -209,7 +209,7 @@ def read_frame_evidence(frames: Optional[Sequence[np.ndarray]], targets: Sequenc
 
 
 def _frame_evidence(frames: Optional[Sequence[np.ndarray]], masks: Sequence[np.ndarray], geometry: Geometry,
-                    target_kind: str, reach_px: int = 2) -> Tuple[Optional[List[np.ndarray]], Dict[str, Any], List[str]]:
+                    target_kind: str, reach_px: int) -> Tuple[Optional[List[np.ndarray]], Dict[str, Any], List[str]]:
     """(per-view line integrals read off the frames or None, the report's record, warnings)."""
     if frames is None:
         return None, {"used": False, "why": "no frames were given"}, []
@@ -350,6 +350,10 @@ def caps_path_length(problem: Problem) -> bool:
     return problem.mask_targets is not None and problem.settings.loss.frame_excess_factor > 0
 
 
+def _mean_occupancy_loss(line_integrals: Sequence[torch.Tensor], targets: Sequence[ViewTarget]) -> torch.Tensor:
+    return sum(occupancy_loss(t.rendered(li), t.image) for li, t in zip(line_integrals, targets)) / len(targets)
+
+
 def occupancy_terms(problem: Problem, step: int, line_integrals: Sequence[torch.Tensor]) -> Dict[str, torch.Tensor]:
     """The occupancy terms of the loss at ``step``: ``weighted`` (what the loss adds), ``l_occ`` (L_occ, mean
     over views) and, where the frames cap the path length, ``l_excess`` (``losses.excess_path_loss``), where the
@@ -358,7 +362,7 @@ def occupancy_terms(problem: Problem, step: int, line_integrals: Sequence[torch.
     loss = problem.settings.loss
     if caps_path_length(problem):
         assert problem.mask_targets is not None
-        l_occ = sum(occupancy_loss(t.rendered(li), t.image) for li, t in zip(line_integrals, problem.mask_targets)) / count
+        l_occ = _mean_occupancy_loss(line_integrals, problem.mask_targets)
         if step > frames_until_step(problem.settings):
             return {"weighted": loss.lambda_occ * l_occ, "l_occ": l_occ}
         l_excess = sum(excess_path_loss(t.rendered(li), t.image, loss.frame_excess_factor,
@@ -367,10 +371,10 @@ def occupancy_terms(problem: Problem, step: int, line_integrals: Sequence[torch.
         return {"weighted": loss.lambda_occ * l_occ + loss.lambda_occ_frames * l_excess, "l_occ": l_occ,
                 "l_excess": l_excess}
     targets, weight = occupancy_targets(problem, step)
-    l_occ = sum(occupancy_loss(t.rendered(li), t.image) for li, t in zip(line_integrals, targets)) / count
+    l_occ = _mean_occupancy_loss(line_integrals, targets)
     terms = {"weighted": weight * l_occ, "l_occ": l_occ}
     if targets is not problem.mask_targets and problem.mask_targets is not None and loss.lambda_occ_masks_with_frames > 0:
-        l_masks = sum(occupancy_loss(t.rendered(li), t.image) for li, t in zip(line_integrals, problem.mask_targets)) / count
+        l_masks = _mean_occupancy_loss(line_integrals, problem.mask_targets)
         terms.update(weighted=terms["weighted"] + loss.lambda_occ_masks_with_frames * l_masks, l_occ_masks=l_masks)
     return terms
 
