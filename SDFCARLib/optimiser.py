@@ -54,6 +54,7 @@ from .hull import support_mask
 from .losses import (DistanceSettings, GeometricLoss, ViewTarget, excess_path_loss, frame_target, make_target,
                      occupancy_loss, partial_occupancy_loss)
 from .consistency import consistency_warnings, view_consistency
+from .evidence import EvidenceError, EvidenceSettings, is_binary_image, view_evidence
 from .mask_checks import mask_warnings, support_masks
 from .masks import MaskError, binarise_mask
 from .connectivity import ReconnectSettings, field_values, reconnect_fragments
@@ -205,11 +206,13 @@ def read_frame_evidence(frames: Optional[Sequence[np.ndarray]], targets: Sequenc
     if not (settings.loss.frame_evidence or settings.calibration.calibrate_from_frames):
         return FrameEvidence(None, dict(FRAME_EVIDENCE_OFF), [])
     masks = vessel_pixels(validate_targets(targets, geometry, target_kind), target_kind)
-    return FrameEvidence(*_frame_evidence(frames, masks, geometry, target_kind, settings.loss.frame_evidence_reach_px))
+    reading = EvidenceSettings(reach_px=settings.loss.frame_evidence_reach_px,
+                               deblur_iterations=settings.loss.frame_deblur_iterations)
+    return FrameEvidence(*_frame_evidence(frames, masks, geometry, target_kind, reading))
 
 
 def _frame_evidence(frames: Optional[Sequence[np.ndarray]], masks: Sequence[np.ndarray], geometry: Geometry,
-                    target_kind: str, reach_px: int) -> Tuple[Optional[List[np.ndarray]], Dict[str, Any], List[str]]:
+                    target_kind: str, reading: EvidenceSettings) -> Tuple[Optional[List[np.ndarray]], Dict[str, Any], List[str]]:
     """(per-view line integrals read off the frames or None, the report's record, warnings)."""
     if frames is None:
         return None, {"used": False, "why": "no frames were given"}, []
@@ -218,8 +221,6 @@ def _frame_evidence(frames: Optional[Sequence[np.ndarray]], masks: Sequence[np.n
     if len(frames) != len(geometry.views):
         raise ReconstructionError(f"{len(frames)} frame(s) for {len(geometry.views)} views: give one frame per view, "
                                   "in the geometry's order, or none")
-    from .evidence import EvidenceError, EvidenceSettings, is_binary_image, view_evidence
-
     if any(frame is not None and is_binary_image(frame) for frame in frames):
         # e.g. the sample case, whose "frames" are its masks: nothing to read, nothing to warn about
         return None, {"used": False, "why": "the frames are binary images (masks), not recorded X-ray frames"}, []
@@ -230,14 +231,15 @@ def _frame_evidence(frames: Optional[Sequence[np.ndarray]], masks: Sequence[np.n
             raise ReconstructionError(f"view {n}: the frame has shape {shape} but the view's detector is "
                                       f"{tuple(view.detector_shape)}: give the frame the mask was made from")
         try:
-            found = view_evidence(frame, mask, view, EvidenceSettings(reach_px=reach_px))
+            found = view_evidence(frame, mask, view, reading)
         except EvidenceError as exc:
             message = (f"view {n}: the frames are not used as evidence, the masks alone are fitted: {exc}")
             return None, {"used": False, "why": message}, [message]
         images.append(found.line_integral_mm)
         views.append({"attenuation_per_mm": round(found.attenuation_per_mm, 5), "profiles": found.info["profiles"],
                       "attenuation_spread_per_mm": round(found.info["spread_per_mm"], 5)})
-    return images, {"used": True, "views": views, "reach_px": reach_px}, []
+    return images, {"used": True, "views": views, "reach_px": reading.reach_px,
+                    "deblur_iterations": reading.deblur_iterations}, []
 
 
 def build_problem(geometry: Geometry, targets: Sequence[np.ndarray], settings: Settings, target_kind: str,

@@ -132,6 +132,9 @@ class LossSettings:
     # the frames' path lengths are kept on the masks widened by this many pixels, 0 outside (evidence.py;
     # `fast` 0, RESULTS §62d–e)
     frame_evidence_reach_px: int = 2
+    # >0: the frames' path lengths restored by this many Richardson–Lucy steps against the detector's blur
+    # before they are fitted (evidence.py; 0: off)
+    frame_deblur_iterations: int = 0
     # λ2 when L_occ fits the frames' path lengths (they say how much vessel a ray crossed, which a mask
     # does not); 0.5 was better on static realistic cases but worse on moving LAD ones (RESULTS §18b)
     lambda_occ_frames: float = 0.25
@@ -334,6 +337,10 @@ class Settings:
         if not (isinstance(l.frame_evidence_reach_px, int) and l.frame_evidence_reach_px >= 0):
             raise ReconstructionError(f"frame_evidence_reach_px is how many pixels beyond the masks the frames' path lengths "
                                       f"are kept, a whole number from 0, got {l.frame_evidence_reach_px!r}")
+        if not (isinstance(l.frame_deblur_iterations, int) and 0 <= l.frame_deblur_iterations <= 50):
+            raise ReconstructionError(f"frame_deblur_iterations is how many Richardson–Lucy steps restore the frames' path "
+                                      f"lengths against the detector's blur, a whole number from 0 (off) to 50, got "
+                                      f"{l.frame_deblur_iterations!r}")
         if not l.frame_excess_tolerance_mm >= 0:
             raise ReconstructionError(f"frame_excess_tolerance_mm is a path length in mm, 0 or more, got "
                                       f"{l.frame_excess_tolerance_mm}")
