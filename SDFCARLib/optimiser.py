@@ -501,7 +501,7 @@ def _exclude_disagreeing_pieces(problem: Problem, model: ImplicitField, step: in
         traced = problem.projectors if problem.support is not None else None  # as in finish
         checked, finishing = finishing_removals(segmentation, references, geometry, region, traced)
     kept, record = disagreeing_pieces(checked, references, geometry, region.width_agreement_min_ratio,
-                                      region.prune_piece_mm, keep_connected=True)
+                                      region.prune_piece_mm, keep_connected=True, measure=region.width_agreement_measure)
     zone = removal_zone(segmentation, kept, geometry.volume.spacing_mm)
     problem.excluded = zone if problem.excluded is None else problem.excluded | zone
     problem.exclusion = problem.exclusion or {"exclusions": []}
@@ -590,7 +590,7 @@ def finish(problem: Problem, model: ImplicitField, history: List[Dict[str, float
         # joins two true vessels, the tree lost more than the ghost (the rule cutting freely scored lower)
         kept, width_check = disagreeing_pieces(segmentation, references, geometry,
                                                settings.region.width_agreement_min_ratio, settings.region.prune_piece_mm,
-                                               keep_connected=True)
+                                               keep_connected=True, measure=settings.region.width_agreement_measure)
         segmentation = erase_removed(segmentation, kept, occupancy_volume, field_volume, geometry, settings)
     final_reconnection: Optional[Dict[str, Any]] = None
     if settings.region.final_reconnect_max_gap_mm and segmentation.any():

@@ -194,6 +194,10 @@ class RegionSettings:
     # widths agreeing less than this (median of smaller / larger half-width, width_agreement.py) are
     # removed, each only where the rest of its component stays in one part (a ghost bridge is kept)
     width_agreement_min_ratio: float = 0.0
+    # how each view's half-width map is read (width_agreement.py): "centreline", the distance map at the nearest
+    # skeleton pixel; "thickness", the mask's local thickness (a free end's cap reads the vessel behind it);
+    # "open_ends", the centreline's, unread at a skeleton end's cap
+    width_agreement_measure: str = "centreline"
     # 0: off. Otherwise, after everything above, the fragments still apart are joined to the tree once more
     # (as reconnect does, inside the support) across gaps up to this many mm: growing brings fragments closer.
     # Fewer pieces for less clDice (bridges take the shortest supported path, not a missed vessel's: RESULTS §32c)
@@ -380,6 +384,9 @@ class Settings:
         if not 0 <= r.grow_threshold <= r.threshold:
             raise ReconstructionError(f"grow_threshold must be 0 (off) or an occupancy up to threshold ({r.threshold:g}), "
                                       f"got {r.grow_threshold}")
+        if r.width_agreement_measure not in ("centreline", "thickness", "open_ends"):
+            raise ReconstructionError(f"width_agreement_measure is how the masks' half-widths are read: 'centreline', "
+                                      f"'thickness' or 'open_ends', got {r.width_agreement_measure!r}")
         if not 0 <= r.width_agreement_min_ratio < 1:
             raise ReconstructionError(f"width_agreement_min_ratio must be 0 (off) or an agreement of the views' widths "
                                       f"below 1 (smaller / larger), got {r.width_agreement_min_ratio}")

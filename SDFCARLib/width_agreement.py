@@ -10,7 +10,14 @@ Why
 Method
     1. Per view, the mask's half-width along its 2D centreline: the in-mask distance map read at
        the nearest pixel of the mask's skeleton, in detector pixels (to the first pixel outside: half
-       a pixel more than the edge, in every view alike).
+       a pixel more than the edge, in every view alike). Or (``measure="thickness"``) the mask's local
+       thickness: per pixel, the radius of the largest disk centred on the skeleton that fits in the
+       mask and covers it (Hildebrand & Rüegsegger 1997), the nearest covered pixel's outside the disks.
+       The two agree along a vessel; at a free end the skeleton stops short and its last pixels read
+       the thin tip, while the cap's pixels lie in the disks of the full-width vessel behind it. Or
+       (``measure="open_ends"``) the centreline's, unread (NaN) where the nearest skeleton pixel lies
+       within ``END_CAP_WIDTHS`` half-widths of a skeleton end and reads less than ``END_CAP_SHARE`` of the
+       vessel's half-width there: a free end's cap has no width of its own.
     2. Per segmented voxel, each view's half-width at the voxel's projection, in mm at the voxel's
        depth (pixel spacing × depth / SID); the voxel's agreement is the smallest over the largest
        of those half-widths (1: the views agree; a ghost of a 3 mm and a 1.5 mm vessel reads 0.5).
@@ -49,6 +56,59 @@ def centreline_half_width_px(mask: np.ndarray) -> np.ndarray:
     return inside_px[nearest[0], nearest[1]]
 
 
+def local_thickness_px(mask: np.ndarray) -> np.ndarray:
+    """Per detector pixel: the radius (pixels) of the largest skeleton-centred disk inside the mask that
+    covers it; a pixel no disk covers (outside the mask, or missed by the skeleton's discretisation) reads
+    the nearest covered pixel's. An empty mask, or one with no skeleton, gives zeros."""
+    mask = np.asarray(mask, bool)
+    skeleton = skeletonize(mask) if mask.any() else mask
+    if not skeleton.any():
+        return np.zeros(mask.shape)
+    radius = ndimage.distance_transform_edt(mask)
+    thickness = np.zeros(mask.shape)
+    # one distance transform per one-pixel band of radii: each pixel learns its nearest centre of that band,
+    # and is covered when it lies within that centre's own radius
+    bands = np.ceil(radius[skeleton]).astype(int)
+    for band in np.unique(bands):
+        centres = skeleton & (np.ceil(radius) == band)
+        distance, (rows, cols) = ndimage.distance_transform_edt(~centres, return_indices=True)
+        own = radius[rows, cols]
+        thickness = np.where(distance < own, np.maximum(thickness, own), thickness)
+    covered = thickness > 0
+    nearest = ndimage.distance_transform_edt(~covered, return_distances=False, return_indices=True)
+    return thickness[nearest[0], nearest[1]]
+
+
+END_CAP_WIDTHS = 1.5  # a skeleton end's cap: the skeleton pixels within this many half-widths of the vessel behind
+END_CAP_SHARE = 0.75  # ... that read less than this share of its half-width
+
+
+def open_ends_half_width_px(mask: np.ndarray) -> np.ndarray:
+    """``centreline_half_width_px``, NaN where the nearest skeleton pixel lies in a skeleton end's cap: within
+    ``END_CAP_WIDTHS`` times the largest half-width nearby of an end (a pixel with one skeleton neighbour or
+    none), reading less than ``END_CAP_SHARE`` of that half-width."""
+    mask = np.asarray(mask, bool)
+    skeleton = skeletonize(mask) if mask.any() else mask
+    if not skeleton.any():
+        return np.zeros(mask.shape)
+    inside_px = ndimage.distance_transform_edt(mask)
+    on_skeleton = np.where(skeleton, inside_px, 0.0)
+    window = 2 * int(np.ceil(2.0 * on_skeleton.max())) + 1
+    vessel_px = ndimage.maximum_filter(on_skeleton, size=window)  # the half-width of the vessel an end belongs to
+    neighbours = ndimage.convolve(skeleton.astype(np.int32), np.ones((3, 3), np.int32), mode="constant") - 1
+    ends = skeleton & (neighbours <= 1)
+    # near an end, where the skeleton reads less than the vessel behind it (a blunt end's skeleton stops a
+    # half-width short of the end and reads it right; its forks into the corners read the thin tip)
+    cap = (skeleton & (ndimage.distance_transform_edt(~ends) <= END_CAP_WIDTHS * vessel_px)
+           & (inside_px < END_CAP_SHARE * vessel_px))
+    nearest = ndimage.distance_transform_edt(~skeleton, return_distances=False, return_indices=True)
+    return np.where(cap[nearest[0], nearest[1]], np.nan, inside_px[nearest[0], nearest[1]])
+
+
+HALF_WIDTH_MEASURES = {"centreline": centreline_half_width_px, "thickness": local_thickness_px,
+                       "open_ends": open_ends_half_width_px}
+
+
 def half_widths_mm(half_width_px: np.ndarray, view: CArmView, points_mm: np.ndarray) -> np.ndarray:
     """The view's half-width map read at the points' projections (nearest pixel), in mm at their depth."""
     row, col, depth_mm = view.project(np.asarray(points_mm, float))
@@ -58,12 +118,23 @@ def half_widths_mm(half_width_px: np.ndarray, view: CArmView, points_mm: np.ndar
     return half_width_px[rows, cols] * pixel_mm * np.asarray(depth_mm, float) / view.sid_mm
 
 
-def width_agreement(masks: Sequence[np.ndarray], geometry: Geometry, points_mm: np.ndarray) -> np.ndarray:
-    """Per point: the smallest over the largest of the views' half-widths at its projections (0–1)."""
+def width_agreement(masks: Sequence[np.ndarray], geometry: Geometry, points_mm: np.ndarray,
+                    measure: str = "centreline") -> np.ndarray:
+    """Per point: the smallest over the largest of the views' half-widths at its projections (0–1);
+    ``measure``: how a view's half-width map is made (``HALF_WIDTH_MEASURES``, module docstring)."""
     if len(masks) != len(geometry.views):
         raise ValueError(f"{len(masks)} masks for {len(geometry.views)} views: give one mask per view, in the views' order")
-    widths = np.stack([half_widths_mm(centreline_half_width_px(m), v, points_mm) for m, v in zip(masks, geometry.views)])
+    if measure not in HALF_WIDTH_MEASURES:
+        raise ValueError(f"unknown half-width measure {measure!r}: choose one of {', '.join(HALF_WIDTH_MEASURES)}")
+    half_width_px = HALF_WIDTH_MEASURES[measure]
+    widths = np.stack([half_widths_mm(half_width_px(m), v, points_mm) for m, v in zip(masks, geometry.views)])
+    # NaN where a view leaves the width unread (open_ends): the point has no agreement
     return widths.min(axis=0) / np.maximum(widths.max(axis=0), 1e-9)
+
+
+def _median_read(values: np.ndarray) -> float:
+    read = values[np.isfinite(values)]
+    return float(np.median(read)) if read.size else 1.0
 
 
 def _splits_its_component(kept: np.ndarray, labels: np.ndarray, piece: np.ndarray) -> bool:
@@ -84,7 +155,7 @@ def _splits_its_component(kept: np.ndarray, labels: np.ndarray, piece: np.ndarra
 
 def disagreeing_pieces(segmentation: np.ndarray, masks: Sequence[np.ndarray], geometry: Geometry,
                        min_ratio: float, piece_mm: float = 6.0,
-                       keep_connected: bool = False) -> Tuple[np.ndarray, Dict[str, Any]]:
+                       keep_connected: bool = False, measure: str = "centreline") -> Tuple[np.ndarray, Dict[str, Any]]:
     """The segmentation without its pieces whose median width agreement is below ``min_ratio``.
 
     ``keep_connected``: a piece is removed only where the rest of its component stays in one part
@@ -98,15 +169,18 @@ def disagreeing_pieces(segmentation: np.ndarray, masks: Sequence[np.ndarray], ge
     if not 0.0 <= min_ratio <= 1.0:
         raise ValueError(f"min_ratio {min_ratio} is not an agreement: give a value from 0 (keep every piece) to 1")
     voxels = np.argwhere(segmentation)
-    info: Dict[str, Any] = {"min_ratio": float(min_ratio), "pieces": 0, "removed_pieces": 0, "removed_voxels": 0}
+    info: Dict[str, Any] = {"min_ratio": float(min_ratio), "measure": measure, "pieces": 0, "removed_pieces": 0, "removed_voxels": 0}
     if not len(voxels):
         info["seconds"] = time.perf_counter() - t0
         return segmentation.copy(), info
     agreement = np.ones(segmentation.shape)
-    agreement[tuple(voxels.T)] = width_agreement(masks, geometry, geometry.volume.index_to_world(voxels.astype(float)))
+    agreement[tuple(voxels.T)] = width_agreement(masks, geometry, geometry.volume.index_to_world(voxels.astype(float)),
+                                                 measure)
     pieces, count = skeleton_pieces(segmentation, geometry.volume.spacing_mm, piece_mm)
     medians = np.ones(count + 1)
-    if count:
+    if count and np.isnan(agreement).any():  # the median of the points read; a piece with none is kept
+        medians[1:] = ndimage.labeled_comprehension(agreement, pieces, np.arange(1, count + 1), _median_read, float, 1.0)
+    elif count:
         medians[1:] = ndimage.median(agreement, pieces, index=np.arange(1, count + 1))
     candidates = [int(k) for k in np.argsort(medians, kind="stable") if k > 0 and medians[k] < min_ratio]
     if keep_connected:

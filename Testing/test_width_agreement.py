@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import itertools
+
 import numpy as np
 import pytest
 
@@ -9,8 +11,9 @@ from SDFCARLib.analysis.phantoms import grid_around, render_mask, straight_tube,
 from SDFCARLib.geometry import Geometry, standard_geometry
 from SDFCARLib.metrics import component_counts
 from SDFCARLib.phantoms import Branch, CentrelineTree
+from SDFCARLib.settings import ReconstructionError, make_settings
 from SDFCARLib.width_agreement import (centreline_half_width_px, disagreeing_pieces, half_widths_mm,
-                                       width_agreement)
+                                       local_thickness_px, open_ends_half_width_px, width_agreement)
 
 VIEWS = standard_geometry("lao30-rao30").views  # LAO 30 / RAO 30, 512² at 0.278 mm
 AXIS = (0.2, 0.3, 1.0)  # along the patient, little foreshortened in either view
@@ -34,18 +37,62 @@ def test_half_width_map_of_a_band_is_its_half_width_everywhere_near_it():
     assert not centreline_half_width_px(np.zeros((10, 10), bool)).any()
 
 
+def test_local_thickness_reads_a_bands_half_width_up_to_its_free_end():
+    mask = np.zeros((60, 80), bool)
+    mask[20:31, 5:75] = True
+    thickness = local_thickness_px(mask)
+    assert thickness[25, 40] == pytest.approx(6.0) and thickness[21, 40] == pytest.approx(6.0)
+    assert thickness[50, 40] == pytest.approx(6.0)  # outside: the nearest covered pixel's
+    # the band's end: its cap lies in the disks of the band behind it; the skeleton's last pixels read less
+    assert thickness[20:31, 5].min() == pytest.approx(6.0)
+    assert centreline_half_width_px(mask)[20:31, 5].max() < 6.0
+    assert not local_thickness_px(np.zeros((10, 10), bool)).any()
+
+
+def test_local_thickness_of_a_disk_is_its_radius_and_of_two_bands_each_ones():
+    rows, cols = np.mgrid[0:81, 0:81]
+    disk = (rows - 40) ** 2 + (cols - 40) ** 2 <= 15 ** 2
+    assert np.abs(local_thickness_px(disk)[disk] - 16.0).max() <= 1.0  # 15 px to the edge: 16 to the first pixel out
+    bands = np.zeros((80, 80), bool)
+    bands[10:31, 5:75] = True  # 21 px across: 11
+    bands[50:55, 5:75] = True  # 5 px across: 3
+    thickness = local_thickness_px(bands)
+    assert thickness[20, 40] == pytest.approx(11.0) and thickness[52, 40] == pytest.approx(3.0)
+
+
+def test_open_ends_leave_a_tapered_tips_cap_unread_and_read_the_rest():
+    rows, cols = np.mgrid[0:60, 0:100]
+    half_px = np.where(cols < 60, 6.0, 6.0 * (90 - cols) / 30.0)  # a band narrowing to a point over 30 px
+    mask = (np.abs(rows - 30) <= half_px) & (cols >= 5) & (cols <= 90)
+    plain, open_ends = centreline_half_width_px(mask), open_ends_half_width_px(mask)
+    assert open_ends[30, 30] == pytest.approx(plain[30, 30]) == pytest.approx(7.0)
+    tip = mask & (cols >= 85)
+    assert plain[tip].max() < 0.75 * 7.0 and np.isnan(open_ends[tip]).all()  # the thin tip: no width of its own
+    assert np.isfinite(open_ends[mask & (cols <= 60)]).mean() > 0.9
+
+
+def test_the_half_width_measure_is_checked():
+    tube = _tube(3.0)
+    with pytest.raises(ValueError, match="half-width measure"):
+        width_agreement([render_mask(tube.tree, v) for v in VIEWS], Geometry(grid_around(tube.tree, 0.4), VIEWS),
+                        _interior(tube), measure="edges")
+    with pytest.raises(ReconstructionError, match="width_agreement_measure"):
+        make_settings("fast", width_agreement_measure="edges")
+
+
 @pytest.mark.parametrize("diameter_mm", [1.5, 3.0])
 def test_each_view_reads_a_tubes_radius_at_its_depth(diameter_mm):
     tube = _tube(diameter_mm)
     points = _interior(tube)
-    for view in VIEWS:
-        half = half_widths_mm(centreline_half_width_px(render_mask(tube.tree, view)), view, points)
+    for view, half_width_px in itertools.product(VIEWS, (centreline_half_width_px, local_thickness_px)):
+        half = half_widths_mm(half_width_px(render_mask(tube.tree, view)), view, points)
         pixel_at_depth_mm = view.pixel_spacing_mm[0] * view.sod_mm / view.sid_mm
         # the distance map counts whole pixels from the centre pixel: within a pixel of the radius
         assert np.abs(half - diameter_mm / 2).max() <= pixel_at_depth_mm + 1e-6
-    agreement = width_agreement([render_mask(tube.tree, v) for v in VIEWS], Geometry(grid_around(tube.tree, 0.4), VIEWS),
-                                points)
-    assert np.median(agreement) >= 0.8
+    for measure in ("centreline", "thickness", "open_ends"):
+        agreement = width_agreement([render_mask(tube.tree, v) for v in VIEWS],
+                                    Geometry(grid_around(tube.tree, 0.4), VIEWS), points, measure)
+        assert np.nanmedian(agreement) >= 0.8 and np.isfinite(agreement).mean() >= 0.8
 
 
 def test_a_piece_seen_with_different_widths_is_removed_and_a_true_one_kept():
@@ -132,6 +179,10 @@ def test_reconstruction_finished_with_the_width_check_removes_only_what_the_chec
     info = checked.report["width_agreement"]
     removed = plain.segmentation & ~checked.segmentation
     assert info["removed_voxels"] == int(removed.sum()) and info["pieces"] >= 1
+    assert info["measure"] == "centreline"  # report.json says how the widths were read
+    thickness = fitted.finished(make_settings("fast", steps=60, device="cpu", width_agreement_min_ratio=0.99,
+                                              width_agreement_measure="thickness"))
+    assert thickness.report["width_agreement"]["measure"] == "thickness"
     assert not (checked.segmentation & ~plain.segmentation).any()  # only ever removes
     np.testing.assert_array_equal(checked.segmentation, checked.occupancy >= 0.5)  # what the outputs read
     assert len(info["median_agreement"]) == info["pieces"]
