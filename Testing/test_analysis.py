@@ -9,7 +9,7 @@ import math
 import numpy as np
 import pytest
 
-from SDFCARLib.analysis.centreline import bifurcation_angles, extract_centrelines, trim_free_end
+from SDFCARLib.analysis.centreline import bifurcation_angles, extend_to_surface, extract_centrelines, trim_free_end
 from SDFCARLib.analysis.diameter import branch_cross_sections, junction_zones, mask_diameters
 from SDFCARLib.analysis.lesion import ReferenceFit, find_lesions, reference_fit
 from SDFCARLib.analysis.phantoms import (grid_around, helix, render_mask, stenosed_tube, straight_tube,
@@ -61,6 +61,22 @@ def test_a_free_end_that_fans_to_the_rim_is_cut_back_before_it_turns():
     np.testing.assert_array_equal(start, points[::-1][-len(kept):])
     short, _ = trim_free_end(axis[:6], np.full(6, 2.0))
     np.testing.assert_array_equal(short, axis[:3])
+
+
+def test_a_free_ends_extension_stops_at_a_hole_on_its_line_unless_it_reads_across_the_lumen():
+    from SDFCARLib.geometry import VolumeGrid
+
+    grid = VolumeGrid((40, 15, 15), (0.25, 0.25, 0.25))  # x from −4.875 to +4.875 mm
+    x, y, z = (grid.index_to_world(np.argwhere(np.ones(grid.shape, bool))).T.reshape(3, *grid.shape))
+    lumen = (y ** 2 + z ** 2 <= 1.0 ** 2) & (x <= 3.0)  # a 1 mm-radius tube ending at x = 3 mm ...
+    lumen &= ~((np.abs(x - 1.0) < 0.3) & (y ** 2 + z ** 2 < 0.2 ** 2))  # ... with a hole on its axis at x = 1 mm
+    volume = lumen.astype(np.float32)
+    line = np.stack([np.linspace(-3.0, 0.0, 13), np.zeros(13), np.zeros(13)], axis=1)
+    on_line = extend_to_surface(line, volume, grid, 0.5, reach_mm=5.0, step_mm=0.25)
+    across = extend_to_surface(line, volume, grid, 0.5, reach_mm=5.0, step_mm=0.25, probe_radius_mm=0.5)
+    assert on_line[-1, 0] < 1.0  # stopped at the hole
+    assert across[-1, 0] == pytest.approx(3.0, abs=0.2)  # the tube's end
+    np.testing.assert_allclose(across[:, 1:], 0.0, atol=1e-9)  # along the line only
 
 
 @pytest.mark.parametrize("eccentric", [False, True])

@@ -516,6 +516,9 @@ def main(argv=None) -> int:
     ap.add_argument("--frames-max-over-3d", type=float, default=None, metavar="RATIO",
                     help="the analysis's FRAMES_MAX_OVER_3D (0: off): the frames' diameter left out where it exceeds "
                          "this × the 3D section's")
+    ap.add_argument("--end-probe-radii", type=float, default=None, metavar="RADII",
+                    help="the analysis's END_PROBE_RADII (0: off): a free end's extension reads the lumen across a "
+                         "disk of this many vessel radii about its line (RESULTS §63c)")
     ap.add_argument("--view-step-deg", type=float, default=2.0)
     ap.add_argument("--csv", help="write the case rows here")
     args = ap.parse_args(argv)
@@ -541,6 +544,11 @@ def main(argv=None) -> int:
         print(f"# segmented masks with {MASK_OPTIONS}", flush=True)
     global ANALYSE_WITHOUT_FRAMES, SEARCH_MASKS
     ANALYSE_WITHOUT_FRAMES, SEARCH_MASKS = args.no_frames, not args.no_masks_search
+    if args.end_probe_radii is not None:
+        from SDFCARLib.analysis import centreline
+
+        centreline.END_PROBE_RADII = args.end_probe_radii
+        print(f"# END_PROBE_RADII {centreline.END_PROBE_RADII}", flush=True)
     if args.frames_max_over_3d is not None:
         import SDFCARLib.analysis.pipeline as pipeline
         pipeline.FRAMES_MAX_OVER_3D = args.frames_max_over_3d or None

@@ -44,6 +44,10 @@ from ..geometry import VolumeGrid
 
 ROOT_RADIUS_REACH_MM = 3.0  # how far along the skeleton an end point's "thickness" is looked for
 END_TRIM_RADII = 1.5  # a free end's skeleton is cut back by this many vessel radii before its extension
+# >0: the extension reads the lumen across a disk of this many vessel radii about its line, not on the line
+# alone (a segmented-mask tip is uneven: one hole on the line stops it a millimetre or more short). 0: the line
+# alone; 0.25 put the segmented-mask tubes' ends right but ran the clean-mask tubes' long (RESULTS §63c)
+END_PROBE_RADII = 0.0
 
 
 class CentrelineError(ValueError):
@@ -218,8 +222,9 @@ def trim_free_end(points: np.ndarray, radius: np.ndarray, at_start: bool = False
 
 
 def extend_to_surface(points: np.ndarray, volume: np.ndarray, grid: VolumeGrid, level: float,
-                      reach_mm: float, step_mm: float, at_start: bool = False) -> np.ndarray:
-    """Extend a polyline's end along its end tangent up to where the volume falls below ``level``."""
+                      reach_mm: float, step_mm: float, at_start: bool = False, probe_radius_mm: float = 0.0) -> np.ndarray:
+    """Extend a polyline's end along its end tangent up to where the volume falls below ``level`` — on the
+    line, or (``probe_radius_mm`` > 0) everywhere on the disk of that radius about it across the tangent."""
     pts = points[::-1] if at_start else points
     if len(pts) < 2:
         return points
@@ -231,7 +236,17 @@ def extend_to_surface(points: np.ndarray, volume: np.ndarray, grid: VolumeGrid, 
     t /= np.linalg.norm(t)
     fine = 0.02
     d = np.arange(fine, reach_mm + fine, fine)
-    inside = sample_volume(volume, grid, pts[-1] + d[:, None] * t) >= level
+    along = pts[-1] + d[:, None] * t
+    if probe_radius_mm > 0:  # the centre and eight points on the disk's rim
+        from .diameter import plane_basis
+
+        a, b = (x[0] for x in plane_basis(t[None]))
+        angles = np.arange(8) * np.pi / 4
+        offsets = np.vstack([np.zeros(3), probe_radius_mm * (np.cos(angles)[:, None] * a + np.sin(angles)[:, None] * b)])
+        inside = (sample_volume(volume, grid, (along[:, None, :] + offsets[None]).reshape(-1, 3))
+                  .reshape(len(d), len(offsets)) >= level).any(axis=1)
+    else:
+        inside = sample_volume(volume, grid, along) >= level
     if inside.all():
         length = d[-1]
     else:
@@ -313,10 +328,12 @@ def extract_centrelines(volume: np.ndarray, grid: VolumeGrid, level: float = 0.5
                 smooth[0] = parent_branch.points_mm[parent_index]
             if extend_ends:  # the surface lies about a radius beyond the thinned end, plus what was trimmed
                 reach = (END_TRIM_RADII + 2.0) * end_radius + 2.0 * float(spacing.max())
-                smooth = extend_to_surface(smooth, fvol, grid, level, reach, step_mm)
+                smooth = extend_to_surface(smooth, fvol, grid, level, reach, step_mm,
+                                           probe_radius_mm=END_PROBE_RADII * end_radius)
                 if parent is None:
                     reach = (END_TRIM_RADII + 2.0) * start_radius + 2.0 * float(spacing.max())
-                    smooth = extend_to_surface(smooth, fvol, grid, level, reach, step_mm, at_start=True)
+                    smooth = extend_to_surface(smooth, fvol, grid, level, reach, step_mm, at_start=True,
+                                               probe_radius_mm=END_PROBE_RADII * start_radius)
             r = sample_volume(edt, grid, smooth)
             tree.branches.append(CentrelineBranch(first_id + k, smooth, r, parent_id, parent_index, tree_id))
     if not tree.branches:
