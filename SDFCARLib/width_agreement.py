@@ -41,6 +41,9 @@ from .geometry import CArmView, Geometry
 from .metrics import component_labels
 from .pruning import skeleton_pieces
 
+END_CAP_WIDTHS = 1.5  # "open_ends": a skeleton end's cap, the skeleton pixels within this many half-widths of the vessel behind
+END_CAP_SHARE = 0.75  # ... that read less than this share of its half-width
+
 
 def centreline_half_width_px(mask: np.ndarray) -> np.ndarray:
     """Per detector pixel: the mask's half-width (pixels) at the nearest pixel of its 2D centreline.
@@ -77,10 +80,6 @@ def local_thickness_px(mask: np.ndarray) -> np.ndarray:
     covered = thickness > 0
     nearest = ndimage.distance_transform_edt(~covered, return_distances=False, return_indices=True)
     return thickness[nearest[0], nearest[1]]
-
-
-END_CAP_WIDTHS = 1.5  # a skeleton end's cap: the skeleton pixels within this many half-widths of the vessel behind
-END_CAP_SHARE = 0.75  # ... that read less than this share of its half-width
 
 
 def open_ends_half_width_px(mask: np.ndarray) -> np.ndarray:

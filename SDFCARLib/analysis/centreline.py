@@ -238,7 +238,7 @@ def extend_to_surface(points: np.ndarray, volume: np.ndarray, grid: VolumeGrid, 
     d = np.arange(fine, reach_mm + fine, fine)
     along = pts[-1] + d[:, None] * t
     if probe_radius_mm > 0:  # the centre and eight points on the disk's rim
-        from .diameter import plane_basis
+        from .diameter import plane_basis  # here: diameter imports this module
 
         a, b = (x[0] for x in plane_basis(t[None]))
         angles = np.arange(8) * np.pi / 4
