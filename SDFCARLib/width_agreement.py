@@ -31,7 +31,7 @@ Units: mm for lengths, detector pixels for the masks' distance maps (converted o
 from __future__ import annotations
 
 import time
-from typing import Any, Dict, List, Sequence, Tuple
+from typing import Any, Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 from scipy import ndimage
@@ -45,18 +45,29 @@ END_CAP_WIDTHS = 1.5  # "open_ends": a skeleton end's cap, the skeleton pixels w
 END_CAP_SHARE = 0.75  # ... that read less than this share of its half-width
 
 
+def _skeleton_and_depth(mask: np.ndarray) -> Optional[Tuple[np.ndarray, np.ndarray]]:
+    """(the mask's 2D skeleton, its in-mask distance map in pixels), or None where there is no skeleton."""
+    skeleton = skeletonize(mask) if mask.any() else mask
+    return (skeleton, ndimage.distance_transform_edt(mask)) if skeleton.any() else None
+
+
+def _at_nearest(where: np.ndarray, values: np.ndarray) -> np.ndarray:
+    """Per pixel: ``values`` at the nearest pixel of ``where``."""
+    rows, cols = ndimage.distance_transform_edt(~where, return_distances=False, return_indices=True)
+    return values[rows, cols]
+
+
 def centreline_half_width_px(mask: np.ndarray) -> np.ndarray:
     """Per detector pixel: the mask's half-width (pixels) at the nearest pixel of its 2D centreline.
 
     An empty mask, or one with no skeleton, gives zeros.
     """
     mask = np.asarray(mask, bool)
-    skeleton = skeletonize(mask) if mask.any() else mask
-    if not skeleton.any():
+    found = _skeleton_and_depth(mask)
+    if found is None:
         return np.zeros(mask.shape)
-    inside_px = ndimage.distance_transform_edt(mask)
-    nearest = ndimage.distance_transform_edt(~skeleton, return_distances=False, return_indices=True)
-    return inside_px[nearest[0], nearest[1]]
+    skeleton, inside_px = found
+    return _at_nearest(skeleton, inside_px)
 
 
 def local_thickness_px(mask: np.ndarray) -> np.ndarray:
@@ -64,22 +75,19 @@ def local_thickness_px(mask: np.ndarray) -> np.ndarray:
     covers it; a pixel no disk covers (outside the mask, or missed by the skeleton's discretisation) reads
     the nearest covered pixel's. An empty mask, or one with no skeleton, gives zeros."""
     mask = np.asarray(mask, bool)
-    skeleton = skeletonize(mask) if mask.any() else mask
-    if not skeleton.any():
+    found = _skeleton_and_depth(mask)
+    if found is None:
         return np.zeros(mask.shape)
-    radius = ndimage.distance_transform_edt(mask)
+    skeleton, radius = found
     thickness = np.zeros(mask.shape)
     # one distance transform per one-pixel band of radii: each pixel learns its nearest centre of that band,
     # and is covered when it lies within that centre's own radius
-    bands = np.ceil(radius[skeleton]).astype(int)
-    for band in np.unique(bands):
+    for band in np.unique(np.ceil(radius[skeleton]).astype(int)):
         centres = skeleton & (np.ceil(radius) == band)
         distance, (rows, cols) = ndimage.distance_transform_edt(~centres, return_indices=True)
         own = radius[rows, cols]
         thickness = np.where(distance < own, np.maximum(thickness, own), thickness)
-    covered = thickness > 0
-    nearest = ndimage.distance_transform_edt(~covered, return_distances=False, return_indices=True)
-    return thickness[nearest[0], nearest[1]]
+    return _at_nearest(thickness > 0, thickness)
 
 
 def open_ends_half_width_px(mask: np.ndarray) -> np.ndarray:
@@ -87,10 +95,10 @@ def open_ends_half_width_px(mask: np.ndarray) -> np.ndarray:
     ``END_CAP_WIDTHS`` times the largest half-width nearby of an end (a pixel with one skeleton neighbour or
     none), reading less than ``END_CAP_SHARE`` of that half-width."""
     mask = np.asarray(mask, bool)
-    skeleton = skeletonize(mask) if mask.any() else mask
-    if not skeleton.any():
+    found = _skeleton_and_depth(mask)
+    if found is None:
         return np.zeros(mask.shape)
-    inside_px = ndimage.distance_transform_edt(mask)
+    skeleton, inside_px = found
     on_skeleton = np.where(skeleton, inside_px, 0.0)
     window = 2 * int(np.ceil(2.0 * on_skeleton.max())) + 1
     vessel_px = ndimage.maximum_filter(on_skeleton, size=window)  # the half-width of the vessel an end belongs to
@@ -100,8 +108,7 @@ def open_ends_half_width_px(mask: np.ndarray) -> np.ndarray:
     # half-width short of the end and reads it right; its forks into the corners read the thin tip)
     cap = (skeleton & (ndimage.distance_transform_edt(~ends) <= END_CAP_WIDTHS * vessel_px)
            & (inside_px < END_CAP_SHARE * vessel_px))
-    nearest = ndimage.distance_transform_edt(~skeleton, return_distances=False, return_indices=True)
-    return np.where(cap[nearest[0], nearest[1]], np.nan, inside_px[nearest[0], nearest[1]])
+    return _at_nearest(skeleton, np.where(cap, np.nan, inside_px))
 
 
 HALF_WIDTH_MEASURES = {"centreline": centreline_half_width_px, "thickness": local_thickness_px,
