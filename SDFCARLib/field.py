@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import List
+from typing import List, Optional
 
 import torch
 from torch import nn
@@ -224,10 +224,14 @@ class ImplicitField(nn.Module):
             out = self.mlp(features)
         return out.squeeze(-1)
 
-    def occupancy_from_raw(self, raw: torch.Tensor) -> torch.Tensor:
-        if self.config.kind == "sdf":
-            return torch.sigmoid(-self.config.alpha * raw)
-        return torch.sigmoid(raw)
+    def logit_from_raw(self, raw: torch.Tensor) -> torch.Tensor:
+        """The occupancy's logit: −α·s for an SDF field, the raw output itself for occupancy."""
+        return -self.config.alpha * raw if self.config.kind == "sdf" else raw
+
+    def occupancy_from_raw(self, raw: torch.Tensor, logit_offset: Optional[torch.Tensor] = None) -> torch.Tensor:
+        """σ(logit), with ``logit_offset`` added per point where given (``revival.py``)."""
+        logit = self.logit_from_raw(raw)
+        return torch.sigmoid(logit if logit_offset is None else logit + logit_offset)
 
     def forward(self, x, checkpoint_points: int = 0) -> torch.Tensor:
         return self.occupancy_from_raw(self.raw(x, checkpoint_points))

@@ -62,6 +62,7 @@ from .metrics import component_counts, component_labels
 from .projector import ConeBeamProjector, project_volume
 from .qa import qa_warnings, reprojection_qa
 from .pruning import PruneSettings, prune_redundant_branches, removal_zone, small_fragments, unconfirmed_fragments
+from .revival import revival_offsets, unexplained_in_every_view
 from .width_agreement import disagreeing_pieces
 from .settings import MASK_THRESHOLD_MM, TARGET_KINDS, ReconstructionError, RegionSettings, Settings, make_settings
 
@@ -160,6 +161,9 @@ class Problem:
     # bool volume: voxels taken out of the field during the fit (width_exclusion_fraction), None: none
     excluded: Optional[np.ndarray] = None
     exclusion: Optional[Dict[str, Any]] = None  # what was taken out, for report.json
+    # per support voxel, the offset added to its logit since the revival (revive_fraction; revival.py), None: none
+    logit_offset: Optional[torch.Tensor] = None
+    revival: Optional[Dict[str, Any]] = None  # what was revived, for report.json
     # where L_occ fits the frames' path lengths: the masks' own targets, which it fits after
     # frame_evidence_until_fraction of the steps (None: L_occ fits view_targets throughout)
     mask_targets: Optional[List[ViewTarget]] = None
@@ -402,6 +406,7 @@ def optimise(problem: Problem, model: ImplicitField, progress: Progress = None, 
     history: List[Dict[str, float]] = []
     fade_steps = o.coarse_to_fine_fraction * o.steps
     exclusion_steps = exclusion_schedule(settings)
+    revival_step = revive_step(settings)
     allowed: Optional[torch.Tensor] = None
     averaging_from = averaging_start(settings)
     parameters = [p for group in optimiser.param_groups for p in group["params"]]  # what Adam trains
@@ -420,7 +425,11 @@ def optimise(problem: Problem, model: ImplicitField, progress: Progress = None, 
             paused = time.perf_counter()
             allowed = _exclude_disagreeing_pieces(problem, model, step - 1)
             t_loop += time.perf_counter() - paused
-        occupancy = model(encoded, checkpoint_points=o.checkpoint_points)
+        if step - 1 == revival_step:
+            paused = time.perf_counter()
+            _revive_unexplained(problem, model, allowed, step - 1)
+            t_loop += time.perf_counter() - paused
+        occupancy = model.occupancy_from_raw(model.raw(encoded, checkpoint_points=o.checkpoint_points), problem.logit_offset)
         if allowed is not None:
             occupancy = occupancy * allowed
         line_integrals = [projector.render(occupancy) for projector in problem.projectors]
@@ -472,7 +481,39 @@ def averaging_start(settings: Settings) -> Optional[int]:
     if not o.average_last_fraction:
         return None
     start = o.steps - max(1, round(o.average_last_fraction * o.steps))
-    return max([start] + exclusion_schedule(settings))
+    revival = revive_step(settings)
+    return max([start] + exclusion_schedule(settings) + ([] if revival is None else [revival]))
+
+
+def revive_step(settings: Settings) -> Optional[int]:
+    """The step (from 0) before which saturated voxels under unexplained mask pixels are revived
+    (``revive_fraction``), or None when off."""
+    o = settings.optimisation
+    return round(o.revive_fraction * o.steps) if o.revive_fraction else None
+
+
+def _revive_unexplained(problem: Problem, model: ImplicitField, allowed: Optional[torch.Tensor], step: int) -> None:
+    """``revival.py`` on the fit so far: sets ``problem.logit_offset`` and records what it revived."""
+    t0 = time.perf_counter()
+    o = problem.settings.optimisation
+    with torch.no_grad():
+        points = _normalised_points(problem.geometry, problem.voxels, problem.device)
+        logits = model.logit_from_raw(model.raw(points))
+        if problem.logit_offset is not None:
+            logits = logits + problem.logit_offset
+        occupancy = torch.sigmoid(logits)
+        if allowed is not None:  # excluded voxels render nothing and are not revived
+            occupancy = occupancy * allowed
+        rendered = [projector.render(occupancy).cpu().numpy() for projector in problem.projectors]
+        revive = unexplained_in_every_view(rendered, vessel_pixels(problem.targets, problem.target_kind),
+                                           problem.geometry.views, problem.geometry.volume, problem.voxels)
+        if allowed is not None:
+            revive &= allowed.cpu().numpy() > 0
+        offsets = revival_offsets(logits, revive, o.revive_occupancy)
+        problem.logit_offset = offsets if problem.logit_offset is None else problem.logit_offset + offsets
+    problem.revival = problem.revival or {"revivals": []}
+    problem.revival["revivals"].append({"step": step, "revived_voxels": int((offsets > 0).sum()),
+                                        "occupancy": o.revive_occupancy, "seconds": round(time.perf_counter() - t0, 3)})
 
 
 def exclusion_schedule(settings: Settings) -> List[int]:
@@ -626,6 +667,7 @@ def finish(problem: Problem, model: ImplicitField, history: List[Dict[str, float
         "pruning": pruning,
         "width_agreement": width_check,
         "width_exclusion": problem.exclusion,
+        "revival": problem.revival,
         "reconnection": reconnection,
         "final_reconnection": final_reconnection,
         "unconfirmed_fragments": unconfirmed,
@@ -791,7 +833,7 @@ def _ensemble_volumes(problem: Problem, first: ImplicitField, first_s: float, pr
     records = [problem.exclusion]
     optimise_s = first_s
     for member in range(1, settings.optimisation.ensemble_fits):
-        problem.excluded, problem.exclusion = None, None
+        problem.excluded, problem.exclusion, problem.logit_offset = None, None, None
         torch.manual_seed(settings.run.seed + member)
         model = ImplicitField(field_config(settings)).to(problem.device)
         _, seconds = optimise(problem, model, progress, cancel, fit=member, **loop)
@@ -801,7 +843,7 @@ def _ensemble_volumes(problem: Problem, first: ImplicitField, first_s: float, pr
         if keep_members:
             members.append(volumes)
         records.append(problem.exclusion)
-    problem.excluded = None
+    problem.excluded, problem.logit_offset = None, None
     problem.exclusion = {"fits": records} if any(records) else None
     return volumes_of_occupancy(occupancy_sum / settings.optimisation.ensemble_fits, settings), optimise_s, members
 
@@ -863,7 +905,10 @@ def evaluate_volume(model: ImplicitField, problem: Problem, chunk: int = 262144)
         points = _normalised_points(problem.geometry, voxels[start:start + chunk], problem.device)
         raw_values.append(model.raw(points).float().cpu())
     raw = torch.cat(raw_values) if raw_values else torch.zeros(0)
-    occupancy = model.occupancy_from_raw(raw).numpy()
+    offset = None if problem.logit_offset is None else problem.logit_offset.float().cpu()
+    occupancy = model.occupancy_from_raw(raw, offset).numpy()
+    if offset is not None:  # the field whose σ(−α·s) is that occupancy (revival.py)
+        raw = raw - offset / model.config.alpha if model.config.kind == "sdf" else raw + offset
     occ_volume = np.zeros(grid.num_voxels, dtype=np.float32)
     occ_volume[voxels] = occupancy
     if model.config.kind == "sdf":

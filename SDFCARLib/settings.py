@@ -103,6 +103,10 @@ class OptimisationSettings:
     # >1: this many fits from different seeds (the run's seed, then seed + 1, …) on the same problem, each with
     # its own mid-fit exclusion; the result is made from the mean of their occupancies (1: one fit)
     ensemble_fits: int = 1
+    # >0: after this share of the steps, the voxels on rays every view leaves unexplained whose occupancy has
+    # saturated below revive_occupancy start again at it (revival.py; 0: off)
+    revive_fraction: float = 0.0
+    revive_occupancy: float = 0.01
     checkpoint_points: int = 262144  # >0: the MLP in checkpointed chunks of this many points (memory)
 
     @property
@@ -356,6 +360,12 @@ class Settings:
             raise ReconstructionError("dt_downsample must be at least 1")
         if o.warmup_steps < 0 or o.checkpoint_points < 0:
             raise ReconstructionError("warmup_steps and checkpoint_points must not be negative")
+        if not 0 <= o.revive_fraction < 1:
+            raise ReconstructionError(f"revive_fraction is the share of the steps after which saturated voxels under unexplained "
+                                      f"mask pixels are revived: 0 (off) up to below 1, got {o.revive_fraction}")
+        if not 0 < o.revive_occupancy < 0.5:
+            raise ReconstructionError(f"revive_occupancy is the occupancy a revived voxel starts again at: above 0 and "
+                                      f"below 0.5 (the threshold's side of empty), got {o.revive_occupancy}")
         if not 0 <= o.average_last_fraction < 1:
             raise ReconstructionError(f"average_last_fraction is the share of the last steps whose parameters are averaged "
                                       f"into the result: 0 (off) up to below 1, got {o.average_last_fraction}")
