@@ -9,9 +9,8 @@ import numpy as np
 import pytest
 import torch
 
-from SDFCARLib.geometry import CArmView, Geometry, VolumeGrid
+from SDFCARLib.geometry import CArmView, VolumeGrid
 from SDFCARLib.optimiser import reconstruct, revive_step
-from SDFCARLib.phantoms import Branch, CentrelineTree, simulate_views, voxelize
 from SDFCARLib.revival import EXPLAINED_PATH_MM, revival_offsets, unexplained_in_every_view
 from SDFCARLib.settings import ReconstructionError, make_settings
 
@@ -89,23 +88,15 @@ def test_the_revival_step():
     assert revive_step(make_settings("fast", steps=400, revive_fraction=0.6)) == 240
 
 
-@pytest.fixture(scope="module")
-def tube():
-    grid = VolumeGrid((24, 24, 24), (2.0, 2.0, 2.0))
-    views = [CArmView(a, 0.0, 1000.0, 750.0, (1.0, 1.0), (64, 64)) for a in (30.0, -30.0)]
-    tree = CentrelineTree([Branch(np.array([[-12.0, -6.0, -10.0], [0.0, 2.0, 0.0], [12.0, 6.0, 10.0]]),
-                                  np.array([3.0, 2.5, 2.0]))])
-    _, masks = simulate_views(voxelize(tree, grid), grid, views)
-    return Geometry(grid, views), [m.astype(np.uint8) * 255 for m in masks]
-
-
-def test_a_saturated_fit_gets_its_gradient_back_where_the_masks_are_unexplained(tube):
+def test_a_saturated_fit_gets_its_gradient_back_where_the_masks_are_unexplained(tiny_case):
     """A field started saturated (occupancy 10⁻⁶ everywhere) barely moves in its first steps; revived at step 4,
     the same fit explains its masks within a few steps. The written field stays the one whose σ(−α·s) is the
     occupancy, and report.json says what was revived."""
+    masks = [m.astype(np.uint8) * 255 for m in tiny_case.masks]
+
     def fit(fraction):
-        return reconstruct(tube[0], tube[1], make_settings("fast", steps=40, seed=3, device="cpu", initial_occupancy=1e-6,
-                                                           revive_fraction=fraction))
+        return reconstruct(tiny_case.geometry, masks, make_settings("fast", steps=40, seed=3, device="cpu",
+                                                                     initial_occupancy=1e-6, revive_fraction=fraction))
 
     plain, revived = fit(0.0), fit(0.1)
     assert plain.report["revival"] is None
