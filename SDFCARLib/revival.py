@@ -4,9 +4,11 @@ Why
     The field's occupancy is σ(z), z = −α·s (α = 50) for the SDF modes. Where the fit has driven a voxel
     far outside (occupancy ≲ 10⁻⁴), σ'(z) is thousands of times smaller than at the surface, and Adam's second
     moment, filled by the large early gradients of the same hash entries, keeps the steps there small: the fit
-    can no longer place a vessel there even where every view's mask and the frames ask for one. On the
+    places a vessel there slowly, if at all, even where every view's mask and the frames ask for one. On the
     realistic suites about half of the true vessel a result misses lies on rays that are empty in every view
-    at the end of the fit, inside the support and never excluded (bench/RESULTS.md §64a).
+    at the end of the fit, inside the support and never excluded (bench/RESULTS.md §64a); those stretches
+    saturate early and grow back only in the last steps (§64g). Off in every preset: on the realistic suites
+    it measured level (§64c).
 
 Method
     Once, part way through the fit (``revive_fraction`` of the steps; after the width check's exclusion when

@@ -45,9 +45,8 @@ def test_a_voxel_is_unexplained_only_where_every_view_leaves_its_mask_pixel_with
 
 
 def test_a_view_that_does_not_see_a_voxel_does_not_decide_for_it():
-    small = [CArmView(a, 0.0, 1000.0, 750.0, (1.0, 1.0), (64, 64)) for a in (0.0, 90.0)]
     narrow = CArmView(90.0, 0.0, 1000.0, 750.0, (1.0, 1.0), (4, 4))  # sees only the middle of the grid
-    views = [small[0], narrow]
+    views = [VIEWS[0], narrow]
     masks = [np.ones((64, 64), bool), np.ones((4, 4), bool)]
     rendered = [np.zeros((64, 64), np.float32), np.full((4, 4), 1.0, np.float32)]  # the narrow view explains all it sees
     found = unexplained_in_every_view(rendered, masks, views, GRID, np.arange(GRID.num_voxels))
