@@ -89,8 +89,10 @@ def gaussian_blur(image: torch.Tensor, sigma_px: Tuple[float, float]) -> torch.T
     return out[0, 0]
 
 
-def occupancy_loss(image: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
-    return torch.mean((target - image) ** 2)
+def occupancy_loss(image: torch.Tensor, target: torch.Tensor, weight: Optional[torch.Tensor] = None) -> torch.Tensor:
+    """Mean squared difference over the image, each pixel weighed by ``weight`` (H, W) where given."""
+    squared = (target - image) ** 2
+    return torch.mean(squared if weight is None else weight * squared)
 
 
 def excess_path_loss(rendered: torch.Tensor, target: torch.Tensor, factor: float, tolerance: float) -> torch.Tensor:
@@ -289,6 +291,8 @@ class ViewTarget:
     silhouette_length_mm: float  # τ
     # frames' path lengths carry the detector's blur: the rendering is blurred alike (σ rows, columns px) for L_occ
     blur_sigma_px: Tuple[float, float] = (0.0, 0.0)
+    # (H, W) weights of the pixels in L_occ (``thin_weights.py``), None: every pixel alike
+    pixel_weight: Optional[torch.Tensor] = None
 
     def silhouette_of(self, line_integral: torch.Tensor) -> torch.Tensor:
         return silhouette(line_integral, self.silhouette_length_mm)

@@ -327,6 +327,19 @@ def _ridge(image: np.ndarray, sigmas: Sequence[float], method: str) -> np.ndarra
     return meijering(image, sigmas=sigmas, black_ridges=False)
 
 
+def centreline_radius_px(mask: np.ndarray) -> Tuple[np.ndarray, np.ndarray, Tuple[np.ndarray, np.ndarray]]:
+    """The mask's centreline (its skeleton), the mask's radius (px) at the centreline pixel nearest to every
+    pixel, and that pixel's (rows, cols) per pixel: a border pixel of a thick vessel reads the thick vessel's
+    radius, not its own distance to the border."""
+    from skimage.morphology import skeletonize
+
+    mask = np.asarray(mask, bool)
+    centreline = skeletonize(mask)
+    _, (rows, cols) = ndimage.distance_transform_edt(~centreline, return_indices=True)
+    radius = ndimage.distance_transform_edt(mask)[rows, cols]
+    return centreline, radius, (rows, cols)
+
+
 def _redraw_edges(mask: np.ndarray, contrast: np.ndarray, fraction: float, field: np.ndarray,
                   taper_radius_px: Optional[float] = None, grow_px: float = 0.0,
                   max_radius_px: Optional[float] = None, grow_floor: float = 0.0) -> np.ndarray:
@@ -336,11 +349,7 @@ def _redraw_edges(mask: np.ndarray, contrast: np.ndarray, fraction: float, field
     vessel is cut); field pixels up to ``grow_px`` outside the mask that reach it and whose contrast
     exceeds ``grow_floor`` (step 6's noise level: no noise grows onto a vessel) join. With
     ``max_radius_px``, nothing changes where r exceeds it."""
-    from skimage.morphology import skeletonize
-
-    centreline = skeletonize(mask)
-    _, (rows, cols) = ndimage.distance_transform_edt(~centreline, return_indices=True)
-    radius = ndimage.distance_transform_edt(mask)[rows, cols]
+    centreline, radius, (rows, cols) = centreline_radius_px(mask)
     # the centreline's contrast, taken as the largest within one pixel (a skeleton drawn off the ridge)
     peak = ndimage.maximum_filter(contrast, size=3)[rows, cols]
     share = np.full(mask.shape, float(fraction))

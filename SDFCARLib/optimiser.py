@@ -63,6 +63,7 @@ from .projector import ConeBeamProjector, project_volume
 from .qa import qa_warnings, reprojection_qa
 from .pruning import PruneSettings, prune_redundant_branches, removal_zone, small_fragments, unconfirmed_fragments
 from .revival import revival_offsets, unexplained_in_every_view
+from .thin_weights import thin_vessel_weights
 from .width_agreement import disagreeing_pieces
 from .settings import MASK_THRESHOLD_MM, TARGET_KINDS, ReconstructionError, RegionSettings, Settings, make_settings
 
@@ -316,6 +317,12 @@ def build_problem(geometry: Geometry, targets: Sequence[np.ndarray], settings: S
         view_targets = [frame_target(torch.as_tensor(e, device=device), t,
                                      (blur_mm / v.pixel_spacing_mm[0], blur_mm / v.pixel_spacing_mm[1]))
                         for e, t, v in zip(evidence_images, view_targets, geometry.views)]
+    if settings.loss.thin_vessel_weight_power > 0 and target_kind == "mask":
+        weights = [torch.as_tensor(thin_vessel_weights(a > 0, settings.loss.thin_vessel_weight_power), device=device)
+                   for a in arrays]
+        view_targets = [dataclasses.replace(t, pixel_weight=w) for t, w in zip(view_targets, weights)]
+        if mask_targets is not None:
+            mask_targets = [dataclasses.replace(t, pixel_weight=w) for t, w in zip(mask_targets, weights)]
     geometric: Optional[GeometricLoss] = None
     if settings.mode.geometric_loss:
         loss = settings.loss
@@ -357,7 +364,7 @@ def caps_path_length(problem: Problem) -> bool:
 
 
 def _mean_occupancy_loss(line_integrals: Sequence[torch.Tensor], targets: Sequence[ViewTarget]) -> torch.Tensor:
-    return sum(occupancy_loss(t.rendered(li), t.image) for li, t in zip(line_integrals, targets)) / len(targets)
+    return sum(occupancy_loss(t.rendered(li), t.image, t.pixel_weight) for li, t in zip(line_integrals, targets)) / len(targets)
 
 
 def occupancy_terms(problem: Problem, step: int, line_integrals: Sequence[torch.Tensor]) -> Dict[str, torch.Tensor]:

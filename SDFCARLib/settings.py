@@ -159,6 +159,10 @@ class LossSettings:
     # >0: the detector's blur (Gaussian σ, detector mm) that the frames' path lengths carry; L_occ on the frames
     # then compares the rendering blurred alike (0: off; 0.3 was far worse on realistic trees: RESULTS §33d)
     frame_blur_sigma_mm: float = 0.0
+    # >0: L_occ weighs a mask pixel by (median radius / its vessel's radius)^this, the mask's mean weight 1
+    # (thin_weights.py: a thin vessel's few pixels otherwise weigh little; 0: off, every pixel alike; 1: LAD level,
+    # RCA lower, the thin stretches lost as often: RESULTS §65)
+    thin_vessel_weight_power: float = 0.0
     # >0: where the frames are read as evidence (frame_evidence), L_geo, L_occ and the finishing steps read
     # the masks less the border pixels whose path length on the frame (smoothed over a pixel) is below this
     # (mm); the support stays on the masks as given (0: off; 0.3 better on the LAD suites, level on RCA,
@@ -352,6 +356,9 @@ class Settings:
         if not l.frame_excess_tolerance_mm >= 0:
             raise ReconstructionError(f"frame_excess_tolerance_mm is a path length in mm, 0 or more, got "
                                       f"{l.frame_excess_tolerance_mm}")
+        if not l.thin_vessel_weight_power >= 0:
+            raise ReconstructionError(f"thin_vessel_weight_power is the power of the thin vessels' weight in L_occ, 0 (off) "
+                                      f"or more, got {l.thin_vessel_weight_power}")
         if not l.frame_blur_sigma_mm >= 0:
             raise ReconstructionError(f"frame_blur_sigma_mm is a detector blur in mm (0: off), got {l.frame_blur_sigma_mm}")
         if o.table_learning_rate is not None and not o.table_learning_rate > 0:
