@@ -161,7 +161,7 @@ class LossSettings:
     frame_blur_sigma_mm: float = 0.0
     # >0: L_occ weighs a mask pixel by (median radius / its vessel's radius)^this, the mask's mean weight 1
     # (thin_weights.py: a thin vessel's few pixels otherwise weigh little; 0: off, every pixel alike; 1: LAD level,
-    # RCA lower, the thin stretches lost as often: RESULTS §65)
+    # RCA lower, the thin stretches lost about as often: RESULTS §65)
     thin_vessel_weight_power: float = 0.0
     # >0: where the frames are read as evidence (frame_evidence), L_geo, L_occ and the finishing steps read
     # the masks less the border pixels whose path length on the frame (smoothed over a pixel) is below this

@@ -12,7 +12,7 @@ Rule
     r_ref the median of r over the mask's pixels; the mask's weights are then scaled to a mean of 1, so that
     λ_occ keeps its meaning. Pixels outside the mask weigh 1. power 0: every pixel 1.
 
-Measured (``thin_vessel_weight_power`` 1 on the realistic suites, §65): the thin stretches are lost as often as
+Measured (``thin_vessel_weight_power`` 1 on the realistic suites, §65): the thin stretches are lost about as often as
 without it (LAD level, RCA lower): what loses them is the two views' ambiguity, not their weight. Off in every preset.
 """
 
