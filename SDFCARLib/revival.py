@@ -2,9 +2,8 @@
 
 Why
     The field's occupancy is σ(z), z = −α·s (α = 50) for the SDF modes. Where the fit has driven a voxel
-    far outside (occupancy ≲ 10⁻⁴), σ'(z) is thousands of times smaller than at the surface, and Adam's second
-    moment, filled by the large early gradients of the same hash entries, keeps the steps there small: the fit
-    places a vessel there slowly, if at all, even where every view's mask and the frames ask for one. On the
+    far outside (occupancy ≲ 10⁻⁴), σ'(z) is thousands of times smaller than at the surface: the fit places a
+    vessel there slowly, if at all, even where every view's mask and the frames ask for one. On the
     realistic suites about half of the true vessel a result misses lies on rays that are empty in every view
     at the end of the fit, inside the support and never excluded (bench/RESULTS.md §64a); those stretches
     saturate early and grow back only in the last steps (§64g). Off in every preset: on the realistic suites
