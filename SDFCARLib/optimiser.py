@@ -832,15 +832,16 @@ def _ensemble_volumes(problem: Problem, first: ImplicitField, first_s: float, pr
     seed + 1, …, each from its own initialisation, with its own mid-fit exclusion). Returns the mean of their
     occupancy volumes with the raw field that gives it, the fits' seconds together, and (``keep_members``)
     each fit's (occupancy, raw field). Afterwards ``problem.excluded`` is None (each fit's exclusion is in
-    its own volume) and ``problem.exclusion`` lists every fit's."""
+    its own volume) and ``problem.exclusion`` and ``problem.revival`` list every fit's."""
     settings = problem.settings
     first_volumes = evaluate_volume(first, problem)
     occupancy_sum = first_volumes[0].astype(np.float64)
     members = [first_volumes] if keep_members else []
     records = [problem.exclusion]
+    revivals = [problem.revival]
     optimise_s = first_s
     for member in range(1, settings.optimisation.ensemble_fits):
-        problem.excluded, problem.exclusion, problem.logit_offset = None, None, None
+        problem.excluded, problem.exclusion, problem.logit_offset, problem.revival = None, None, None, None
         torch.manual_seed(settings.run.seed + member)
         model = ImplicitField(field_config(settings)).to(problem.device)
         _, seconds = optimise(problem, model, progress, cancel, fit=member, **loop)
@@ -850,8 +851,10 @@ def _ensemble_volumes(problem: Problem, first: ImplicitField, first_s: float, pr
         if keep_members:
             members.append(volumes)
         records.append(problem.exclusion)
+        revivals.append(problem.revival)
     problem.excluded, problem.logit_offset = None, None
     problem.exclusion = {"fits": records} if any(records) else None
+    problem.revival = {"fits": revivals} if any(revivals) else None
     return volumes_of_occupancy(occupancy_sum / settings.optimisation.ensemble_fits, settings), optimise_s, members
 
 

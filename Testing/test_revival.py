@@ -105,3 +105,16 @@ def test_a_saturated_fit_gets_its_gradient_back_where_the_masks_are_unexplained(
     assert revived.history[9]["loss"] < 0.3 * plain.history[9]["loss"]
     alpha = revived.settings.field.alpha
     np.testing.assert_allclose(revived.occupancy, 1.0 / (1.0 + np.exp(alpha * revived.field.astype(np.float64))), atol=1e-5)
+
+
+def test_an_ensemble_reports_each_fits_revival_apart(tiny_case):
+    """With ensemble_fits each fit revives at its own step; report.json lists the fits' records one per fit
+    (as the width exclusion's), not pooled into one list that hides which fit revived what."""
+    masks = [m.astype(np.uint8) * 255 for m in tiny_case.masks]
+    result = reconstruct(tiny_case.geometry, masks, make_settings("fast", steps=40, seed=3, device="cpu", ensemble_fits=2,
+                                                                   initial_occupancy=1e-6, revive_fraction=0.1))
+    fits = result.report["revival"]["fits"]
+    assert len(fits) == 2
+    for record in fits:
+        assert [revival["step"] for revival in record["revivals"]] == [4]
+        assert record["revivals"][0]["revived_voxels"] > 100
