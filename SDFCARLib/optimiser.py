@@ -15,9 +15,9 @@ with the frames' evidence and the calibrations asked for, are ``fit_field``):
    (``pruning.unconfirmed_fragments``) and joins the rest to the tree through the field
    (``connectivity.py``) when asked, grows into connected partial occupancy when asked, removes
    the pieces whose views see different widths where the tree stays whole when asked
-   (``width_agreement.py``), joins what is still apart once more when asked
-   (``final_reconnect_max_gap_mm``), removes the detached specks below a volume when asked
-   (``min_fragment_volume_mm3``), and writes the report.
+   (``width_agreement.py``), removes the detached specks below a volume when asked
+   (``min_fragment_volume_mm3``), joins what is still apart once more when asked
+   (``final_reconnect_max_gap_mm``), and writes the report.
 
 Learning rates
     Adam moves every weight by about lr per step. The SDF's occupancy logit is −α·s, so a step of
@@ -640,16 +640,17 @@ def finish(problem: Problem, model: ImplicitField, history: List[Dict[str, float
                                                settings.region.width_agreement_min_ratio, settings.region.prune_piece_mm,
                                                keep_connected=True, measure=settings.region.width_agreement_measure)
         segmentation = erase_removed(segmentation, kept, occupancy_volume, field_volume, geometry, settings)
-    final_reconnection: Optional[Dict[str, Any]] = None
-    if settings.region.final_reconnect_max_gap_mm and segmentation.any():
-        if _is_cancelled(cancel):
-            raise ReconstructionCancelled("cancelled before joining the fragments again")
-        segmentation, final_reconnection = join_fragments(segmentation, occupancy_volume, field_volume, geometry, problem.support,
-                                                          settings, settings.region.final_reconnect_max_gap_mm)
     small: Optional[Dict[str, Any]] = None
     if settings.region.min_fragment_volume_mm3 and segmentation.any():
         removed, small = small_fragments(segmentation, geometry.volume.spacing_mm, settings.region.min_fragment_volume_mm3)
         segmentation = erase_removed(segmentation, segmentation & ~removed, occupancy_volume, field_volume, geometry, settings)
+    final_reconnection: Optional[Dict[str, Any]] = None
+    if settings.region.final_reconnect_max_gap_mm and segmentation.any():
+        if _is_cancelled(cancel):
+            raise ReconstructionCancelled("cancelled before joining the fragments again")
+        # after the specks went: a long bridge to a speck would mostly join a ghost (two in three, RESULTS §58a)
+        segmentation, final_reconnection = join_fragments(segmentation, occupancy_volume, field_volume, geometry, problem.support,
+                                                          settings, settings.region.final_reconnect_max_gap_mm)
     projected = reprojected_masks(segmentation, geometry, projectors=traced)
     qa = [reprojection_qa(p, m, v) for p, m, v in zip(projected, references, geometry.views)]
     qa_warned = qa_warnings(qa)

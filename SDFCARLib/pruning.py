@@ -31,7 +31,8 @@ Unconfirmed fragments (``unconfirmed_fragments``)
     pieces still attached to the tree are left to the set cover above.
 
 Small fragments (``small_fragments``)
-    What is still detached once everything else is done, and smaller than ``min_volume_mm3`` (16 mm³
+    What is still detached once every other step is done (but the final reconnection, which comes after
+    it when asked), and smaller than ``min_volume_mm3`` (16 mm³
     in ``fast``: 31 voxels at 0.8 mm), is removed: a piece of a vessel that small, seen by nothing that
     joins it to the tree, is noise in a tree a clinician reads, and on realistic input two in three of
     these specks lie away from any true vessel (bench/RESULTS.md §58).

@@ -206,12 +206,14 @@ class RegionSettings:
     # skeleton pixel; "thickness", the mask's local thickness (a free end's cap reads the vessel behind it);
     # "open_ends", the centreline's, unread at a skeleton end's cap
     width_agreement_measure: str = "centreline"
-    # 0: off. Otherwise, after everything above, the fragments still apart are joined to the tree once more
-    # (as reconnect does, inside the support) across gaps up to this many mm: growing brings fragments closer.
-    # Fewer pieces for less clDice (bridges take the shortest supported path, not a missed vessel's: RESULTS §32c)
+    # 0: off. Otherwise, last, after min_fragment_volume_mm3's specks went, the fragments still apart are joined
+    # to the tree once more (as reconnect does, inside the support) across gaps up to this many mm: growing brings
+    # fragments closer. Fewer pieces for less clDice (bridges take the shortest supported path, not a missed
+    # vessel's: RESULTS §32c)
     final_reconnect_max_gap_mm: float = 0.0
-    # 0: off. Otherwise, last, the detached pieces (every component but the largest) smaller than this many mm³
-    # are removed (pruning.small_fragments): specks no step could join to the tree, two in three off any true vessel
+    # 0: off. Otherwise, after everything above but the final reconnection, the detached pieces (every component
+    # but the largest) smaller than this many mm³ are removed (pruning.small_fragments): specks no step could join
+    # to the tree, two in three off any true vessel
     min_fragment_volume_mm3: float = 0.0
     # 0: off. Otherwise, at this share of the steps, the pieces that width check would remove from the
     # fit's segmentation so far are taken out of the field for the rest of the fit, so that the fit may

@@ -267,6 +267,13 @@ def test_the_final_reconnection_is_wired_into_the_finish_and_reported(small_tree
     assert not (plain.segmentation & ~joined.segmentation).any()  # it only adds
     np.testing.assert_array_equal(joined.segmentation, joined.occupancy >= 0.5)  # what the outputs read
 
+    # the specks go first: a piece below min_fragment_volume_mm3 is removed, never bridged to (two in three are ghosts)
+    assert plain.report["components"]["components"] >= 2  # the case has a detached piece to decide on
+    cleaned = fitted.finished(plain_settings.replace(final_reconnect_max_gap_mm=40.0, min_fragment_volume_mm3=1e6))
+    assert cleaned.report["small_fragments"]["removed_fragments"] == plain.report["components"]["components"] - 1
+    assert cleaned.report["final_reconnection"]["components_before"] == 1
+    assert cleaned.report["final_reconnection"]["joined"] == 0 and cleaned.report["components"]["components"] == 1
+
 
 def test_small_fragments_are_the_detached_pieces_below_the_volume_and_never_the_largest():
     from SDFCARLib.pruning import small_fragments
