@@ -133,6 +133,32 @@ def test_tiny_suite_end_to_end_then_resume(tmp_path, capsys):
     assert len(json.loads((out / "run.json").read_text(encoding="utf-8"))["runs"]) == 2
 
 
+def test_motion_protocol_rows_carry_the_depth_aligned_metrics(tmp_path, capsys):
+    """With heart motion the rows add the tree's offset along view 1's axis and the scores there; static rows do not."""
+    pytest.importorskip("distributed", reason="the benchmark harness needs the 'bench' extra (dask[distributed], matplotlib)")
+    from SDFCARLib.hull import visual_hull
+    from SDFCARLib.metrics import depth_aligned_metrics
+
+    rows_of = {}
+    for protocol in ("realistic-lao30-rao30", "realistic-static-lao30-rao30"):
+        out = tmp_path / protocol
+        code, _, err = run_cli(capsys, "--suite", "rca", "--cases", 1, "--modes", "hull", "--protocol", protocol,
+                               "--out", out, "--workers", 1, "--no-progress", *TINY)
+        assert code == 0, err
+        rows_of[protocol] = read_csv(out / "results.csv")[1]
+    moved = rows_of["realistic-lao30-rao30"][0]
+    assert float(moved["motion_mm"]) > 0
+    spec = bm.build_cases(bm.BenchmarkConfig("rca", tmp_path, cases=1))[0]
+    case = bm.prepare_case(spec, "realistic-lao30-rao30", TINY_GRID)
+    hull = visual_hull(case.masks, case.geometry.views, case.geometry.volume)
+    expected = depth_aligned_metrics(hull, case.label, case.geometry.volume, case.geometry.views[0].detector_direction)
+    for key, value in expected.items():
+        assert float(moved[key]) == pytest.approx(value)
+    assert float(moved["dice_depth_aligned"]) >= float(moved["dice"])  # no shift is one of the shifts searched
+    static = rows_of["realistic-static-lao30-rao30"][0]
+    assert static["depth_offset_mm"] == static["cldice_depth_aligned"] == ""
+
+
 def test_failed_run_is_recorded_and_retried_on_request(tmp_path, capsys, monkeypatch):
     LocalCluster = pytest.importorskip("distributed", reason="the benchmark harness needs the 'bench' extra (dask[distributed], matplotlib)").LocalCluster
     pytest.importorskip("matplotlib", reason="the benchmark harness needs the 'bench' extra (dask[distributed], matplotlib)")

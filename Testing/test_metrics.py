@@ -16,10 +16,12 @@ from SDFCARLib.settings import GROUND_TRUTH_METRICS
 from SDFCARLib.metrics import (
     chamfer_l2_mm,
     cldice,
+    depth_aligned_metrics,
     dice,
     evaluate,
     iou,
     reprojection_metrics,
+    shift_volume,
     skeleton,
     skeleton_dice,
     surface_voxels,
@@ -242,3 +244,33 @@ def test_mismatched_shapes_are_rejected_by_chamfer_and_summary():
         chamfer_l2_mm(np.zeros((4, 4, 4)), np.zeros((5, 4, 4)), (1, 1, 1))
     with pytest.raises(ValueError, match="shape"):
         volume_metrics(np.zeros((4, 4, 4)), np.zeros((5, 4, 4)), (1, 1, 1))
+
+
+# --- depth-aligned metrics ------------------------------------------------------------------------------
+def test_depth_aligned_metrics_find_a_whole_tree_shifted_along_the_axis():
+    """A thin tube moved 1.5 mm along an oblique axis scores low as it is and perfectly once moved back."""
+    grid = VolumeGrid((40, 40, 40), (0.5, 0.5, 0.5), (0.0, 0.0, 0.0))
+    label = np.zeros(grid.shape, bool)
+    label[:, 18:21, 19:21] = True  # a tube along i, 1–1.5 mm across
+    axis = np.array([0.0, 1.0, 1.0]) / np.sqrt(2.0)  # across the tube, oblique to the grid
+    moved = shift_volume(label, grid, 1.5 * axis)
+    assert cldice(moved, label) < 0.2
+    out = depth_aligned_metrics(moved, label, grid, axis)
+    assert out["depth_offset_mm"] == pytest.approx(-1.5, abs=0.26)
+    assert out["dice_depth_aligned"] > 0.9 and out["cldice_depth_aligned"] > 0.9
+
+
+def test_depth_aligned_metrics_of_an_aligned_result_shift_nothing():
+    grid = VolumeGrid(SHAPE, (0.8, 0.8, 0.8), (0.0, 0.0, 0.0))
+    label = tube((12, 12), 2)
+    out = depth_aligned_metrics(label, label, grid, (1.0, 0.0, 0.0))
+    assert out == {"depth_offset_mm": 0.0, "dice_depth_aligned": 1.0, "cldice_depth_aligned": 1.0}
+
+
+@pytest.mark.parametrize("axis, search, step, words", [((0, 0, 0), 3.0, 0.25, "non-zero"),
+                                                        ((1, 0, 0), 3.0, 0.0, "step"),
+                                                        ((1, 0, 0), 0.1, 0.25, "step")])
+def test_depth_aligned_metrics_reject_a_bad_search(axis, search, step, words):
+    grid = VolumeGrid(SHAPE, (0.8, 0.8, 0.8), (0.0, 0.0, 0.0))
+    with pytest.raises(ValueError, match=words):
+        depth_aligned_metrics(tube((12, 12), 2), tube((12, 12), 2), grid, axis, search, step)

@@ -31,7 +31,7 @@ from bench.realistic_cases import add_grid_arguments, protocol_setup  # noqa: E4
 from SDFCARLib.evidence import view_evidence  # noqa: E402
 from SDFCARLib.geometry import Geometry, rotation_matrix  # noqa: E402
 from SDFCARLib.line_integral_consistency import estimate_motion, estimate_motions, motion_axes  # noqa: E402
-from SDFCARLib.metrics import evaluate  # noqa: E402
+from SDFCARLib.metrics import depth_aligned_metrics, evaluate  # noqa: E402
 from SDFCARLib.optimiser import reconstruct  # noqa: E402
 from SDFCARLib.phantoms import lad_tree, rca_tree, voxelize  # noqa: E402
 from SDFCARLib.realistic import RealisticOptions, realistic_input  # noqa: E402
@@ -111,9 +111,12 @@ def reconstruct_at(poses, realistic, label, geometry, args, seed, overrides, nam
         t0 = time.perf_counter()
         result = reconstruct(g, realistic.masks, settings, "mask", frames=realistic.frames)
         m = evaluate(result.segmentation, label, volume, g.views, realistic.masks)
-        row.update({f"cldice_{pose}": m["cldice"], f"dice_{pose}": m["dice"], f"pieces_{pose}": m["components"]})
+        aligned = depth_aligned_metrics(result.segmentation, label, volume, g.views[0].detector_direction)
+        row.update({f"cldice_{pose}": m["cldice"], f"dice_{pose}": m["dice"], f"pieces_{pose}": m["components"],
+                    f"cldice_aligned_{pose}": aligned["cldice_depth_aligned"]})
         print(f"{name} {pose:9s} clDice {m['cldice']:.3f} Dice {m['dice']:.3f} Chamfer {m['chamfer_l2_mm']:.2f} "
-              f"pieces {m['components']}/{m.get('components_label')} {time.perf_counter() - t0:.0f} s", flush=True)
+              f"pieces {m['components']}/{m.get('components_label')}; along view 1's axis {aligned['depth_offset_mm']:+.2f} mm "
+              f"off, clDice there {aligned['cldice_depth_aligned']:.3f} {time.perf_counter() - t0:.0f} s", flush=True)
     return row
 
 

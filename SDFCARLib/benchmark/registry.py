@@ -32,4 +32,5 @@ METRIC_COLUMNS = ["cldice", "tprec", "tsens", "skeleton_dice", "dice", "iou", "c
                   "calibration_shift_mm_view2", "true_shift_mm_view2",
                   "calibration_rotation_in_plane_deg_view2", "true_rotation_in_plane_deg_view2",
                   "calibration_rotation_tilt_deg_view2", "true_rotation_tilt_deg_view2",
-                  "components", "largest_component_fraction", "components_label"]
+                  "components", "largest_component_fraction", "components_label",
+                  "depth_offset_mm", "cldice_depth_aligned", "dice_depth_aligned"]

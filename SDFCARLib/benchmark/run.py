@@ -122,6 +122,10 @@ def run_task(prepared: Dict[str, Any], spec: CaseSpec, mode: str, task: Dict[str
                 row[f"input_mask_cldice_view{n}"] = view["mask_cldice"]
             row["motion_mm"] = max(float(np.linalg.norm(m["translation_mm"])) for m in realistic["motion"])
             row["motion_deg"] = max(float(np.linalg.norm(m["rotation_deg"])) for m in realistic["motion"])
+            if row["motion_mm"] > 0 or row["motion_deg"] > 0:  # the tree's depth along view 1's axis is barely seen
+                from ..metrics import depth_aligned_metrics
+
+                row.update(depth_aligned_metrics(prediction, case.label, grid, views[0].detector_direction))
         row["status"], row["error"] = "ok", ""
         out: Dict[str, Any] = {"row": row}
         if task.get("overlay"):
