@@ -4,7 +4,7 @@
 
 Realistic protocol with motion (``realistic-lao30-rao30``: view 2's object moved up to 3 mm / 2°,
 masks segmented from the simulated angiograms; ``--static``: the same without motion). Per case: the
-evidence images of both views (``evidence.view_evidence``, nominal poses), view 2's motion estimated
+evidence images of both views (read as `fast` reads them for its calibration, nominal poses), view 2's motion estimated
 from them, and, against the simulated motion, each component along ``motion_axes`` (about the
 region's centre) and the shift along the baseline, which two views cannot see. With
 ``--reconstruct``, ``fast`` (with the frames) at the nominal pose, at the estimated pose and at the
@@ -28,11 +28,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 import numpy as np  # noqa: E402
 
 from bench.realistic_cases import add_grid_arguments, protocol_setup  # noqa: E402
-from SDFCARLib.evidence import view_evidence  # noqa: E402
 from SDFCARLib.geometry import Geometry, rotation_matrix  # noqa: E402
 from SDFCARLib.line_integral_consistency import estimate_motion, estimate_motions, motion_axes  # noqa: E402
 from SDFCARLib.metrics import depth_aligned_metrics, evaluate  # noqa: E402
-from SDFCARLib.optimiser import reconstruct  # noqa: E402
+from SDFCARLib.optimiser import read_frame_evidence, reconstruct  # noqa: E402
 from SDFCARLib.phantoms import lad_tree, rca_tree, voxelize  # noqa: E402
 from SDFCARLib.realistic import RealisticOptions, realistic_input  # noqa: E402
 from SDFCARLib.settings import REALISTIC_PROTOCOLS, make_settings, parse_setting_overrides  # noqa: E402
@@ -80,7 +79,7 @@ def main() -> int:
         label = voxelize((rca_tree if args.suite == "rca" else lad_tree)(seed), geometry.volume)
         realistic = realistic_input(label, geometry, seed, RealisticOptions(**REALISTIC_PROTOCOLS[protocol]))
         views = geometry.views
-        evidence = [view_evidence(f, m, v).line_integral_mm for f, m, v in zip(realistic.frames, realistic.masks, views)]
+        evidence = frames_evidence(realistic, geometry, overrides)
         centre = np.asarray(geometry.volume.center_mm, float)
         estimate = estimate_motion(views[0], evidence[0], views[1], evidence[1], centre, **motion_options)
         true_view = realistic.true_views[1]
@@ -97,6 +96,12 @@ def main() -> int:
             row.update(reconstruct_at(poses, realistic, label, geometry, args, seed, overrides, name))
         rows.append(row)
     return print_means(rows)
+
+
+def frames_evidence(realistic, geometry, overrides):
+    """The frames' line integrals exactly as ``fast`` (with these settings) reads them for its calibration."""
+    settings = make_settings("fast", **dict(overrides, frame_evidence=True))
+    return read_frame_evidence(realistic.frames, realistic.masks, geometry, settings, "mask").images
 
 
 def reconstruct_at(poses, realistic, label, geometry, args, seed, overrides, name):
@@ -143,7 +148,7 @@ def three_views(args) -> int:
         name = f"{args.suite.upper()}-{seed}"
         label = voxelize((rca_tree if args.suite == "rca" else lad_tree)(seed), geometry.volume)
         realistic = realistic_input(label, geometry, seed, RealisticOptions(**REALISTIC_PROTOCOLS[protocol]))
-        evidence = [view_evidence(f, m, v).line_integral_mm for f, m, v in zip(realistic.frames, realistic.masks, views)]
+        evidence = frames_evidence(realistic, geometry, overrides)
         truth = [about_centre(v.object_rotation_deg, v.object_translation_mm, centre) for v in realistic.true_views[1:]]
         t0 = time.perf_counter()
         pairwise = [estimate_motion(views[0], evidence[0], views[k], evidence[k], centre) for k in range(1, len(views))]
