@@ -11,7 +11,8 @@ from blob_phantom import AMPLITUDES, CENTRES, SIGMA_MM, VIEW_1, VIEW_2, VIEW_3, 
 from SDFCARLib.calibration import moved
 from SDFCARLib.geometry import rotation_matrix
 from SDFCARLib.line_integral_consistency import (EpipolarError, consistency, epipolar_frame, estimate_motion,
-                                                  estimate_motions, plane_angles, plane_derivatives, rays_of)
+                                                  estimate_motions, plane_angles, plane_derivatives, rays_of,
+                                                  with_equal_totals)
 
 #: VIEW_1 with pixels a third the size: its rays are pooled 3 × 3 (``RAY_PIXEL_MM``)
 FINE_VIEW_1 = dataclasses.replace(VIEW_1, pixel_spacing_mm=(0.8 / 3, 0.8 / 3), detector_shape=(384, 384))
@@ -78,6 +79,30 @@ def test_estimate_motion_recovers_the_motion_two_views_observe():
     assert abs(estimate.translation_mm[0]) < 1e-6  # along the baseline: not searched
     report = estimate.report()
     assert set(report) >= {"rotation_deg", "translation_mm", "consistency_before", "consistency_after"}
+
+
+def test_equal_totals_undo_a_scale_error_of_one_view_and_keep_the_volume():
+    centre = CENTRES.mean(axis=0)
+    rays = [rays_of(blob_image(v), v) for v in (VIEW_1, VIEW_2)]
+    volumes = [float(np.sum(r.weights)) * float(np.sum((r.source_mm - centre) ** 2)) for r in rays]
+    # Σ P·dω·|S − c|² is the blobs' integral ΣA(2π)^{3/2}σ³ in every view, to the blobs' spread about c
+    expected = float(np.sum(AMPLITUDES)) * (2 * math.pi) ** 1.5 * SIGMA_MM ** 3
+    np.testing.assert_allclose(volumes, expected, rtol=0.03)
+    scaled = [rays[0], dataclasses.replace(rays[1], weights=1.15 * rays[1].weights)]
+    equal, unscaled = with_equal_totals(scaled, centre), with_equal_totals(rays, centre)
+    for found, without in zip(equal, unscaled):  # the same up to one factor common to both views
+        np.testing.assert_allclose(found.weights / equal[0].weights.sum(), without.weights / unscaled[0].weights.sum(),
+                                   rtol=1e-12)
+    assert consistency(*equal, 1.0, centre)["cost"] < 0.2 * consistency(*scaled, 1.0, centre)["cost"]
+
+
+def test_a_view_whose_attenuation_was_misread_still_gives_its_motion():
+    true_rotation = np.array([0.8, -0.6, 0.0])
+    true_translation = np.array([0.0, 0.0, 1.5])
+    seen = 1.15 * blob_image(VIEW_2.with_object_motion(true_rotation, true_translation))  # μ read 13 % low
+    estimate = estimate_motion(VIEW_1, blob_image(VIEW_1), VIEW_2, seen, np.zeros(3))
+    np.testing.assert_allclose(estimate.rotation_deg[:2], true_rotation[:2], atol=0.1)
+    assert abs(estimate.translation_mm[2] - true_translation[2]) < 0.1
 
 
 def test_images_that_cannot_be_compared_are_refused():
