@@ -126,12 +126,19 @@ def with_equal_totals(rays: Sequence[LineIntegralImage], centre_mm: Sequence[flo
     object's volume for an object near c), but each view's path lengths carry that frame's own
     attenuation estimate (``evidence.py``), which differs between frames by up to a sixth on the
     realistic suites: a scale the consistency would read as motion (bench/RESULTS.md §68)."""
+    return [LineIntegralImage(r.source_mm, r.directions, r.weights * f)
+            for r, f in zip(rays, equal_total_factors(rays, centre_mm))]
+
+
+def equal_total_factors(rays: Sequence[LineIntegralImage], centre_mm: Sequence[float]) -> List[float]:
+    """The factor on each view's path lengths that brings its Σ P·dω·|S − c|² to the views' geometric
+    mean (``with_equal_totals``); their product is 1."""
     centre = np.asarray(centre_mm, float)
     totals = [float(np.sum(r.weights)) * float(np.sum((r.source_mm - centre) ** 2)) for r in rays]
     if min(totals) <= 0:
         raise EpipolarError("an image has no vessel (no positive line integral)")
     common = math.exp(sum(math.log(t) for t in totals) / len(totals))
-    return [LineIntegralImage(r.source_mm, r.directions, r.weights * (common / t)) for r, t in zip(rays, totals)]
+    return [common / t for t in totals]
 
 
 #: the kernel −g' is summed out to this many ε from a plane (its tail beyond is below 4e-5 of its peak)

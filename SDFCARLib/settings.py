@@ -136,6 +136,10 @@ class LossSettings:
     # the frames' path lengths are kept on the masks widened by this many pixels, 0 outside (evidence.py;
     # `fast` 0, RESULTS §62d–e)
     frame_evidence_reach_px: int = 2
+    # the views' path lengths scaled to one common total before they are fitted (line_integral_consistency.
+    # equal_total_factors): every view sees the same volume, but each frame's path lengths carry its own attenuation
+    # estimate (up to a fifth apart). Off: static LAD +2.2, RCA −0.6, two views with motion LAD −3.0 (RESULTS §69)
+    frame_evidence_equal_totals: bool = False
     # >0: the frames' path lengths restored by this many Richardson–Lucy steps against the detector's blur
     # before they are fitted (evidence.py; 0: off)
     frame_deblur_iterations: int = 0

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 import torch
@@ -13,7 +15,8 @@ from SDFCARLib.evidence import (EvidenceError, EvidenceSettings, absorbance_abov
 from SDFCARLib.geometry import CArmView, Geometry, VolumeGrid
 from SDFCARLib.losses import make_target, frame_target, occupancy_loss
 from SDFCARLib.masks import segment_angiogram
-from SDFCARLib.optimiser import build_problem, occupancy_targets, occupancy_terms, reconstruct
+from SDFCARLib.line_integral_consistency import rays_of
+from SDFCARLib.optimiser import build_problem, occupancy_targets, occupancy_terms, read_frame_evidence, reconstruct
 from SDFCARLib.phantoms import Branch, CentrelineTree, simulate_views, voxelize
 from SDFCARLib.settings import ReconstructionError, make_settings
 
@@ -302,6 +305,25 @@ def test_the_frames_path_lengths_reach_as_far_beyond_the_masks_as_asked(angiogra
     for bad in (-1, 1.5):
         with pytest.raises(ReconstructionError, match="frame_evidence_reach_px"):
             make_settings("fast", frame_evidence_reach_px=bad)
+
+
+def test_the_views_path_lengths_are_brought_to_one_total_when_asked(angiogram_case):
+    geometry, _, frames, masks = angiogram_case
+    read = {on: read_frame_evidence(frames, masks, geometry, make_settings("fast", frame_evidence_equal_totals=on), "mask")
+            for on in (False, True)}
+    factors = [v["equal_total_factor"] for v in read[True].record["views"]]
+    assert all("equal_total_factor" not in v for v in read[False].record["views"])
+    assert math.prod(factors) == pytest.approx(1.0, abs=2e-4)
+    for plain, equal, f in zip(read[False].images, read[True].images, factors):
+        np.testing.assert_allclose(equal, plain * f, rtol=1e-3)  # one factor per view, nothing else changed
+    centre = geometry.volume.center_mm
+    totals = [float(np.sum(r.weights)) * float(np.sum((r.source_mm - np.asarray(centre)) ** 2))
+              for r in (rays_of(i, v) for i, v in zip(read[True].images, geometry.views))]
+    assert totals[0] == pytest.approx(totals[1], rel=1e-4)
+    # the fit's L_occ reads what was brought to one total
+    problem = build_problem(geometry, masks, make_settings("fast", frame_evidence_equal_totals=True), "mask", frames=frames)
+    for target, image in zip(problem.view_targets, read[True].images):
+        np.testing.assert_allclose(target.image.cpu().numpy() * target.reference_mm, image, rtol=1e-5, atol=1e-6)
 
 
 def test_the_frames_path_lengths_are_deblurred_when_asked(angiogram_case):

@@ -11,8 +11,8 @@ from blob_phantom import AMPLITUDES, CENTRES, SIGMA_MM, VIEW_1, VIEW_2, VIEW_3, 
 from SDFCARLib.calibration import moved
 from SDFCARLib.geometry import rotation_matrix
 from SDFCARLib.line_integral_consistency import (EpipolarError, consistency, epipolar_frame, estimate_motion,
-                                                  estimate_motions, plane_angles, plane_derivatives, rays_of,
-                                                  with_equal_totals)
+                                                  equal_total_factors, estimate_motions, plane_angles,
+                                                  plane_derivatives, rays_of, with_equal_totals)
 
 #: VIEW_1 with pixels a third the size: its rays are pooled 3 × 3 (``RAY_PIXEL_MM``)
 FINE_VIEW_1 = dataclasses.replace(VIEW_1, pixel_spacing_mm=(0.8 / 3, 0.8 / 3), detector_shape=(384, 384))
@@ -94,6 +94,18 @@ def test_equal_totals_undo_a_scale_error_of_one_view_and_keep_the_volume():
         np.testing.assert_allclose(found.weights / equal[0].weights.sum(), without.weights / unscaled[0].weights.sum(),
                                    rtol=1e-12)
     assert consistency(*equal, 1.0, centre)["cost"] < 0.2 * consistency(*scaled, 1.0, centre)["cost"]
+
+
+def test_equal_total_factors_take_out_one_views_scale_and_multiply_to_one():
+    centre = CENTRES.mean(axis=0)
+    rays = [rays_of(blob_image(v), v) for v in (VIEW_1, VIEW_2, VIEW_3)]
+    plain = equal_total_factors(rays, centre)
+    scaled = equal_total_factors([rays[0], dataclasses.replace(rays[1], weights=1.2 * rays[1].weights), rays[2]], centre)
+    assert math.prod(plain) == pytest.approx(1.0) and math.prod(scaled) == pytest.approx(1.0)
+    # view 2's factor falls by the 1.2 it was given, the others rise by its cube root
+    np.testing.assert_allclose(np.array(scaled) / plain, [1.2 ** (1 / 3), 1.2 ** (-2 / 3), 1.2 ** (1 / 3)], rtol=1e-9)
+    with pytest.raises(EpipolarError, match="no vessel"):
+        equal_total_factors([rays[0], dataclasses.replace(rays[1], weights=0 * rays[1].weights)], centre)
 
 
 def test_a_view_whose_attenuation_was_misread_still_gives_its_motion():
