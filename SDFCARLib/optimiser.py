@@ -215,14 +215,11 @@ def read_frame_evidence(frames: Optional[Sequence[np.ndarray]], targets: Sequenc
                                deblur_iterations=settings.loss.frame_deblur_iterations)
     images, record, warnings = _frame_evidence(frames, masks, geometry, target_kind, reading)
     if images is not None and settings.loss.frame_evidence_equal_totals and len(images) > 1:
-        from .line_integral_consistency import EpipolarError, equal_total_factors, rays_of
+        from .line_integral_consistency import equal_total_factors, rays_of
 
-        try:
-            factors = equal_total_factors([rays_of(i, v) for i, v in zip(images, geometry.views)],
-                                          geometry.volume.center_mm)
-        except EpipolarError as exc:  # a view without path length: its total cannot be compared
-            warnings = warnings + [f"the frames' path lengths are fitted as read, not brought to one total: {exc}"]
-            factors = [1.0] * len(images)
+        # every view read here has path length: view_evidence refuses a frame without lumen profiles
+        factors = equal_total_factors([rays_of(i, v) for i, v in zip(images, geometry.views)],
+                                      geometry.volume.center_mm)
         images = [(i * f).astype(i.dtype) for i, f in zip(images, factors)]
         for view, f in zip(record["views"], factors):
             view["equal_total_factor"] = round(f, 4)
