@@ -11,6 +11,7 @@ import argparse
 import csv
 import json
 import math
+import os
 import time
 from pathlib import Path
 
@@ -203,6 +204,46 @@ def test_failed_run_is_recorded_and_retried_on_request(tmp_path, capsys, monkeyp
     assert [r["mode"] for r in rows].count("neca") == 2 and rows[-1]["mode"] == "neca" and rows[-1]["status"] == "ok"
     neca_line = next(line for line in table_lines((out / "summary.md").read_text(encoding="utf-8")) if "(`neca`)" in line)
     assert neca_line.rstrip(" |").endswith("1/0")
+
+
+def test_local_cluster_workers_do_not_inherit_dasks_malloc_trim_setting(tmp_path, monkeypatch):
+    """Dask's nanny starts workers with MALLOC_TRIM_THRESHOLD_ (glibc then maps every large tensor afresh: a fit at
+    half speed); the benchmark's own cluster leaves it unset, and Dask's configuration as it was."""
+    pytest.importorskip("distributed", reason="the benchmark harness needs the 'bench' extra (dask[distributed], matplotlib)")
+    import dask
+
+    monkeypatch.delenv("MALLOC_TRIM_THRESHOLD_", raising=False)
+    assert dask.config.get(bm_run.WORKER_ENVIRON_KEY).get("MALLOC_TRIM_THRESHOLD_") is not None  # what Dask sets
+    client, cluster, _ = bm_run._start_client(bm.BenchmarkConfig("rca", tmp_path, workers=1), processes=True)
+    try:
+        seen = client.run(lambda: {name: os.environ.get(name) for name in ("MALLOC_TRIM_THRESHOLD_", "OMP_NUM_THREADS")})
+    finally:
+        client.close()
+        cluster.close()
+    (worker,) = seen.values()
+    assert worker["MALLOC_TRIM_THRESHOLD_"] is None
+    assert worker["OMP_NUM_THREADS"] == "1"  # Dask's other settings stay: torch's threads are set per task
+    assert dask.config.get(bm_run.WORKER_ENVIRON_KEY).get("MALLOC_TRIM_THRESHOLD_") is not None
+
+
+@pytest.mark.parametrize("trim", [None, "65536"])
+def test_own_scheduler_whose_workers_trim_malloc_gets_a_warning(tmp_path, capsys, monkeypatch, trim):
+    LocalCluster = pytest.importorskip("distributed", reason="the benchmark harness needs the 'bench' extra (dask[distributed], matplotlib)").LocalCluster
+    pytest.importorskip("matplotlib", reason="the benchmark harness needs the 'bench' extra (dask[distributed], matplotlib)")
+    if trim is None:
+        monkeypatch.delenv("MALLOC_TRIM_THRESHOLD_", raising=False)
+    else:
+        monkeypatch.setenv("MALLOC_TRIM_THRESHOLD_", trim)  # the workers below are threads of this process
+    argv = ["--suite", "lad", "--cases", 1, "--modes", "sdfcar", "--steps", 2, "--out", tmp_path / "bench", "--no-progress",
+            "--protocol", "clinical-lao30-rao30", *TINY]
+    with LocalCluster(n_workers=1, threads_per_worker=1, processes=False, dashboard_address=":0") as cluster:
+        code, _, err = run_cli(capsys, *argv, "--scheduler", cluster.scheduler_address)
+    assert code == 0, err
+    warned = [line for line in err.splitlines() if "MALLOC_TRIM_THRESHOLD_" in line]
+    if trim is None:
+        assert warned == []
+    else:
+        assert len(warned) == 1 and "1 worker(s)" in warned[0] and "--no-nanny" in warned[0]
 
 
 def test_case_preparation_failure_becomes_a_row_per_mode(tmp_path):

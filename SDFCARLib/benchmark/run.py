@@ -185,6 +185,10 @@ class BenchmarkOutcome:
     figures: List[Path]
 
 
+WORKER_ENVIRON_KEY = "distributed.nanny.pre-spawn-environ"
+UNSET_WORKER_ENVIRON = ("MALLOC_TRIM_THRESHOLD_",)
+
+
 def _start_client(config: BenchmarkConfig, processes: bool):
     """A Dask client on ``--scheduler`` or on a new LocalCluster; (client, cluster or None, description)."""
     from distributed import Client, LocalCluster
@@ -204,15 +208,29 @@ def _start_client(config: BenchmarkConfig, processes: bool):
         slots = client.nthreads()
         description = f"scheduler {config.scheduler}: {len(slots)} worker(s), {sum(slots.values())} task slots"
         return client, None, description
+    import dask
+
     cores = os.cpu_count() or 1
     workers = config.workers or max(1, cores // config.threads_per_worker)
     # One task slot per worker; the worker's cores go to torch inside the task (threads_per_worker).
-    cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=processes, dashboard_address=":0",
-                           silence_logs=logging.ERROR)
+    # Dask's nanny starts each worker with MALLOC_TRIM_THRESHOLD_ set, which turns off glibc's adaptive mmap threshold:
+    # every large tensor is then mapped and unmapped afresh and a fit's step takes twice as long (RESULTS §70a).
+    with dask.config.set({f"{WORKER_ENVIRON_KEY}.{name}": None for name in UNSET_WORKER_ENVIRON}):
+        cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=processes, dashboard_address=":0",
+                               silence_logs=logging.ERROR)
     client = Client(cluster)
     description = (f"LocalCluster: {workers} {'process' if processes else 'thread'} worker(s), one case at a time each, "
                    f"{config.threads_per_worker} torch thread(s) per case")
     return client, cluster, description
+
+
+def _workers_with_slow_malloc(client) -> List[str]:
+    """Addresses of the workers whose environment carries a variable ``UNSET_WORKER_ENVIRON`` names."""
+    try:
+        environ = client.run(lambda: [name for name in UNSET_WORKER_ENVIRON if os.environ.get(name) is not None])
+    except Exception:  # a worker that cannot run the check only costs the warning
+        return []
+    return sorted(address for address, names in environ.items() if names)
 
 
 def run_benchmark(config: BenchmarkConfig, processes: bool = True, argv: Optional[Sequence[str]] = None,
@@ -279,6 +297,11 @@ def _execute(config: BenchmarkConfig, todo: List[Tuple[CaseSpec, List[str]]], re
     from distributed import as_completed
 
     client, cluster, description = _start_client(config, processes)
+    slowed = _workers_with_slow_malloc(client)
+    if slowed:
+        log(f"benchmark: warning: {len(slowed)} worker(s) run with {', '.join(UNSET_WORKER_ENVIRON)} set (Dask's nanny sets it); "
+            "glibc then maps every large tensor afresh and each fit takes about twice as long — start the workers "
+            "without a nanny (dask worker --no-nanny ADDRESS) or leave out --scheduler")
     record["cluster"] = {"description": description, "scheduler": config.scheduler,
                          "workers": _worker_machines(client)}
     update_run_record(config.out, record)
