@@ -213,17 +213,19 @@ def test_local_cluster_workers_do_not_inherit_dasks_malloc_trim_setting(tmp_path
     import dask
 
     monkeypatch.delenv("MALLOC_TRIM_THRESHOLD_", raising=False)
-    assert dask.config.get(bm_run.WORKER_ENVIRON_KEY).get("MALLOC_TRIM_THRESHOLD_") is not None  # what Dask sets
-    client, cluster, _ = bm_run._start_client(bm.BenchmarkConfig("rca", tmp_path, workers=1), processes=True)
-    try:
-        seen = client.run(lambda: {name: os.environ.get(name) for name in ("MALLOC_TRIM_THRESHOLD_", "OMP_NUM_THREADS")})
-    finally:
-        client.close()
-        cluster.close()
+    key = bm_run.WORKER_ENVIRON_KEY
+    # Dask's own default (65536 in 2026.8), set here so that the test does not depend on the installed version
+    with dask.config.set({f"{key}.MALLOC_TRIM_THRESHOLD_": 65536, f"{key}.OMP_NUM_THREADS": 1}):
+        client, cluster, _ = bm_run._start_client(bm.BenchmarkConfig("rca", tmp_path, workers=1), processes=True)
+        try:
+            seen = client.run(lambda: {name: os.environ.get(name) for name in ("MALLOC_TRIM_THRESHOLD_", "OMP_NUM_THREADS")})
+        finally:
+            client.close()
+            cluster.close()
+        assert dask.config.get(key)["MALLOC_TRIM_THRESHOLD_"] == 65536  # Dask's configuration as it was
     (worker,) = seen.values()
     assert worker["MALLOC_TRIM_THRESHOLD_"] is None
     assert worker["OMP_NUM_THREADS"] == "1"  # Dask's other settings stay: torch's threads are set per task
-    assert dask.config.get(bm_run.WORKER_ENVIRON_KEY).get("MALLOC_TRIM_THRESHOLD_") is not None
 
 
 @pytest.mark.parametrize("trim", [None, "65536"])
