@@ -297,7 +297,7 @@ def _execute(config: BenchmarkConfig, todo: List[Tuple[CaseSpec, List[str]]], re
     from distributed import as_completed
 
     client, cluster, description = _start_client(config, processes)
-    slowed = _workers_with_slow_malloc(client)
+    slowed = _workers_with_slow_malloc(client) if config.scheduler else []  # the local cluster's workers start without it
     if slowed:
         log(f"benchmark: warning: {len(slowed)} worker(s) run with {', '.join(UNSET_WORKER_ENVIRON)} set (Dask's nanny sets it); "
             "glibc then maps every large tensor afresh and each fit takes about twice as long — start the workers "
