@@ -31,3 +31,17 @@ def test_the_truth_span_follows_a_segment_across_a_junction():
     assert cKDTree(segment).query(span)[0].max() < 0.3  # nothing of the other child
     np.testing.assert_allclose(span[0], [10, 0, 0], atol=0.15)
     np.testing.assert_allclose(span[-1], [20, 10, 0], atol=0.15)
+
+
+def test_a_third_view_analyses_the_same_tubes(monkeypatch):
+    # --views adds AP cranial 30: the tubes' axes are drawn against the two views of the pair only, so the
+    # three-view rows compare with the two-view ones tube by tube
+    pair = [qca.tube_direction(seed, 15.0) for seed in range(10)]
+    monkeypatch.setattr(qca, "VIEWS", list(qca.standard_geometry("lao30-rao30-cra30").views))
+    assert len(qca.VIEWS) == 3
+    with_third = [qca.tube_direction(seed, 15.0) for seed in range(10)]
+    np.testing.assert_array_equal(pair, with_third)
+    for direction in with_third:
+        assert max(qca.axis_foreshortening_pct(direction)[:2]) <= 15.0
+    # the limit does constrain: some first draw was rejected on the pair
+    assert any(not np.array_equal(d, np.random.default_rng(seed).normal(size=3)) for seed, d in enumerate(pair))

@@ -24,6 +24,7 @@ suggested view. Prints a Markdown table of case rows and a summary; ``--csv`` ke
     python bench/qca.py --suite recon --cases 10 --masks segmented --save runs/recon   # keep the reconstructions
     python bench/qca.py --suite recon --cases 10 --masks segmented --load runs/recon   # analyse them again
     python bench/qca.py --suite recon --cases 10 --masks segmented --grow 0 0.3       # finishing rules, same fits
+    python bench/qca.py --suite recon --cases 10 --masks segmented --views lao30-rao30-cra30   # a third view, same tubes
 
 The "graded" line is what analysis.json reports as each lesion's grade (``pipeline.lesion_grade``).
 """
@@ -55,7 +56,9 @@ from SDFCARLib.geometry import Geometry, VolumeGrid, standard_geometry  # noqa: 
 from SDFCARLib.phantoms import lad_tree, rca_tree  # noqa: E402
 from SDFCARLib.settings import parse_setting_overrides  # noqa: E402
 
-VIEWS = standard_geometry("lao30-rao30").views
+VIEW_SETS = ("lao30-rao30", "lao30-rao30-cra30")  # --views: the acquisitions (standard_geometry's names)
+VIEWS = list(standard_geometry(VIEW_SETS[0]).views)  # filled in place by --views, so score's default follows
+VIEW_SET = [VIEW_SETS[0]]  # the name of VIEWS
 INNER_MARK_MM = 5.0  # the inner landmarks of the 3D length: this far from either true end
 
 
@@ -292,11 +295,12 @@ def segmented_masks(tree, seed, moving=False):
     from SDFCARLib.settings import REALISTIC_PROTOCOLS
 
     label_grid = grid_around(tree, 0.2)
-    protocol = "realistic-lao30-rao30" if moving else "realistic-static-lao30-rao30"
+    protocol = f"realistic-{'' if moving else 'static-'}{VIEW_SET[0]}"
     realistic = realistic_input(voxelize_exact(tree, label_grid), Geometry(label_grid, VIEWS), seed,
                                 RealisticOptions(**{**REALISTIC_PROTOCOLS[protocol], **MASK_OPTIONS}))
-    return (realistic.masks, [round(v["mask_dice"], 4) for v in realistic.info["views"]], realistic.frames,
-            realistic.info["motion"][1])
+    # with three views, the view whose object moved most (each is moved against view 1's)
+    moved = max(realistic.info["motion"][1:], key=lambda m: float(np.linalg.norm(m["translation_mm"])))
+    return (realistic.masks, [round(v["mask_dice"], 4) for v in realistic.info["views"]], realistic.frames, moved)
 
 
 def axis_foreshortening_pct(direction) -> List[float]:
@@ -307,11 +311,12 @@ def axis_foreshortening_pct(direction) -> List[float]:
 
 def tube_direction(seed: int, max_foreshortening_pct=None) -> np.ndarray:
     """The case's random tube axis; with a limit, the first draw of its stream that no view foreshortens
-    more (as a clinician picks views that show the lesion)."""
+    more (as a clinician picks views that show the lesion) in the first two views."""
     rng = np.random.default_rng(seed)
     while True:
         direction = rng.normal(size=3)
-        if max_foreshortening_pct is None or max(axis_foreshortening_pct(direction)) <= max_foreshortening_pct:
+        # the limit on the two views of the pair only, so a third view (--views) analyses the same tubes
+        if max_foreshortening_pct is None or max(axis_foreshortening_pct(direction)[:2]) <= max_foreshortening_pct:
             return direction
 
 
@@ -520,6 +525,9 @@ def main(argv=None) -> int:
                     help="the analysis's END_PROBE_RADII (0: off): a free end's extension reads the lumen across a "
                          "disk of this many vessel radii about its line (RESULTS §63c)")
     ap.add_argument("--view-step-deg", type=float, default=2.0)
+    ap.add_argument("--views", choices=VIEW_SETS, default=VIEW_SETS[0],
+                    help="the acquisitions: two views, or a third at AP cranial 30 (masks, frames, motion and the "
+                         "foreshortening error in every one of them)")
     ap.add_argument("--csv", help="write the case rows here")
     args = ap.parse_args(argv)
     if args.grow and (args.suite != "recon" or args.save or args.load):
@@ -529,6 +537,10 @@ def main(argv=None) -> int:
     if args.masks == "segmented-moving" and args.suite != "recon":
         ap.error("--masks segmented-moving needs --suite recon (a motion between the views matters to a reconstruction)")
     CENTRELINES[:] = args.centreline
+    VIEW_SET[:] = [args.views]
+    VIEWS[:] = standard_geometry(args.views).views
+    if args.views != VIEW_SETS[0]:
+        print(f"# views {args.views}", flush=True)
     for item in args.mask_option:
         key, _, text = (part.strip() for part in item.partition("="))
         no_limit = key in OPTIONAL_MASK_OPTIONS and text.lower() == "none"
