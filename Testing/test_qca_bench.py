@@ -45,3 +45,22 @@ def test_a_third_view_analyses_the_same_tubes(monkeypatch):
         assert max(qca.axis_foreshortening_pct(direction)[:2]) <= 15.0
     # the limit does constrain: some first draw was rejected on the pair
     assert any(not np.array_equal(d, np.random.default_rng(seed).normal(size=3)) for seed, d in enumerate(pair))
+
+
+def test_a_third_view_keeps_the_pair_s_frames_and_motion(monkeypatch):
+    # the segmented-moving input with AP cranial 30 added: views 1 and 2 exactly as without it, a third of its own
+    from SDFCARLib.analysis.phantoms import stenosed_tube
+
+    tube = stenosed_tube(length_mm=40.0, direction=qca.tube_direction(0, 15.0), **qca.RECON_TUBES[0][1])
+    masks2, dice2, frames2, moved2 = qca.segmented_masks(tube.tree, 0, moving=True)
+    monkeypatch.setattr(qca, "VIEWS", list(qca.standard_geometry("lao30-rao30-cra30").views))
+    monkeypatch.setattr(qca, "VIEW_SET", ["lao30-rao30-cra30"])
+    masks3, dice3, frames3, moved3 = qca.segmented_masks(tube.tree, 0, moving=True)
+    assert len(masks2) == len(frames2) == 2 and len(masks3) == len(frames3) == len(dice3) == 3
+    for n in range(2):
+        np.testing.assert_array_equal(masks3[n], masks2[n])
+        np.testing.assert_array_equal(frames3[n], frames2[n])
+    assert dice3[:2] == dice2 and masks3[2].any() and 0.8 < dice3[2] <= 1.0
+    # the motion reported is the larger of the two moved views' (view 2's is the pair's)
+    shift = lambda m: float(np.linalg.norm(m["translation_mm"]))  # noqa: E731
+    assert shift(moved3) >= shift(moved2) > 0.0

@@ -231,6 +231,8 @@ def score(phantom, volume, grid, level, masks, ostium, view_step_deg, frames=Non
         tseg = _truth_span(seg, tp, tnames, kd)
         fs_err = [foreshortening(seg, v) - foreshortening(tseg, v) for v in VIEWS]
         row["fs_err_pts"] = float(100 * np.max(np.abs(fs_err)))
+        if len(VIEWS) > 2:  # the pair's two views alone, to set beside the two-view rows
+            row["fs_err_pair_pts"] = float(100 * np.max(np.abs(fs_err[:2])))
         if r.view_map is not None:
             bv = r.view_map.best()
             row["best_view"] = bv["label"]
@@ -289,18 +291,31 @@ MASK_OPTIONS: Dict[str, Optional[float]] = {}
 
 def segmented_masks(tree, seed, moving=False):
     """The views' masks segmented from simulated angiograms of ``tree``, their Dice against the true
-    silhouettes, the angiograms and the motion of view 2's object (none unless ``moving``: then the
-    realistic protocol's, up to 3 mm / 2°)."""
+    silhouettes, the angiograms and the motion of the object of the view moved most against view 1 (none
+    unless ``moving``: then the realistic protocol's, up to 3 mm / 2°). With a third view the pair's are
+    those without it."""
     from SDFCARLib.realistic import RealisticOptions, realistic_input
     from SDFCARLib.settings import REALISTIC_PROTOCOLS
 
     label_grid = grid_around(tree, 0.2)
+    label = voxelize_exact(tree, label_grid)
     protocol = f"realistic-{'' if moving else 'static-'}{VIEW_SET[0]}"
-    realistic = realistic_input(voxelize_exact(tree, label_grid), Geometry(label_grid, VIEWS), seed,
-                                RealisticOptions(**{**REALISTIC_PROTOCOLS[protocol], **MASK_OPTIONS}))
+    options = RealisticOptions(**{**REALISTIC_PROTOCOLS[protocol], **MASK_OPTIONS})
+    realistic = realistic_input(label, Geometry(label_grid, VIEWS[:2]), seed, options)
+    masks, frames, info = list(realistic.masks), list(realistic.frames), realistic.info
+    dice, motions = [v["mask_dice"] for v in info["views"]], list(info["motion"])
+    if len(VIEWS) > 2:
+        # The pair's frames exactly as without the third view (the rows compare tube by tube); the third
+        # from a draw of all three, whose motions begin with the pair's (drawn before any frame)
+        third = realistic_input(label, Geometry(label_grid, VIEWS), seed, options)
+        assert third.info["motion"][:2] == motions, "the pair's motion differs with a third view"
+        masks += third.masks[2:]
+        frames += third.frames[2:]
+        dice += [v["mask_dice"] for v in third.info["views"][2:]]
+        motions += third.info["motion"][2:]
     # with three views, the view whose object moved most (each is moved against view 1's)
-    moved = max(realistic.info["motion"][1:], key=lambda m: float(np.linalg.norm(m["translation_mm"])))
-    return (realistic.masks, [round(v["mask_dice"], 4) for v in realistic.info["views"]], realistic.frames, moved)
+    moved = max(motions[1:], key=lambda m: float(np.linalg.norm(m["translation_mm"])))
+    return masks, [round(d, 4) for d in dice], frames, moved
 
 
 def axis_foreshortening_pct(direction) -> List[float]:
