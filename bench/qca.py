@@ -426,8 +426,8 @@ def summarise(rows: List[Dict]) -> str:
     found = [r for r in rows if r.get("found")]
     sig = [r for r in found if r.get("ds_true", 0) >= 50]
     frames = bool(col("healthy_mae_frames_mm").size)
-    lines = ["| measure | 3D sections | two-view masks |"
-             + (" two-view frames (edges) | frames (density) | frames (mean of the two) |" if frames else "")
+    lines = ["| measure | 3D sections | the views' masks |"
+             + (" the views' frames (edges) | frames (density) | frames (mean of the two) |" if frames else "")
              + " target |", "|---|---|---|" + ("---|---|---|" if frames else "") + "---|"]
 
     def ms(v):
@@ -458,6 +458,8 @@ def summarise(rows: List[Dict]) -> str:
     lines.append(f"| distal end beyond the truth (mm) | {ms(col('end_excess_mm', found))} | — |{' — | — | — |' if frames else ''} — |")
     lines.append(f"| main branch's centreline from the true axis (mm, mean) | {mae('axis_offset_mm')} | — |{' — | — | — |' if frames else ''} — |")
     lines.append(f"| foreshortening error, acquisition views (points, worst view) | {ms(col('fs_err_pts', found))} | — |{' — | — | — |' if frames else ''} within 1 |")
+    if col("fs_err_pair_pts", found).size:  # --views with a third: the pair's two, as the two-view rows read
+        lines.append(f"| foreshortening error, the pair's two views only (points, worst view) | {ms(col('fs_err_pair_pts', found))} | — |{' — | — | — |' if frames else ''} within 1 |")
     lines.append(f"| truth foreshortening in the suggested view (%) | {ms(col('best_fs_truth_pct', found))} | — |{' — | — | — |' if frames else ''} ≤ 5 |")
     lines.append(f"| least truth foreshortening over the range (%) | {ms(col('least_fs_truth_pct', found))} | — |{' — | — | — |' if frames else ''} (the bound) |")
     lines.append(f"\nlesions found: {len(found)} of {len(rows)} cases; |%DS err| ≤ 8 in {int(np.sum(np.abs(col('ds_err_3d', sig)) <= 8))} of {len(sig)} "
