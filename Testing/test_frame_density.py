@@ -566,3 +566,20 @@ def test_a_throat_below_the_grids_resolution_is_warned_about_only_where_the_3d_s
     assert thin_throat_warnings(with_frames) == []
     assert without["lesions"][0]["grade"]["source"] == "3D sections"
     assert len(thin_throat_warnings(without)) == 1
+
+
+def test_density_diameter_of_three_views_outvotes_the_one_that_disagrees():
+    mu = 0.25
+    area = lambda diameter_mm: mu * np.pi * diameter_mm ** 2 / 4  # noqa: E731
+    # a 2 mm lumen; view 3 reads it 3 mm (another vessel's iodine no crowding rule caught) at the first point,
+    # view 1 reads 1 mm at the second; at the third, view 2 is not usable and the other two disagree
+    d = np.array([[area(2.0), area(1.0), area(2.0)],
+                  [area(2.0), area(2.0), area(2.0)],
+                  [area(3.0), area(2.0), area(3.0)]])
+    usable = np.array([[True, True, True], [True, True, False], [True, True, True]])
+    out = density_diameter(d, [mu, mu, mu], usable)
+    assert out[:2] == pytest.approx([2.0, 2.0])  # the median area, not the mean's 2.38 / 1.73 mm
+    assert out[2] == pytest.approx(np.sqrt((4.0 + 9.0) / 2))  # two usable views: their mean, as before
+    # two views are unchanged: the mean area, to the last bit
+    two = np.array([[area(3.0), area(2.5)], [area(2.0), np.nan]])
+    assert np.array_equal(density_diameter(two, [mu, mu]), np.sqrt(4.0 * np.array([(two[0, 0] + two[1, 0]) / 2 / mu, two[0, 1] / mu]) / np.pi))

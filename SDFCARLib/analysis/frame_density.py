@@ -19,7 +19,8 @@ Model
     known in absolute terms (iodine concentration, kV, scatter), so ``attenuation_per_mm`` calibrates it
     per view as the median of μ·A / (π w²/4) over the healthy points where the edge fit measured the
     width w: a healthy vessel is round. ``density_diameter`` is then the equivalent diameter of the
-    views' mean area.
+    views' median area: with two views their mean; with three or more, a view whose area disagrees
+    (crowded by a vessel no rule caught, its attenuation misread) is outvoted (bench/RESULTS.md §71f).
 
 Limits
     A branch crossing or running beside the window adds its iodine to the area or to the background;
@@ -92,8 +93,8 @@ def _view_areas(view_densities: np.ndarray, attenuations: Sequence[Optional[floa
 
 def density_views(view_densities: np.ndarray, attenuations: Sequence[Optional[float]],
                   usable: Optional[np.ndarray] = None) -> np.ndarray:
-    """(views, N) bool: the views whose area ``density_diameter`` averages at each point: those whose
-    attenuation is known and whose density is positive, and among them the ``usable`` ones where there
+    """(views, N) bool: the views whose areas ``density_diameter`` takes the median of at each point: those
+    whose attenuation is known and whose density is positive, and among them the ``usable`` ones where there
     are any."""
     has_area = np.isfinite(_view_areas(view_densities, attenuations))
     return has_area if usable is None else views_to_use(has_area, usable)
@@ -101,10 +102,11 @@ def density_views(view_densities: np.ndarray, attenuations: Sequence[Optional[fl
 
 def density_diameter(view_densities: np.ndarray, attenuations: Sequence[Optional[float]],
                      usable: Optional[np.ndarray] = None) -> np.ndarray:
-    """Per point, the equivalent diameter (mm) of the mean lumen area over ``density_views``; NaN where
-    no view has an area. ``usable`` ((views, N) bool): the views to average where one of them has an
-    area (e.g. those no other vessel crowds); all of them where none has."""
+    """Per point, the equivalent diameter (mm) of the median lumen area over ``density_views`` (two
+    views: their mean); NaN where no view has an area. ``usable`` ((views, N) bool): the views to take
+    where one of them has an area (e.g. those no other vessel crowds); all of them where none has."""
     areas = np.where(density_views(view_densities, attenuations, usable), _view_areas(view_densities, attenuations), np.nan)
-    counted = np.isfinite(areas).sum(axis=0)
-    mean_area = np.where(counted > 0, np.nansum(areas, axis=0) / np.maximum(counted, 1), np.nan)
-    return np.sqrt(4.0 * mean_area / np.pi)
+    measured = np.isfinite(areas).any(axis=0)
+    # the columns no view measured get a placeholder, so nanmedian does not warn about them
+    median_area = np.where(measured, np.nanmedian(np.where(measured, areas, 0.0), axis=0), np.nan)
+    return np.sqrt(4.0 * median_area / np.pi)

@@ -62,7 +62,7 @@ The frames' measures beside other vessels
     with segmented masks a view's density erred by 0.28–0.53 mm (median) there and 0.05–0.09 mm
     elsewhere (RESULTS §47). The tree itself says where: another branch's projected edge nearer than
     the window's half width less its outermost millimetre (``views.other_vessel_clearance``) crowds
-    that view at that point (``BranchProfile.frame_views_crowded``). The density is then the mean area
+    that view at that point (``BranchProfile.frame_views_crowded``). The density is then the median area
     of the views no other vessel crowds, or of all where every view is crowded (leaving those points
     out lengthened lesions by up to 13 mm, §47); each view's attenuation is calibrated on its
     uncrowded healthy points only. The edges' diameter leaves a crowded view's width out the same way
@@ -148,7 +148,7 @@ class BranchProfile:
     frame_view_widths_mm: Optional[np.ndarray] = None  # (views, N)
     frame_density_diameter_mm: Optional[np.ndarray] = None  # lumen area from the frames' absorbance (frame_density.py)
     frame_views_crowded: Optional[np.ndarray] = None  # (views, N) bool: another branch in the view's window there
-    frame_density_views: Optional[np.ndarray] = None  # (views, N) bool: the views the density averages there
+    frame_density_views: Optional[np.ndarray] = None  # (views, N) bool: the views whose median area the density takes there
     # the centreline the 2D widths are measured across: the volume's (through the lumen, lesions too),
     # where ``branch`` was re-placed on the masks' midlines; the same points, one for one
     width_branch: Optional[CentrelineBranch] = None
