@@ -54,7 +54,6 @@ def test_a_third_view_keeps_the_pair_s_frames_and_motion(monkeypatch):
     tube = stenosed_tube(length_mm=40.0, direction=qca.tube_direction(0, 15.0), **qca.RECON_TUBES[0][1])
     masks2, dice2, frames2, moved2 = qca.segmented_masks(tube.tree, 0, moving=True)
     monkeypatch.setattr(qca, "VIEWS", list(qca.standard_geometry("lao30-rao30-cra30").views))
-    monkeypatch.setattr(qca, "VIEW_SET", ["lao30-rao30-cra30"])
     masks3, dice3, frames3, moved3 = qca.segmented_masks(tube.tree, 0, moving=True)
     assert len(masks2) == len(frames2) == 2 and len(masks3) == len(frames3) == len(dice3) == 3
     for n in range(2):

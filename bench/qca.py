@@ -58,7 +58,6 @@ from SDFCARLib.settings import parse_setting_overrides  # noqa: E402
 
 VIEW_SETS = ("lao30-rao30", "lao30-rao30-cra30")  # --views: the acquisitions (standard_geometry's names)
 VIEWS = list(standard_geometry(VIEW_SETS[0]).views)  # filled in place by --views, so score's default follows
-VIEW_SET = [VIEW_SETS[0]]  # the name of VIEWS
 INNER_MARK_MM = 5.0  # the inner landmarks of the 3D length: this far from either true end
 
 
@@ -299,7 +298,8 @@ def segmented_masks(tree, seed, moving=False):
 
     label_grid = grid_around(tree, 0.2)
     label = voxelize_exact(tree, label_grid)
-    protocol = f"realistic-{'' if moving else 'static-'}{VIEW_SET[0]}"
+    # the pair's protocol: its motion and noise settings are the three-view protocol's too
+    protocol = "realistic-lao30-rao30" if moving else "realistic-static-lao30-rao30"
     options = RealisticOptions(**{**REALISTIC_PROTOCOLS[protocol], **MASK_OPTIONS})
     realistic = realistic_input(label, Geometry(label_grid, VIEWS[:2]), seed, options)
     masks, frames, info = list(realistic.masks), list(realistic.frames), realistic.info
@@ -554,7 +554,6 @@ def main(argv=None) -> int:
     if args.masks == "segmented-moving" and args.suite != "recon":
         ap.error("--masks segmented-moving needs --suite recon (a motion between the views matters to a reconstruction)")
     CENTRELINES[:] = args.centreline
-    VIEW_SET[:] = [args.views]
     VIEWS[:] = standard_geometry(args.views).views
     if args.views != VIEW_SETS[0]:
         print(f"# views {args.views}", flush=True)
