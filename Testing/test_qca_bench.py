@@ -6,6 +6,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import pytest
 from scipy.spatial import cKDTree
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
@@ -31,6 +32,32 @@ def test_the_truth_span_follows_a_segment_across_a_junction():
     assert cKDTree(segment).query(span)[0].max() < 0.3  # nothing of the other child
     np.testing.assert_allclose(span[0], [10, 0, 0], atol=0.15)
     np.testing.assert_allclose(span[-1], [20, 10, 0], atol=0.15)
+
+
+
+def test_the_truth_path_runs_from_the_ostium_through_each_ancestor_to_the_branch_end():
+    # A root along x with two children leaving at x = 5 (one of them the path's) and a grandchild leaving
+    # the path's child 2 mm up; stored as the phantoms store them, each child's first point on its parent.
+    from SDFCARLib.phantoms import Branch, CentrelineTree
+
+    root = _line([0, 0, 0], [10, 0, 0], 0.5)
+    sibling, child = _line([5, 0, 0], [5, -4, 0], 0.5), _line([5, 0, 0], [5, 4, 0], 0.5)
+    grandchild = _line([5, 2, 0], [8, 2, 0], 0.5)
+    tree = CentrelineTree([Branch(p, np.ones(len(p)), n) for p, n in
+                           ((root, "root"), (sibling, "sibling"), (child, "child"), (grandchild, "grandchild"))])
+
+    def length(path):
+        return np.linalg.norm(np.diff(path, axis=0), axis=1).sum()
+
+    assert length(qca._truth_path_to(tree, [10.2, 0.1, 0])) == pytest.approx(10.0)
+    assert length(qca._truth_path_to(tree, [5.1, 3.9, 0])) == pytest.approx(5.0 + 4.0)
+    assert length(qca._truth_path_to(tree, [5.0, -4.2, 0])) == pytest.approx(5.0 + 4.0)
+    path = qca._truth_path_to(tree, [8, 2.1, 0])
+    assert length(path) == pytest.approx(5.0 + 2.0 + 3.0)
+    assert np.abs(path[:, 1]).max() <= 2.0  # never down the sibling
+    with pytest.raises(ValueError, match="ostium"):
+        qca._truth_path_to(CentrelineTree([tree.branches[0], Branch(grandchild + [0, 5, 0], np.ones(len(grandchild)))]),
+                           [8, 7, 0])
 
 
 def test_a_third_view_analyses_the_same_tubes(monkeypatch):
