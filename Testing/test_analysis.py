@@ -44,6 +44,33 @@ def test_helix_length_within_2_percent():
     assert np.abs(sections.equivalent_diameter_mm[~ends] - 2.0).mean() <= 0.15
 
 
+
+def test_a_tight_helix_keeps_its_bends_once_centred_on_its_sections():
+    # A bend of 3.8 mm radius (helix R 4 mm, pitch 12 mm): the 1 mm smoothing of the voxel path pulls the
+    # centreline ~0.12 mm towards the helix's axis and shortens it by ~2.4 %; the sections' centroids put it
+    # back on the tube's axis (RESULTS §72)
+    from scipy.spatial import cKDTree
+
+    from SDFCARLib.analysis.pipeline import analyse_volume
+
+    phantom = helix(radius_mm=4.0, pitch_mm=12.0, turns=1.25, diameter_mm=2.0)
+    truth = phantom.tree.branches[0].points
+    grid = grid_around(phantom.tree, 0.3)
+    label = voxelize_exact(phantom.tree, grid).astype(np.float32)
+    measured = {}
+    for centred in (False, True):
+        result = analyse_volume(label, grid, ostium_mm=truth[0], best_view=False, centre_on_sections=centred)
+        assert len(result.tree.branches) == 1
+        branch = result.tree.branches[0]
+        inner = slice(len(branch.points_mm) // 10, -(len(branch.points_mm) // 10))
+        measured[centred] = (cKDTree(truth).query(branch.points_mm[inner])[0].mean(),
+                             branch.length_mm / phantom.truth["length_mm"] - 1)
+    assert measured[False][0] > 0.09 and measured[True][0] < 0.05, measured
+    assert measured[False][1] < -0.015 and abs(measured[True][1]) < 0.01, measured
+    placement = result.settings["centred_on_sections"]
+    assert placement[0]["measured_share"] > 0.7 and 0.05 < placement[0]["mean_shift_mm"] < 0.2
+
+
 def test_a_free_end_that_fans_to_the_rim_is_cut_back_before_it_turns():
     # A skeleton along L whose last 1.2 mm turns 1.5 mm sideways towards the rim of a 2 mm vessel
     # (the inscribed radius falls there): 1.5 radii (3 mm) are cut, so the end keeps to the axis.

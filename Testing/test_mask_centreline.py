@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from SDFCARLib.analysis.centreline import CentrelineBranch, CentrelineTree
-from SDFCARLib.analysis.mask_centreline import detector_jacobian, place_on_masks
+from SDFCARLib.analysis.mask_centreline import detector_jacobian, place_on_masks, runs_at_least
 from SDFCARLib.analysis.phantoms import render_mask
 from SDFCARLib.geometry import standard_geometry
 from SDFCARLib.phantoms import Branch
@@ -152,7 +152,8 @@ def test_a_neighbour_reconstructed_too_thin_still_guards_the_view():
     # projected edge, so a margin of 0.5 mm lets that view pull the tube, and the default must not.
     axis, s, masks, tree = _tube_with_neighbour_beside(0.3)
     inner = (s > 4.0) & (s < s[-1] - 4.0)
-    narrow, _ = place_on_masks(tree, masks, VIEWS, crowding_margin_mm=0.5)
+    # (every measured point counted, however short its run: the margin's part alone)
+    narrow, _ = place_on_masks(tree, masks, VIEWS, crowding_margin_mm=0.5, min_run_mm=0.0)
     assert _distance_to_line(narrow.branch(0).points_mm[inner], axis[0], DIRECTION).mean() > 0.5  # the trap is real
     placed, _ = place_on_masks(tree, masks, VIEWS)
     after = _distance_to_line(placed.branch(0).points_mm[inner], axis[0], DIRECTION)
@@ -236,3 +237,15 @@ def test_analyse_volume_refuses_the_masks_centreline_without_two_masks():
     grid = grid_around(tube.tree, 0.4)
     with pytest.raises(ValueError, match="needs the masks of two views or more"):
         analyse_volume(voxelize_exact(tube.tree, grid), grid, views=VIEWS, centreline_on_masks=True)
+
+
+def test_a_lone_measured_point_inside_an_unmeasured_stretch_sets_no_shift():
+    arc = np.arange(0.0, 10.0, 0.25)
+    flags = np.zeros(len(arc), bool)
+    flags[:8] = True  # 0–1.75 mm: a run of 1.75 mm
+    flags[20] = True  # one point at 5 mm
+    flags[30:34] = True  # 7.5–8.25 mm: 0.75 mm
+    flags[-5:] = True  # 8.75–9.75 mm: exactly 1 mm
+    kept = runs_at_least(flags, arc, 1.0)
+    np.testing.assert_array_equal(np.flatnonzero(kept), np.r_[0:8, len(arc) - 5:len(arc)])
+    np.testing.assert_array_equal(runs_at_least(flags, arc, 0.0), flags)

@@ -24,10 +24,10 @@ Method (``place_on_masks``)
     (``edge_on_other_vessel``: a vessel running beside over a stretch as long as the width window
     merges into the mask there and widens the running median with it, so the width rule alone keeps
     points whose edge is the other vessel's), outside the branch's own start inside its parent and its
-    free-end cap
-    (``diameter.junction_zones``), and where |δ| ≤ ``max_shift_mm``. The
-    other points take δ interpolated along the arc (the nearest measured value beyond the ends); a
-    side branch's first point keeps its parent's junction point. δ is then smoothed along the arc
+    free-end cap (``diameter.junction_zones``), and where |δ| ≤ ``max_shift_mm``; a run of such points
+    spanning less than ``min_run_mm`` of arc is not used (a single point that passes inside a lesion's
+    unmeasured stretch would move all of it). The other points take δ interpolated along the arc (the
+    nearest measured value beyond the ends); a side branch's first point keeps its parent's junction point. δ is then smoothed along the arc
     (Gaussian, ``smoothing_mm``) and added. A branch with fewer than ``min_measured`` measured
     points keeps its shape: a root stays, a side branch moves with its junction point.
     The normals are taken across the centreline smoothed over ``TANGENT_SMOOTHING_MM``: a wandering
@@ -52,6 +52,8 @@ from .views import distance_to_other_vessels, other_vessels_projected
 
 #: the defaults measured on the QCA suites (bench/RESULTS.md §33f, §35)
 MAX_SHIFT_MM = 1.5
+MIN_RUN_MM = 1.0  # measured points in a run shorter than this set no shift: one section that passes every check
+# inside a long unmeasured stretch (a lesion) would move the whole stretch (RESULTS §72)
 SMOOTHING_MM = 1.0
 TANGENT_SMOOTHING_MM = 3.0
 MAX_WIDTH_CHANGE = 1.25  # a view's width over (an overlap) or under (a lesion) its running median
@@ -178,9 +180,22 @@ def width_anomalies(widths: np.ndarray, arc_mm: np.ndarray, max_change: float, w
     return out
 
 
+def runs_at_least(flags: np.ndarray, arc_mm: np.ndarray, min_run_mm: float) -> np.ndarray:
+    """``flags`` less its runs of consecutive True points that span under ``min_run_mm`` of arc."""
+    flags = np.asarray(flags, bool)
+    kept = flags.copy()
+    if min_run_mm <= 0 or not flags.any():
+        return kept
+    edges = np.diff(np.r_[0, flags.astype(np.int8), 0])
+    for start, stop in zip(np.flatnonzero(edges == 1), np.flatnonzero(edges == -1)):
+        if arc_mm[stop - 1] - arc_mm[start] < min_run_mm:
+            kept[start:stop] = False
+    return kept
+
+
 def place_on_masks(tree: CentrelineTree, masks: Sequence[np.ndarray], views: Sequence[CArmView],
                    max_shift_mm: float = MAX_SHIFT_MM, smoothing_mm: float = SMOOTHING_MM, min_measured: int = 5,
-                   **kwargs) -> Tuple[CentrelineTree, List[MaskPlacement]]:
+                   min_run_mm: float = MIN_RUN_MM, **kwargs) -> Tuple[CentrelineTree, List[MaskPlacement]]:
     """The tree with every branch re-placed on the masks' midlines (module docstring), and what moved."""
     if len(masks) != len(views):
         raise ValueError(f"{len(masks)} masks for {len(views)} views: give one mask per view, in the views' order")
@@ -206,6 +221,7 @@ def place_on_masks(tree: CentrelineTree, masks: Sequence[np.ndarray], views: Seq
         # inside its parent, and a free end's cap have no edges of their own
         ok = np.isfinite(shifts).all(axis=1) & ~junction_zones(tree, branch, side_branch_mouths=False)
         ok[ok] = np.linalg.norm(shifts[ok], axis=1) <= max_shift_mm
+        ok &= runs_at_least(ok, arc, min_run_mm)
         anchors_arc, anchors = list(arc[ok]), list(shifts[ok])
         parent = moved.get(branch.parent_id) if branch.parent_id is not None else None
         if parent is not None:  # the side branch stays on its parent's (moved) junction point

@@ -114,6 +114,7 @@ from .fragments import MIN_COMPONENT_SHARE, UNRELIABLE, Fragments, find_fragment
 from .lesion import (Lesion, ReferenceFit, find_lesions, is_same_lesion, lesion_within, minimal_lumen, reference_fit,
                      relative_scatter, same_lesion_on)
 from .mask_centreline import place_on_masks
+from .section_centreline import centre_on_sections as centre_on_sections_of
 from .views import ViewMap, foreshortening, other_vessel_clearance, overlap_fraction, view_label, view_map
 
 TARGET_PAD_MM = 2.5
@@ -260,7 +261,8 @@ def analyse_volume(volume: np.ndarray, grid: VolumeGrid, level: float = 0.5, vie
                    bridges: Sequence[Dict[str, Any]] = (), frames: Optional[Sequence[np.ndarray]] = None,
                    psf_sigma_mm: Optional[float] = DEFAULT_PSF_SIGMA_MM,
                    centreline_on_masks: Optional[bool] = None,
-                   segment_mm: Optional[Sequence[Sequence[float]]] = None, search_masks: bool = True) -> QCAResult:
+                   segment_mm: Optional[Sequence[Sequence[float]]] = None, search_masks: bool = True,
+                   centre_on_sections: bool = True) -> QCAResult:
     """Every QCA measure of a vessel volume (module docstring); ``target`` overrides the chosen segment,
     as do two marked points ``segment_mm`` (LPS mm, ``segment_between``: SegmentError where they mark none).
 
@@ -272,7 +274,9 @@ def analyse_volume(volume: np.ndarray, grid: VolumeGrid, level: float = 0.5, vie
     for the lengths, positions, angles, foreshortening and views, while the 3D sections and the 2D
     widths stay on the volume's own centreline (through the lumen, lesions too); None: where masks of
     two views or more are given (the lumen of a fit to segmented masks wanders about the axis: the
-    comparison is in bench/RESULTS.md §35). ``search_masks``: without frames, the masks' two-view diameter is
+    comparison is in bench/RESULTS.md §35). ``centre_on_sections``: the volume's centreline is first moved onto
+    its cross-sections' centroids (``section_centreline.py``: the smoothing cuts every bend; §72).
+    ``search_masks``: without frames, the masks' two-view diameter is
     also searched for lesions the 3D sections missed (module docstring, "Lesions of the masks").
     """
     if frames is not None and (masks is None or len(frames) != len(views)):
@@ -298,6 +302,9 @@ def analyse_volume(volume: np.ndarray, grid: VolumeGrid, level: float = 0.5, vie
         tree = CentrelineTree([b for b in tree.branches if b.branch_id not in strands])
     sections_of = {b.branch_id: known[b.branch_id] if b.branch_id in known else branch_cross_sections(fvol, grid, b, level)
                    for b in tree.branches}
+    section_placement = None
+    if centre_on_sections:
+        tree, section_placement = centre_on_sections_of(tree, sections_of)
     volume_tree, placement = tree, None
     if centreline_on_masks is None:
         centreline_on_masks = masks is not None and len(views) >= 2
@@ -365,7 +372,8 @@ def analyse_volume(volume: np.ndarray, grid: VolumeGrid, level: float = 0.5, vie
                 "view_step_deg": view_step_deg, "ostium_mm": None if ostium_mm is None else list(map(float, ostium_mm)),
                 "min_component_share": min_component_share, "bridges_checked": len(bridges),
                 "strands_dropped": len(strands), "voxel_mm": voxel, "centreline_on_masks": centreline_on_masks,
-                "centreline_placement": None if placement is None else [p.to_dict() for p in placement]}
+                "centreline_placement": None if placement is None else [p.to_dict() for p in placement],
+                "centred_on_sections": None if section_placement is None else [p.to_dict() for p in section_placement]}
     return QCAResult(tree, profiles, bifurcation_angles(tree), list(views), fore, target, vm, settings, fragments)
 
 
