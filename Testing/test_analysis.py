@@ -71,6 +71,31 @@ def test_a_tight_helix_keeps_its_bends_once_centred_on_its_sections():
     assert placement[0]["measured_share"] > 0.7 and 0.05 < placement[0]["mean_shift_mm"] < 0.2
 
 
+
+def test_a_side_branch_stays_on_its_parent_s_junction_once_centred_on_its_sections():
+    from SDFCARLib.analysis.pipeline import analyse_volume
+    from SDFCARLib.analysis.section_centreline import centre_on_sections
+
+    root = np.stack([np.linspace(-12.0, 12.0, 241), np.zeros(241), np.zeros(241)], axis=1)
+    side = root[100] + np.linspace(0.0, 12.0, 121)[:, None] * np.array([0.5, np.sqrt(3) / 2, 0.0])
+    phantom_tree = CentrelineTree([Branch(root, np.full(241, 1.5), "root"), Branch(side, np.full(121, 0.8), "side")])
+    grid = grid_around(phantom_tree, 0.3)
+    label = voxelize_exact(phantom_tree, grid).astype(np.float32)
+    result = analyse_volume(label, grid, ostium_mm=root[0], best_view=False)
+    children = [b for b in result.tree.branches if b.parent_id is not None]
+    assert len(result.tree.branches) == 2 and len(children) == 1
+    child = children[0]
+    parent = result.tree.branch(child.parent_id)
+    np.testing.assert_array_equal(child.points_mm[0], parent.points_mm[child.parent_index])
+    # straight tubes' sections are centred already: nothing moves by half a voxel (0.15 mm) or more
+    assert all(p["mean_shift_mm"] < 0.15 for p in result.settings["centred_on_sections"])
+    # no sections at all: every branch keeps its points
+    unmoved, report = centre_on_sections(result.tree, {})
+    for before, after in zip(result.tree.branches, unmoved.branches):
+        np.testing.assert_array_equal(before.points_mm, after.points_mm)
+    assert all(p.measured_share == 0.0 for p in report)
+
+
 def test_a_free_end_that_fans_to_the_rim_is_cut_back_before_it_turns():
     # A skeleton along L whose last 1.2 mm turns 1.5 mm sideways towards the rim of a 2 mm vessel
     # (the inscribed radius falls there): 1.5 radii (3 mm) are cut, so the end keeps to the axis.
