@@ -27,9 +27,9 @@ Method (``place_on_masks``)
     free-end cap (``diameter.junction_zones``), and where |δ| ≤ ``max_shift_mm``; a run of such points
     spanning less than ``min_run_mm`` of arc is not used (a single point that passes inside a lesion's
     unmeasured stretch would move all of it). The other points take δ interpolated along the arc (the
-    nearest measured value beyond the ends); a side branch's first point keeps its parent's junction point. δ is then smoothed along the arc
-    (Gaussian, ``smoothing_mm``) and added. A branch with fewer than ``min_measured`` measured
-    points keeps its shape: a root stays, a side branch moves with its junction point.
+    nearest measured value beyond the ends); a side branch's first point keeps its parent's junction point.
+    δ is then smoothed along the arc (Gaussian, ``smoothing_mm``) and added. A branch with fewer than
+    ``min_measured`` measured points keeps its shape: a root stays, a side branch moves with its junction point.
     The normals are taken across the centreline smoothed over ``TANGENT_SMOOTHING_MM``: a wandering
     centreline's own tangent tilts with the wander, and across it the edges give only part of the
     offset (a second pass across the corrected line's tangents only adds the edges' pixel noise).
