@@ -115,6 +115,33 @@ def test_a_free_end_that_fans_to_the_rim_is_cut_back_before_it_turns():
     np.testing.assert_array_equal(short, axis[:3])
 
 
+
+def test_an_end_that_follows_the_lumen_reaches_a_bent_vessel_s_end_where_a_straight_one_leaves_through_the_wall():
+    # A quarter circle of 6 mm radius (a 3 mm vessel, flat ends), its axis known for the first 2 mm only:
+    # the straight extension runs along its end tangent and out through the side wall 4.6 mm from the end;
+    # following the sections' centroids stays on the axis to the end face (off by default: RESULTS §72d)
+    from SDFCARLib.analysis.centreline import follow_to_surface
+
+    phi = np.linspace(0.0, np.pi / 2, 400)
+    axis = np.stack([6.0 * np.cos(phi), 6.0 * np.sin(phi), np.zeros_like(phi)], axis=1)
+    tree = CentrelineTree([Branch(axis, np.full(len(phi), 1.5), "bend")])
+    grid = grid_around(tree, 0.25)
+    volume = voxelize_exact(tree, grid).astype(np.float32)
+    start = axis[axis[:, 1] < 2.0]
+
+    def off_axis(points):
+        return np.abs(np.linalg.norm(points[:, :2], axis=1) - 6.0)
+
+    straight = extend_to_surface(start, volume, grid, 0.5, reach_mm=12.0, step_mm=0.25)
+    followed = follow_to_surface(start, volume, grid, 0.5, reach_mm=12.0, step_mm=0.25)
+    assert np.linalg.norm(straight[-1] - axis[-1]) > 3.0 and off_axis(straight).max() > 1.2
+    assert np.linalg.norm(followed[-1] - axis[-1]) < 0.3 and off_axis(followed).max() < 0.1
+    np.testing.assert_array_equal(followed[:len(start)], start)
+    # at the start of the polyline the same, reversed
+    back = follow_to_surface(start[::-1], volume, grid, 0.5, reach_mm=12.0, step_mm=0.25, at_start=True)
+    assert np.linalg.norm(back[0] - axis[-1]) < 0.3
+
+
 def test_a_free_ends_extension_stops_at_a_hole_on_its_line_unless_it_reads_across_the_lumen():
     from SDFCARLib.geometry import VolumeGrid
 

@@ -48,6 +48,7 @@ END_TRIM_RADII = 1.5  # a free end's skeleton is cut back by this many vessel ra
 # alone (a segmented-mask tip is uneven: one hole on the line stops it a millimetre or more short). 0: the line
 # alone; 0.25 put the segmented-mask tubes' ends right but ran the clean-mask tubes' long (RESULTS §63c)
 END_PROBE_RADII = 0.0
+END_FOLLOWS_LUMEN = False  # the extension follows the lumen's sections (``follow_to_surface``), not a straight line
 
 
 class CentrelineError(ValueError):
@@ -260,6 +261,45 @@ def extend_to_surface(points: np.ndarray, volume: np.ndarray, grid: VolumeGrid, 
     return out[::-1] if at_start else out
 
 
+
+def follow_to_surface(points: np.ndarray, volume: np.ndarray, grid: VolumeGrid, level: float,
+                      reach_mm: float, step_mm: float, at_start: bool = False) -> np.ndarray:
+    """Extend a polyline's end step by step along its end tangent, each new point moved onto the centroid of
+    its cross-section (by at most a step), up to where the volume falls below ``level``: on a bend the straight
+    extension of ``extend_to_surface`` leaves through the side wall."""
+    from .diameter import cross_sections  # here: diameter imports this module
+
+    pts = points[::-1] if at_start else points
+    if len(pts) < 2:
+        return points
+    path = [np.asarray(p, float) for p in pts]
+    fine = 0.02
+    travelled = 0.0
+    while travelled < reach_mm:
+        arr = np.asarray(path[-12:])
+        s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(arr, axis=0), axis=1))])
+        t = arr[-1] - arr[np.searchsorted(s, max(s[-1] - 1.0, 0.0))]
+        if np.linalg.norm(t) == 0:
+            break
+        t /= np.linalg.norm(t)
+        ahead = arr[-1] + step_mm * t
+        if sample_volume(volume, grid, ahead[None])[0] < level:  # the surface lies within this step
+            d = np.arange(fine, step_mm + fine, fine)
+            inside = sample_volume(volume, grid, arr[-1] + d[:, None] * t) >= level
+            length = d[np.argmin(inside)] - fine if not inside.all() else step_mm
+            if length >= fine:
+                path.append(arr[-1] + length * t)
+            break
+        centre = cross_sections(volume, grid, ahead[None], t[None], level, recentre=1).centres_mm[0]
+        if np.all(np.isfinite(centre)) and np.linalg.norm(centre - ahead) <= step_mm \
+                and sample_volume(volume, grid, centre[None])[0] >= level:
+            ahead = centre
+        path.append(ahead)
+        travelled += step_mm
+    out = np.asarray(path)
+    return out[::-1] if at_start else out
+
+
 def crop_to(mask: np.ndarray, grid: VolumeGrid, arrays: Sequence[np.ndarray], margin: int = 3):
     """(sub-grid, arrays cropped) to the bounding box of ``mask`` plus ``margin`` voxels.
 
@@ -328,12 +368,15 @@ def extract_centrelines(volume: np.ndarray, grid: VolumeGrid, level: float = 0.5
                 smooth[0] = parent_branch.points_mm[parent_index]
             if extend_ends:  # the surface lies about a radius beyond the thinned end, plus what was trimmed
                 reach = (END_TRIM_RADII + 2.0) * end_radius + 2.0 * float(spacing.max())
-                smooth = extend_to_surface(smooth, fvol, grid, level, reach, step_mm,
-                                           probe_radius_mm=END_PROBE_RADII * end_radius)
+                smooth = (follow_to_surface(smooth, fvol, grid, level, reach, step_mm) if END_FOLLOWS_LUMEN else
+                          extend_to_surface(smooth, fvol, grid, level, reach, step_mm,
+                                            probe_radius_mm=END_PROBE_RADII * end_radius))
                 if parent is None:
                     reach = (END_TRIM_RADII + 2.0) * start_radius + 2.0 * float(spacing.max())
-                    smooth = extend_to_surface(smooth, fvol, grid, level, reach, step_mm, at_start=True,
-                                               probe_radius_mm=END_PROBE_RADII * start_radius)
+                    smooth = (follow_to_surface(smooth, fvol, grid, level, reach, step_mm, at_start=True)
+                              if END_FOLLOWS_LUMEN else
+                              extend_to_surface(smooth, fvol, grid, level, reach, step_mm, at_start=True,
+                                                probe_radius_mm=END_PROBE_RADII * start_radius))
             r = sample_volume(edt, grid, smooth)
             tree.branches.append(CentrelineBranch(first_id + k, smooth, r, parent_id, parent_index, tree_id))
     if not tree.branches:
