@@ -247,7 +247,7 @@ def score(phantom, volume, grid, level, masks, ostium, view_step_deg, frames=Non
     else:  # a tree: its main path from the ostium (the root branch nearest it) against the truth's path to where
         # that branch ends, as for a tube. The total over all branches is kept beside it: where each side branch
         # is said to begin moves it (a branch leaving at a shallow angle shares its parent's lumen for millimetres
-        # and its centreline starts where the lumens part; RESULTS §72a)
+        # and its centreline starts where the lumens part; RESULTS §72c)
         ostium = phantom.tree.branches[0].points[0]
         root = min((x for x in r.tree.branches if x.parent_id is None), key=lambda x: np.linalg.norm(x.points_mm[0] - ostium))
         path = _truth_path_to(phantom.tree, root.points_mm[-1])

@@ -261,7 +261,6 @@ def extend_to_surface(points: np.ndarray, volume: np.ndarray, grid: VolumeGrid, 
     return out[::-1] if at_start else out
 
 
-
 def follow_to_surface(points: np.ndarray, volume: np.ndarray, grid: VolumeGrid, level: float,
                       reach_mm: float, step_mm: float, at_start: bool = False) -> np.ndarray:
     """Extend a polyline's end step by step along its end tangent, each new point moved onto the centroid of
