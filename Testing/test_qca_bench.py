@@ -34,7 +34,6 @@ def test_the_truth_span_follows_a_segment_across_a_junction():
     np.testing.assert_allclose(span[-1], [20, 10, 0], atol=0.15)
 
 
-
 def test_the_truth_path_runs_from_the_ostium_through_each_ancestor_to_the_branch_end():
     # A root along x with two children leaving at x = 5 (one of them the path's) and a grandchild leaving
     # the path's child 2 mm up; stored as the phantoms store them, each child's first point on its parent.

@@ -198,6 +198,29 @@ def smooth_polyline(points: np.ndarray, smoothing_mm: float, step_mm: float) -> 
     return resample_polyline(dense, step_mm)
 
 
+
+def shift_along_arc(arc_mm: np.ndarray, counted: np.ndarray, shifts: np.ndarray, junction_shift: Optional[np.ndarray],
+                    smoothing_mm: float, min_measured: int) -> np.ndarray:
+    """(N, 3) displacement of a branch's points from the shifts measured where ``counted``: interpolated along the
+    arc between them (the nearest beyond the ends), smoothed (Gaussian, ``smoothing_mm``); a side branch's
+    ``junction_shift`` (its parent's at the junction) anchors its first point, after the smoothing too. Fewer than
+    ``min_measured`` counted points: the whole branch moves with its junction (a root stays)."""
+    n = len(arc_mm)
+    if int(np.sum(counted)) < min_measured:
+        return np.zeros((n, 3)) if junction_shift is None else np.tile(junction_shift, (n, 1))
+    anchors_arc, anchors = arc_mm[counted], shifts[counted]
+    if junction_shift is not None:
+        anchors_arc, anchors = np.r_[0.0, anchors_arc], np.vstack([junction_shift, anchors])
+    order = np.argsort(anchors_arc, kind="stable")
+    delta = np.stack([np.interp(arc_mm, anchors_arc[order], anchors[order, a]) for a in range(3)], axis=1)
+    step = float(np.median(np.diff(arc_mm)))
+    if smoothing_mm > 0 and step > 0:
+        delta = ndimage.gaussian_filter1d(delta, smoothing_mm / step, axis=0, mode="nearest")
+    if junction_shift is not None:
+        delta[0] = junction_shift  # exactly on the junction point
+    return delta
+
+
 def sample_volume(volume: np.ndarray, grid: VolumeGrid, points_mm: np.ndarray, order: int = 1) -> np.ndarray:
     """Trilinear (``order=1``) samples of ``volume`` at world points; outside the grid = 0."""
     ijk = grid.world_to_index(np.asarray(points_mm, float).reshape(-1, 3)).T

@@ -46,7 +46,7 @@ import numpy as np
 from scipy import ndimage
 
 from ..geometry import CArmView
-from .centreline import CentrelineBranch, CentrelineTree
+from .centreline import CentrelineBranch, CentrelineTree, shift_along_arc
 from .diameter import junction_zones, plane_basis, projected_edges
 from .views import distance_to_other_vessels, other_vessels_projected
 
@@ -222,26 +222,13 @@ def place_on_masks(tree: CentrelineTree, masks: Sequence[np.ndarray], views: Seq
         ok = np.isfinite(shifts).all(axis=1) & ~junction_zones(tree, branch, side_branch_mouths=False)
         ok[ok] = np.linalg.norm(shifts[ok], axis=1) <= max_shift_mm
         ok &= runs_at_least(ok, arc, min_run_mm)
-        anchors_arc, anchors = list(arc[ok]), list(shifts[ok])
         parent = moved.get(branch.parent_id) if branch.parent_id is not None else None
-        if parent is not None:  # the side branch stays on its parent's (moved) junction point
-            original_parent = tree.branch(branch.parent_id)
-            anchors_arc.insert(0, 0.0)
-            anchors.insert(0, parent.points_mm[branch.parent_index] - original_parent.points_mm[branch.parent_index])
-        if int(ok.sum()) < min_measured:  # unmeasured: kept as it is, moved with its junction (its length stays)
-            delta = np.zeros_like(points) if parent is None else np.tile(anchors[0], (len(points), 1))
-            moved[branch.branch_id] = replace(branch, points_mm=points + delta)
-            report.append(MaskPlacement(branch.branch_id, float(ok.mean()), float(np.linalg.norm(delta, axis=1).mean()),
-                                        bool(np.any(delta))))
-            continue
-        anchors_arc, anchors = np.asarray(anchors_arc), np.asarray(anchors)
-        order = np.argsort(anchors_arc, kind="stable")
-        delta = np.stack([np.interp(arc, anchors_arc[order], anchors[order, a]) for a in range(3)], axis=1)
-        step = float(np.median(np.diff(arc)))
-        if smoothing_mm > 0 and step > 0:
-            delta = ndimage.gaussian_filter1d(delta, smoothing_mm / step, axis=0, mode="nearest")
-        if parent is not None:
-            delta[0] = anchors[order][0]  # exactly on the junction point, after the smoothing too
+        # the side branch stays on its parent's (moved) junction point
+        junction_shift = (parent.points_mm[branch.parent_index] - tree.branch(branch.parent_id).points_mm[branch.parent_index]
+                          if parent is not None else None)
+        delta = shift_along_arc(arc, ok, shifts, junction_shift, smoothing_mm, min_measured)
         moved[branch.branch_id] = replace(branch, points_mm=points + delta)
-        report.append(MaskPlacement(branch.branch_id, float(ok.mean()), float(np.linalg.norm(delta, axis=1).mean()), True))
+        # unmeasured (fewer than min_measured): kept as it is, moved with its junction (its length stays)
+        placed = int(ok.sum()) >= min_measured or bool(np.any(delta))
+        report.append(MaskPlacement(branch.branch_id, float(ok.mean()), float(np.linalg.norm(delta, axis=1).mean()), placed))
     return CentrelineTree([moved[b.branch_id] for b in tree.branches]), report

@@ -27,9 +27,7 @@ from dataclasses import dataclass, replace
 from typing import Dict, List, Mapping, Tuple
 
 import numpy as np
-from scipy import ndimage
-
-from .centreline import CentrelineBranch, CentrelineTree
+from .centreline import CentrelineBranch, CentrelineTree, shift_along_arc
 from .diameter import CrossSections, junction_zones
 
 SMOOTHING_MM = 1.0
@@ -66,19 +64,7 @@ def centre_on_sections(tree: CentrelineTree, sections: Mapping[int, CrossSection
             counted = (np.isfinite(section.area_mm2) & (section.area_mm2 > 0) & np.isfinite(shift).all(axis=1)
                        & ~junction_zones(tree, branch))
             counted[counted] = np.linalg.norm(shift[counted], axis=1) <= radius[counted]
-        arc = branch.arc_length_mm
-        if int(counted.sum()) < min_measured:
-            delta = np.zeros_like(points) if junction_shift is None else np.tile(junction_shift, (len(points), 1))
-        else:
-            anchors_arc, anchors = arc[counted], shift[counted]
-            if junction_shift is not None:
-                anchors_arc, anchors = np.r_[0.0, anchors_arc], np.vstack([junction_shift, anchors])
-            delta = np.stack([np.interp(arc, anchors_arc, anchors[:, a]) for a in range(3)], axis=1)
-            step = float(np.median(np.diff(arc)))
-            if smoothing_mm > 0 and step > 0:
-                delta = ndimage.gaussian_filter1d(delta, smoothing_mm / step, axis=0, mode="nearest")
-            if junction_shift is not None:
-                delta[0] = junction_shift  # exactly on the parent's moved junction point, after the smoothing too
+        delta = shift_along_arc(branch.arc_length_mm, counted, shift, junction_shift, smoothing_mm, min_measured)
         moved[branch.branch_id] = replace(branch, points_mm=points + delta)
         report.append(SectionPlacement(branch.branch_id, float(counted.mean()) if len(points) else 0.0,
                                        float(np.linalg.norm(delta, axis=1).mean()) if len(points) else 0.0))
