@@ -48,7 +48,8 @@ END_TRIM_RADII = 1.5  # a free end's skeleton is cut back by this many vessel ra
 # alone (a segmented-mask tip is uneven: one hole on the line stops it a millimetre or more short). 0: the line
 # alone; 0.25 put the segmented-mask tubes' ends right but ran the clean-mask tubes' long (RESULTS §63c)
 END_PROBE_RADII = 0.0
-END_FOLLOWS_LUMEN = False  # the extension follows the lumen's sections (``follow_to_surface``), not a straight line
+END_FOLLOWS_LUMEN = False  # every free end's extension follows the lumen's sections (``follow_to_surface``)
+OSTIUM_FOLLOWS_LUMEN = True  # a root's start (the ostium) reaches as far as the straight or the followed extension
 
 
 class CentrelineError(ValueError):
@@ -322,6 +323,27 @@ def follow_to_surface(points: np.ndarray, volume: np.ndarray, grid: VolumeGrid, 
     return out[::-1] if at_start else out
 
 
+def extend_ostium(points: np.ndarray, volume: np.ndarray, grid: VolumeGrid, level: float, reach_mm: float,
+                  step_mm: float, probe_radius_mm: float = 0.0) -> np.ndarray:
+    """Extend a root's start (the ostium end) to the lumen's surface: the longer of the straight and the
+    followed extension. Each stops at the first point below ``level`` it meets — the straight one at the side
+    wall of a bend, the followed one at a hole beside the axis of a rough reconstruction — so the lumen runs at
+    least as far as the longer (RESULTS §73a). A followed distal end runs into a reconstruction's blurred tip
+    (§72d), so distal ends stay straight unless ``END_FOLLOWS_LUMEN``."""
+    if END_FOLLOWS_LUMEN:
+        return follow_to_surface(points, volume, grid, level, reach_mm, step_mm, at_start=True)
+    straight = extend_to_surface(points, volume, grid, level, reach_mm, step_mm, at_start=True,
+                                 probe_radius_mm=probe_radius_mm)
+    if not OSTIUM_FOLLOWS_LUMEN:
+        return straight
+    followed = follow_to_surface(points, volume, grid, level, reach_mm, step_mm, at_start=True)
+
+    def added_mm(extended):
+        return float(np.linalg.norm(np.diff(extended[:len(extended) - len(points) + 1], axis=0), axis=1).sum())
+
+    return followed if added_mm(followed) > added_mm(straight) else straight
+
+
 def crop_to(mask: np.ndarray, grid: VolumeGrid, arrays: Sequence[np.ndarray], margin: int = 3):
     """(sub-grid, arrays cropped) to the bounding box of ``mask`` plus ``margin`` voxels.
 
@@ -395,10 +417,8 @@ def extract_centrelines(volume: np.ndarray, grid: VolumeGrid, level: float = 0.5
                                             probe_radius_mm=END_PROBE_RADII * end_radius))
                 if parent is None:
                     reach = (END_TRIM_RADII + 2.0) * start_radius + 2.0 * float(spacing.max())
-                    smooth = (follow_to_surface(smooth, fvol, grid, level, reach, step_mm, at_start=True)
-                              if END_FOLLOWS_LUMEN else
-                              extend_to_surface(smooth, fvol, grid, level, reach, step_mm, at_start=True,
-                                                probe_radius_mm=END_PROBE_RADII * start_radius))
+                    smooth = extend_ostium(smooth, fvol, grid, level, reach, step_mm,
+                                           probe_radius_mm=END_PROBE_RADII * start_radius)
             r = sample_volume(edt, grid, smooth)
             tree.branches.append(CentrelineBranch(first_id + k, smooth, r, parent_id, parent_index, tree_id))
     if not tree.branches:
