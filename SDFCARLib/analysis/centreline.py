@@ -20,7 +20,8 @@ Method (chosen after measuring the options, see bench/RESULTS.md "3D-QCA")
        ``smoothing_mm`` (removes the voxel staircase, which lengthens paths by up to ~8 %), and
        resampled at ``step_mm``. Free ends are first cut back by 1.5 vessel radii (near an end
        the skeleton fans out towards the rim instead of following the axis) and, after smoothing,
-       extended along their end tangent to the lumen surface.
+       extended along their end tangent to the lumen surface; a root's start (the ostium) also along
+       the lumen's sections, and the longer of the two is kept (a bent ostium: ``extend_ostium``).
        A side branch starts at the point of its parent nearest its junction.
 
 Conventions
