@@ -200,7 +200,6 @@ def smooth_polyline(points: np.ndarray, smoothing_mm: float, step_mm: float) -> 
     return resample_polyline(dense, step_mm)
 
 
-
 def shift_along_arc(arc_mm: np.ndarray, counted: np.ndarray, shifts: np.ndarray, junction_shift: Optional[np.ndarray],
                     smoothing_mm: float, min_measured: int) -> np.ndarray:
     """(N, 3) displacement of a branch's points from the shifts measured where ``counted``: interpolated along the

@@ -27,6 +27,7 @@ from dataclasses import dataclass, replace
 from typing import Dict, List, Mapping, Tuple
 
 import numpy as np
+
 from .centreline import CentrelineBranch, CentrelineTree, shift_along_arc
 from .diameter import CrossSections, junction_zones
 
