@@ -48,6 +48,8 @@ class FieldConfig:
     kind: str = "sdf"  # "sdf" | "occupancy"
     alpha: float = 50.0
     initial_occupancy: float = 0.01
+    # the α of the first step when the fit raises it (``ImplicitField.alpha``); None: ``alpha`` throughout
+    initial_alpha: Optional[float] = None
 
 
 class HashEncoding(nn.Module):
@@ -196,12 +198,14 @@ class ImplicitField(nn.Module):
         self.encoding = HashEncoding(config.levels, config.features_per_level, config.log2_table_size,
                                      config.base_resolution, config.max_resolution)
         self.mlp = ResidualMLP(self.encoding.output_dim, config.width, config.depth, 1)
+        # σ(−α·s)'s α now: a fit may raise it from ``initial_alpha`` to ``alpha`` (coarse to sharp)
+        self.alpha = float(config.initial_alpha or config.alpha)
         logit = math.log(config.initial_occupancy / (1 - config.initial_occupancy))
         with torch.no_grad():
             # Start empty: a small output layer plus a bias that gives initial_occupancy. The SDF's
             # logit is −α·s, so its layer is scaled by 1/α for both kinds to start equally close.
-            self.mlp.output.weight.mul_(0.01 / config.alpha if config.kind == "sdf" else 0.01)
-            self.mlp.output.bias.fill_(-logit / config.alpha if config.kind == "sdf" else logit)
+            self.mlp.output.weight.mul_(0.01 / self.alpha if config.kind == "sdf" else 0.01)
+            self.mlp.output.bias.fill_(-logit / self.alpha if config.kind == "sdf" else logit)
 
     def prepare(self, x: torch.Tensor) -> EncodedPoints:
         return self.encoding.prepare(x)
@@ -226,7 +230,7 @@ class ImplicitField(nn.Module):
 
     def logit_from_raw(self, raw: torch.Tensor) -> torch.Tensor:
         """The occupancy's logit: −α·s for an SDF field, the raw output itself for occupancy."""
-        return -self.config.alpha * raw if self.config.kind == "sdf" else raw
+        return -self.alpha * raw if self.config.kind == "sdf" else raw
 
     def occupancy_from_raw(self, raw: torch.Tensor, logit_offset: Optional[torch.Tensor] = None) -> torch.Tensor:
         """σ(logit), with ``logit_offset`` added per point where given (``revival.py``)."""

@@ -81,6 +81,7 @@ def field_config(settings: Settings) -> FieldConfig:
         levels=f.levels, features_per_level=f.features_per_level, log2_table_size=f.log2_table_size,
         base_resolution=f.base_resolution, max_resolution=f.max_resolution, width=f.width, depth=f.depth,
         kind=settings.mode.field_kind, alpha=f.alpha, initial_occupancy=f.initial_occupancy,
+        initial_alpha=f.alpha_start if settings.mode.field_kind == "sdf" and settings.optimisation.alpha_ramp_fraction > 0 else None,
     )
 
 
@@ -422,6 +423,7 @@ def optimise(problem: Problem, model: ImplicitField, progress: Progress = None, 
         optimiser, lambda n: min(1.0, (n + 1) / o.warmup_steps) if o.warmup_steps > 0 else 1.0)
     history: List[Dict[str, float]] = []
     fade_steps = o.coarse_to_fine_fraction * o.steps
+    alpha_steps = o.alpha_ramp_fraction * o.steps if model.config.kind == "sdf" else 0
     exclusion_steps = exclusion_schedule(settings)
     revival_step = revive_step(settings)
     allowed: Optional[torch.Tensor] = None
@@ -438,6 +440,8 @@ def optimise(problem: Problem, model: ImplicitField, progress: Progress = None, 
             # two levels from the start, the rest faded in one after another over the first fade_steps
             levels = model.encoding.levels
             model.encoding.fade_in_levels(COARSE_START_LEVELS + (levels - COARSE_START_LEVELS) * (step - 1) / fade_steps)
+        if alpha_steps:
+            model.alpha = ramped_alpha(settings.field.alpha_start, settings.field.alpha, (step - 1) / alpha_steps)
         if step - 1 in exclusion_steps:
             paused = time.perf_counter()
             allowed = _exclude_disagreeing_pieces(problem, model, step - 1)
@@ -484,11 +488,18 @@ def optimise(problem: Problem, model: ImplicitField, progress: Progress = None, 
             _report(progress, phase="optimise", step=done, total=o.total_steps, elapsed_s=elapsed,
                     eta_s=elapsed / step * (o.total_steps - done), device=str(device), **losses)
             last_report = now
+    model.alpha = model.config.alpha  # the result is read at the final α whatever the ramp
     if averaged:
         with torch.no_grad():
             for p, mean in zip(parameters, averaged):
                 p.copy_(mean)
     return history, time.perf_counter() - t_loop
+
+
+def ramped_alpha(alpha_start: float, alpha: float, progress: float) -> float:
+    """σ(−α·s)'s α at ``progress`` (0 → 1, clipped) through the ramp: geometric from ``alpha_start`` to ``alpha``,
+    so that each step multiplies it by the same factor."""
+    return alpha_start * (alpha / alpha_start) ** min(max(progress, 0.0), 1.0)
 
 
 def averaging_start(settings: Settings) -> Optional[int]:
@@ -929,7 +940,7 @@ def evaluate_volume(model: ImplicitField, problem: Problem, chunk: int = 262144)
     offset = None if problem.logit_offset is None else problem.logit_offset.float().cpu()
     occupancy = model.occupancy_from_raw(raw, offset).numpy()
     if offset is not None:  # the field whose σ(−α·s) is that occupancy (revival.py)
-        raw = raw - offset / model.config.alpha if model.config.kind == "sdf" else raw + offset
+        raw = raw - offset / model.alpha if model.config.kind == "sdf" else raw + offset
     occ_volume = np.zeros(grid.num_voxels, dtype=np.float32)
     occ_volume[voxels] = occupancy
     if model.config.kind == "sdf":

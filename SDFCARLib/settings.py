@@ -84,6 +84,9 @@ class FieldSettings:
     width: int = 256
     depth: int = 8
     alpha: float = 50.0  # occupancy σ(−α·s) of the SDF modes
+    # the SDF modes' α at the first step when alpha_ramp_fraction > 0: it rises geometrically to alpha over that
+    # share of the steps, so that early on the occupancy changes over a wider band of s (coarse to sharp)
+    alpha_start: float = 10.0
     initial_occupancy: float = 0.01  # the output bias starts every voxel at this occupancy
 
 
@@ -107,6 +110,8 @@ class OptimisationSettings:
     # saturated below revive_occupancy start again at it (revival.py; 0: off)
     revive_fraction: float = 0.0
     revive_occupancy: float = 0.01
+    # >0: the SDF's α rises from alpha_start to alpha over this share of the steps (0: alpha throughout)
+    alpha_ramp_fraction: float = 0.0
     checkpoint_points: int = 262144  # >0: the MLP in checkpointed chunks of this many points (memory)
 
     @property
@@ -373,6 +378,12 @@ class Settings:
             raise ReconstructionError("dt_downsample must be at least 1")
         if o.warmup_steps < 0 or o.checkpoint_points < 0:
             raise ReconstructionError("warmup_steps and checkpoint_points must not be negative")
+        if not 0 <= o.alpha_ramp_fraction <= 1:
+            raise ReconstructionError(f"alpha_ramp_fraction is the share of the steps over which α rises from alpha_start: "
+                                      f"0 (off) up to 1, got {o.alpha_ramp_fraction}")
+        if o.alpha_ramp_fraction > 0 and not 0 < f.alpha_start <= f.alpha:
+            raise ReconstructionError(f"alpha_start must be positive and at most alpha ({f.alpha:g}) for α to rise to it, "
+                                      f"got {f.alpha_start}")
         if not 0 <= o.revive_fraction < 1:
             raise ReconstructionError(f"revive_fraction is the share of the steps after which saturated voxels under unexplained "
                                       f"mask pixels are revived: 0 (off) up to below 1, got {o.revive_fraction}")

@@ -181,6 +181,18 @@ def test_alpha_is_configurable():
     torch.testing.assert_close(field.occupancy_from_raw(s), torch.sigmoid(torch.tensor([-1.0])))
 
 
+def test_a_field_started_at_a_lower_alpha_starts_at_the_initial_occupancy_and_reads_with_its_current_alpha():
+    points = torch.rand(300, 3)
+    field = ImplicitField(small_config(kind="sdf", alpha=50.0, initial_alpha=10.0, initial_occupancy=0.01))
+    assert field.alpha == 10.0 and field.config.alpha == 50.0
+    with torch.no_grad():
+        assert float(field(points).mean()) == pytest.approx(0.01, rel=0.1)  # the fair start at the first α
+        s = field.raw(points)
+        field.alpha = 50.0  # the same field, sharper: further from ½ on the same side
+        torch.testing.assert_close(field(points), torch.sigmoid(-50.0 * s))
+        assert float(field(points).max()) < 1e-3
+
+
 def test_occupancy_field_is_sigmoid_of_logit():
     field = ImplicitField(small_config(kind="occupancy"))
     z = torch.tensor([-3.0, 0.0, 2.0])

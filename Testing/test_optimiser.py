@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 import torch
@@ -10,7 +12,7 @@ from SDFCARLib.geometry import CArmView, Geometry, VolumeGrid
 from SDFCARLib.losses import partial_occupancy_loss, silhouette
 from SDFCARLib.field import ImplicitField
 from SDFCARLib.optimiser import (ReconstructionCancelled, averaging_start, build_problem, evaluate_volume, field_config,
-                                   fit_field, optimise, reconstruct, validate_targets)
+                                   fit_field, optimise, ramped_alpha, reconstruct, validate_targets)
 from SDFCARLib.settings import MODES, ReconstructionError, make_settings
 from SDFCARLib.phantoms import Branch, CentrelineTree, simulate_views, voxelize
 from SDFCARLib.projector import project_volume
@@ -215,6 +217,28 @@ def test_a_coarse_to_fine_fit_differs_from_one_with_every_level_from_the_start_a
     assert not np.array_equal(every_level.field, coarse_first.field)
     assert coarse_first.segmentation.sum() > 0.5 * case[1].sum()
     assert every_level.segmentation.sum() > 0.5 * case[1].sum()
+
+
+def test_the_alpha_ramp_is_geometric_and_clipped():
+    assert ramped_alpha(10.0, 50.0, 0.0) == 10.0 and ramped_alpha(10.0, 50.0, 1.0) == pytest.approx(50.0)
+    assert ramped_alpha(10.0, 50.0, 0.5) == pytest.approx(math.sqrt(10.0 * 50.0))  # the geometric mean half-way
+    assert ramped_alpha(10.0, 50.0, -1.0) == 10.0 and ramped_alpha(10.0, 50.0, 2.0) == pytest.approx(50.0)
+
+
+def test_a_fit_with_the_alpha_ramp_differs_and_is_read_at_the_final_alpha(case):
+    """alpha_ramp_fraction reaches the fit, the vessel is still found, and the written field is the one whose
+    σ(−α·s) at the configured α is the occupancy (not the ramp's first α)."""
+    def fitted(fraction):
+        return reconstruct(case[0], _masks(case), make_settings("fast", steps=40, seed=3, device="cpu",
+                                                                 alpha_ramp_fraction=fraction, alpha_start=10.0))
+
+    sharp, ramped = fitted(0.0), fitted(0.5)
+    assert ramped.report["settings"]["alpha_ramp_fraction"] == 0.5
+    assert not np.array_equal(sharp.field, ramped.field)
+    assert ramped.segmentation.sum() > 0.5 * case[1].sum()
+    inside = ramped.occupancy > 0
+    np.testing.assert_allclose(ramped.occupancy[inside], 1.0 / (1.0 + np.exp(50.0 * ramped.field[inside].astype(np.float64))),
+                               atol=1e-5)
 
 
 def test_averaging_starts_after_the_last_exclusion_on_the_last_fifth_in_fast():
