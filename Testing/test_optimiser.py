@@ -227,13 +227,13 @@ def test_the_alpha_ramp_is_geometric_and_clipped():
 
 def test_a_fit_with_the_alpha_ramp_differs_and_is_read_at_the_final_alpha(case):
     """alpha_ramp_fraction reaches the fit, the vessel is still found, and the written field is the one whose
-    σ(−α·s) at the configured α is the occupancy (not the ramp's first α)."""
+    σ(−α·s) at the configured α is the occupancy (a ramp over every step ends just short of that α)."""
     def fitted(fraction):
         return reconstruct(case[0], _masks(case), make_settings("fast", steps=40, seed=3, device="cpu",
                                                                  alpha_ramp_fraction=fraction, alpha_start=10.0))
 
-    sharp, ramped = fitted(0.0), fitted(0.5)
-    assert ramped.report["settings"]["alpha_ramp_fraction"] == 0.5
+    sharp, ramped = fitted(0.0), fitted(1.0)
+    assert ramped.report["settings"]["alpha_ramp_fraction"] == 1.0
     assert not np.array_equal(sharp.field, ramped.field)
     assert ramped.segmentation.sum() > 0.5 * case[1].sum()
     inside = ramped.occupancy > 0
