@@ -423,7 +423,8 @@ def optimise(problem: Problem, model: ImplicitField, progress: Progress = None, 
         optimiser, lambda n: min(1.0, (n + 1) / o.warmup_steps) if o.warmup_steps > 0 else 1.0)
     history: List[Dict[str, float]] = []
     fade_steps = o.coarse_to_fine_fraction * o.steps
-    alpha_steps = o.alpha_ramp_fraction * o.steps if model.config.kind == "sdf" else 0
+    # the ramp starts where the model was built to start (field_config decides whether it ramps at all)
+    alpha_steps = o.alpha_ramp_fraction * o.steps if model.config.initial_alpha is not None else 0
     exclusion_steps = exclusion_schedule(settings)
     revival_step = revive_step(settings)
     allowed: Optional[torch.Tensor] = None
@@ -441,7 +442,7 @@ def optimise(problem: Problem, model: ImplicitField, progress: Progress = None, 
             levels = model.encoding.levels
             model.encoding.fade_in_levels(COARSE_START_LEVELS + (levels - COARSE_START_LEVELS) * (step - 1) / fade_steps)
         if alpha_steps:
-            model.alpha = ramped_alpha(settings.field.alpha_start, settings.field.alpha, (step - 1) / alpha_steps)
+            model.alpha = ramped_alpha(model.config.initial_alpha, model.config.alpha, (step - 1) / alpha_steps)
         if step - 1 in exclusion_steps:
             paused = time.perf_counter()
             allowed = _exclude_disagreeing_pieces(problem, model, step - 1)
