@@ -1080,7 +1080,7 @@ class SDFCARLogic(ScriptedLoadableModuleLogic):
     def resultQAText(self, resultNode):
         """(text for the Results section: per-view QA numbers and the run's warnings, number of views)."""
         from SDFCARLib import mrml
-        from SDFCARLib.qa import qa_summary_lines
+        from SDFCARLib.qa import ensemble_choice_line, qa_summary_lines
 
         try:
             report = mrml.read_report(self.resultFolder(resultNode))
@@ -1090,7 +1090,8 @@ class SDFCARLogic(ScriptedLoadableModuleLogic):
         views = len(lines) or len((report.get("geometry") or {}).get("views") or []) or 1
         if not lines:
             lines = ["This result has no reprojection QA (made by an SDFCAR version before it existed)."]
-        return "\n".join(lines + _warningLines(report)), views
+        choice = ensemble_choice_line(report)  # which of several fits was kept, by this QA
+        return "\n".join(lines + ([choice] if choice else []) + _warningLines(report)), views
 
     @staticmethod
     def analysisText(resultNode):

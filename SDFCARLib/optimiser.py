@@ -786,6 +786,36 @@ def fitted_loss(geometry: Geometry, targets: Sequence[np.ndarray], settings: Set
 
 
 @dataclass
+class EnsembleFit:
+    """One fit of an ensemble kept whole for ``finish`` (``ensemble_combine`` "best_reprojection"): the trained
+    field, its loss history, its seed and what its mid-fit steps left on the problem (``FitState``)."""
+
+    model: ImplicitField
+    history: List[Dict[str, float]]
+    seed: int
+    state: "FitState"
+
+
+@dataclass
+class FitState:
+    """What one fit's mid-fit steps set on the problem: the voxels its width exclusion took out (and the
+    record of it), the revival's logit offsets (and the record); each fit of an ensemble has its own."""
+
+    excluded: Optional[np.ndarray]
+    exclusion: Optional[Dict[str, Any]]
+    logit_offset: Optional[torch.Tensor]
+    revival: Optional[Dict[str, Any]]
+
+    @classmethod
+    def of(cls, problem: "Problem") -> "FitState":
+        return cls(problem.excluded, problem.exclusion, problem.logit_offset, problem.revival)
+
+    def apply_to(self, problem: "Problem") -> None:
+        problem.excluded, problem.exclusion, problem.logit_offset, problem.revival = (
+            self.excluded, self.exclusion, self.logit_offset, self.revival)
+
+
+@dataclass
 class FittedField:
     """What ``fit_field`` leaves for ``finish``: the problem (at the calibrated geometry), the trained
     field, its loss history and timings, and what the calibrations and the frames' evidence found."""
@@ -800,14 +830,37 @@ class FittedField:
     volumes: Optional[Tuple[np.ndarray, np.ndarray]] = None  # (occupancy, raw field) when not the model's (ensemble_fits)
     # each fit's (occupancy, raw field) where fit_field was asked to keep them (ensemble_fits > 1)
     members: List[Tuple[np.ndarray, np.ndarray]] = field(default_factory=list)
+    # every fit kept whole, to be finished and the best reprojecting one kept (ensemble_combine "best_reprojection")
+    fits: List[EnsembleFit] = field(default_factory=list)
 
     def finished(self, settings: Optional[Settings] = None, progress: Progress = None,
                  cancel: Cancel = None) -> Reconstruction:
         """``finish`` of this fit; ``settings`` (default: the fit's own) may change what ``finish`` decides —
         threshold, growing, pruning, the fragment steps — so benchmarks compare those rules on one fit."""
         problem = self.problem if settings is None else dataclasses.replace(self.problem, settings=settings)
+        if self.fits:
+            return self._best_reprojecting(problem, progress, cancel)
         volumes = None if self.volumes is None else (self.volumes[0].copy(), self.volumes[1].copy())
         return finish(problem, self.model, self.history, self.optimise_s, self.t_start, progress, cancel, volumes)
+
+    def _best_reprojecting(self, problem: Problem, progress: Progress, cancel: Cancel) -> Reconstruction:
+        """Each fit finished on its own; the result is the one whose segmentation reprojects best onto the
+        masks (highest mean reprojection Dice over the views; the first fit on a tie). The fits' own
+        reprojection Dice and the choice are in the report's ``ensemble_choice``."""
+        best: Optional[Reconstruction] = None
+        scores: List[List[float]] = []
+        for fit in self.fits:
+            fit.state.apply_to(problem)
+            result = finish(problem, fit.model, fit.history, self.optimise_s, self.t_start, progress, cancel)
+            scores.append([float(d) for d in result.report["reprojection_dice"]])
+            if best is None or np.mean(scores[-1]) > np.mean(best.report["reprojection_dice"]):
+                best = result
+        chosen = int(np.argmax([np.mean(s) for s in scores]))
+        assert best is not None
+        best.report["ensemble_choice"] = {
+            "combine": "best_reprojection", "seeds": [fit.seed for fit in self.fits],
+            "reprojection_dice": scores, "chosen_fit": chosen, "chosen_seed": self.fits[chosen].seed}
+        return best
 
 
 def fit_field(geometry: Geometry, targets: Sequence[np.ndarray], settings: Settings, target_kind: str = "mask",
@@ -842,10 +895,30 @@ def fit_field(geometry: Geometry, targets: Sequence[np.ndarray], settings: Setti
         raise ReconstructionCancelled("cancelled before the optimisation started")
     model = ImplicitField(field_config(settings)).to(problem.device)
     history, optimise_s = optimise(problem, model, progress, cancel, **loop)
-    volumes, members = None, []
-    if settings.optimisation.ensemble_fits > 1:
+    volumes, members, fits = None, [], []
+    if settings.optimisation.ensemble_fits > 1 and settings.optimisation.ensemble_combine == "best_reprojection":
+        fits, optimise_s = _ensemble_fits(problem, model, history, optimise_s, progress, cancel, **loop)
+    elif settings.optimisation.ensemble_fits > 1:
         volumes, optimise_s, members = _ensemble_volumes(problem, model, optimise_s, progress, cancel, keep_members, **loop)
-    return FittedField(problem, model, history, optimise_s, t_start, calibrations, evidence, volumes, members)
+    return FittedField(problem, model, history, optimise_s, t_start, calibrations, evidence, volumes, members, fits)
+
+
+def _ensemble_fits(problem: Problem, first: ImplicitField, first_history: List[Dict[str, float]], first_s: float,
+                   progress: Progress, cancel: Cancel, **loop: Any) -> Tuple[List[EnsembleFit], float]:
+    """``ensemble_fits`` fits of the problem kept whole (``first`` already trained on the run's seed; the
+    others on seed + 1, …, each from its own initialisation, with its own mid-fit exclusion and revival),
+    and the fits' seconds together."""
+    settings = problem.settings
+    fits = [EnsembleFit(first, first_history, settings.run.seed, FitState.of(problem))]
+    optimise_s = first_s
+    for member in range(1, settings.optimisation.ensemble_fits):
+        FitState(None, None, None, None).apply_to(problem)
+        torch.manual_seed(settings.run.seed + member)
+        model = ImplicitField(field_config(settings)).to(problem.device)
+        history, seconds = optimise(problem, model, progress, cancel, fit=member, **loop)
+        optimise_s += seconds
+        fits.append(EnsembleFit(model, history, settings.run.seed + member, FitState.of(problem)))
+    return fits, optimise_s
 
 
 def _ensemble_volumes(problem: Problem, first: ImplicitField, first_s: float, progress: Progress, cancel: Cancel,
@@ -864,7 +937,7 @@ def _ensemble_volumes(problem: Problem, first: ImplicitField, first_s: float, pr
     revivals = [problem.revival]
     optimise_s = first_s
     for member in range(1, settings.optimisation.ensemble_fits):
-        problem.excluded, problem.exclusion, problem.logit_offset, problem.revival = None, None, None, None
+        FitState(None, None, None, None).apply_to(problem)
         torch.manual_seed(settings.run.seed + member)
         model = ImplicitField(field_config(settings)).to(problem.device)
         _, seconds = optimise(problem, model, progress, cancel, fit=member, **loop)

@@ -278,3 +278,14 @@ def qa_summary_lines(report: Dict[str, Any]) -> List[str]:
             line += f"; {len(row['warnings'])} warning(s)"
         lines.append(line)
     return lines
+
+
+def ensemble_choice_line(report: Dict[str, Any]) -> Optional[str]:
+    """Which of several fits a result kept and why (``ensemble_combine`` "best_reprojection"), or None."""
+    choice = report.get("ensemble_choice")
+    if not isinstance(choice, dict) or not choice.get("reprojection_dice"):
+        return None
+    means = ", ".join(f"{sum(dice) / len(dice):.4f}" if dice else "?" for dice in choice["reprojection_dice"])
+    seeds = choice.get("seeds") or []
+    return (f"Kept the fit of seed {choice.get('chosen_seed')} of {len(seeds)} (seeds {', '.join(str(s) for s in seeds)}): "
+            f"the highest mean reprojection Dice ({means}).")

@@ -90,6 +90,9 @@ class FieldSettings:
     initial_occupancy: float = 0.01  # the output bias starts every voxel at this occupancy
 
 
+ENSEMBLE_COMBINES = ("mean", "best_reprojection")
+
+
 @dataclass
 class OptimisationSettings:
     """Adam on the hash table and the MLP."""
@@ -104,8 +107,11 @@ class OptimisationSettings:
     # against Adam's jitter about the minimum at a constant rate (0: off, the published recipe; `fast` 0.2, RESULTS §38c)
     average_last_fraction: float = 0.0
     # >1: this many fits from different seeds (the run's seed, then seed + 1, …) on the same problem, each with
-    # its own mid-fit exclusion; the result is made from the mean of their occupancies (1: one fit)
+    # its own mid-fit exclusion; the result is made from them as ensemble_combine says (1: one fit)
     ensemble_fits: int = 1
+    # "mean": the result is made from the mean of the fits' occupancies; "best_reprojection": each fit is finished
+    # and the result is the one whose segmentation reprojects best onto the masks (highest mean reprojection Dice)
+    ensemble_combine: str = "mean"
     # >0: after this share of the steps, the voxels on rays every view leaves unexplained whose occupancy has
     # saturated below revive_occupancy start again at it (revival.py; 0: off)
     revive_fraction: float = 0.0
@@ -394,8 +400,11 @@ class Settings:
             raise ReconstructionError(f"average_last_fraction is the share of the last steps whose parameters are averaged "
                                       f"into the result: 0 (off) up to below 1, got {o.average_last_fraction}")
         if o.ensemble_fits < 1:
-            raise ReconstructionError(f"ensemble_fits is how many fits are averaged into the result: at least 1 (one fit), "
+            raise ReconstructionError(f"ensemble_fits is how many fits the result is made from: at least 1 (one fit), "
                                       f"got {o.ensemble_fits}")
+        if o.ensemble_combine not in ENSEMBLE_COMBINES:
+            raise ReconstructionError(f"ensemble_combine is how the fits make the result: "
+                                      f"{' or '.join(repr(c) for c in ENSEMBLE_COMBINES)}, got {o.ensemble_combine!r}")
         if not 0 <= o.coarse_to_fine_fraction < 1:
             raise ReconstructionError(f"coarse_to_fine_fraction is the share of the steps over which the finer levels "
                                       f"fade in: 0 (off) up to below 1, got {o.coarse_to_fine_fraction}")

@@ -72,7 +72,7 @@ def _add_results(module, three_view_result):
     return module.SDFCARLogic().addResults(files, context), frames
 
 
-def test_a_three_view_result_loads_with_its_qa_overlays(module, three_view_result):
+def test_a_three_view_result_loads_with_its_qa_overlays(module, three_view_result, monkeypatch):
     from SDFCARLib import mrml
 
     files, job, geometry, case = three_view_result
@@ -91,6 +91,13 @@ def test_a_three_view_result_loads_with_its_qa_overlays(module, three_view_resul
     assert scene.GetFirstNodeByName("Tree C-arm view 3 detector") is not None
     text, views = module.SDFCARLogic().resultQAText(segmentation)
     assert views == 3 and text.startswith("View 1: Dice 1.000") and "View 3" in text and "warning(s):" in text
+    assert "Kept the fit" not in text  # one fit
+    report = mrml.read_report(job / "output")
+    report["ensemble_choice"] = {"combine": "best_reprojection", "seeds": [3, 4], "chosen_fit": 1, "chosen_seed": 4,
+                                 "reprojection_dice": [[0.9, 0.8, 0.7], [1.0, 0.9, 0.8]]}
+    monkeypatch.setattr(mrml, "read_report", lambda folder: report)
+    text, views = module.SDFCARLogic().resultQAText(segmentation)
+    assert views == 3 and "\nKept the fit of seed 4 of 2 (seeds 3, 4): the highest mean reprojection Dice (0.8000, 0.9000)." in text
 
 
 def test_show_qa_overlay_reloads_what_the_user_deleted(module, three_view_result):

@@ -137,7 +137,14 @@ def test_result_provenance_attributes(scene):
         assert p["geometryDigest"] == geometry.digest()
         assert Geometry.from_dict(json.loads(p["geometry"])) == geometry
         assert p["input"] == "run 7"
+        assert "keptFitSeed" not in p  # one fit
     assert mrml.node_provenance(nodes.segmentation)["role"] == "segmentation"
+    chosen = blob_result(geometry)
+    chosen.report["ensemble_choice"] = {"combine": "best_reprojection", "seeds": [3, 4, 5], "chosen_fit": 1, "chosen_seed": 4,
+                                        "reprojection_dice": [[0.9, 0.9], [0.95, 0.94], [0.8, 0.9]]}
+    nodes = mrml.add_reconstruction_to_scene(scene, chosen, "Case B")
+    assert mrml.node_provenance(nodes.segmentation)["keptFitSeed"] == "4"
+    assert mrml.node_provenance(nodes.segmentation)["seed"] == "3"  # the run's, which reproduces it
     assert mrml.node_provenance(nodes.model)["role"] == "surface"
 
 

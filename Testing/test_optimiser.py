@@ -310,6 +310,29 @@ def test_an_ensemble_reports_progress_over_all_its_fits_and_its_seeds(case):
     assert (result.segmentation & case[1].astype(bool)).sum() > 0.5 * case[1].sum()
 
 
+def test_a_best_reprojecting_ensemble_keeps_the_single_fit_whose_result_reprojects_best(case):
+    """ensemble_combine "best_reprojection": each fit is finished as a single run with its seed would be (its
+    own exclusion), and the result is, whole, the one whose segmentation has the highest mean reprojection Dice."""
+    common = dict(steps=80, device="cpu", threads=1, width_exclusion_fraction=0.5)
+    singles = {seed: reconstruct(case[0], _masks(case), make_settings("fast", seed=seed, **common)) for seed in (3, 4, 5)}
+    scores = {seed: float(np.mean(r.report["reprojection_dice"])) for seed, r in singles.items()}
+    assert len(set(scores.values())) == 3  # the draws differ, so the choice is tested
+    result = reconstruct(case[0], _masks(case), make_settings("fast", seed=3, ensemble_fits=3,
+                                                              ensemble_combine="best_reprojection", **common))
+    chosen = max(scores, key=scores.get)
+    choice = result.report["ensemble_choice"]
+    assert choice["seeds"] == [3, 4, 5] and choice["chosen_seed"] == chosen and choice["chosen_fit"] == chosen - 3
+    np.testing.assert_allclose(choice["reprojection_dice"], [singles[s].report["reprojection_dice"] for s in (3, 4, 5)])
+    single = singles[chosen]
+    np.testing.assert_array_equal(result.segmentation, single.segmentation)
+    np.testing.assert_allclose(result.occupancy, single.occupancy, atol=1e-6)
+    def without_seconds(report):
+        return [{k: v for k, v in e.items() if k != "seconds"} for e in report["width_exclusion"]["exclusions"]]
+    assert without_seconds(result.report) == without_seconds(single.report)  # the chosen fit's own exclusion
+    assert [h["loss"] for h in result.history] == pytest.approx([h["loss"] for h in single.history])
+    assert result.report["ensemble_seeds"] == [3, 4, 5]
+
+
 def test_partial_occupancy_term_makes_the_fitted_field_more_binary(case):
     """lambda_binary (L_bin, off by default) reaches the fit: the same run with it holds less of its
     vessel mass at partial occupancy, and the vessel is still there."""

@@ -13,6 +13,7 @@ from typing import Any, Dict, Optional
 import numpy as np
 
 from ..settings import GROUND_TRUTH_METRICS, METRICS, make_settings, parse_setting_overrides
+from ..qa import ensemble_choice_line
 
 EXIT_OK, EXIT_FAILURE, EXIT_BAD_INPUT, EXIT_CANCELLED = 0, 1, 2, 130
 
@@ -168,6 +169,9 @@ def print_summary(files: Dict[str, Path]) -> None:
     print(f"{report.get('method', 'reconstruction')}: {report.get('segmented_voxels', 0)} voxels segmented in "
           f"{total if total is None else round(float(total), 1)} s on {report.get('device', '?')}")
     print(f"reprojection Dice per view: {_fmt(report.get('reprojection_dice'))}")
+    choice = ensemble_choice_line(report)
+    if choice:
+        print(choice)
     if "metrics" in report:
         print_metrics(report["metrics"])
     for message in report.get("warnings", []):

@@ -204,6 +204,8 @@ def provenance_attributes(report: Mapping[str, Any]) -> Dict[str, str]:
         "preset": settings.get("preset"),
         "mode": settings.get("mode"),
         "seed": report.get("seed", settings.get("seed")),
+        # of an ensemble kept whole (ensemble_combine "best_reprojection"): the seed of the fit that was kept
+        "keptFitSeed": (report.get("ensemble_choice") or {}).get("chosen_seed"),
         "steps": settings.get("steps"),
         "threshold": settings.get("threshold"),
         "method": report.get("method"),
