@@ -4,8 +4,10 @@
 
 Each case is fitted ``--fits`` times on one problem (the case's seed, then seed + 1, …; ``fast`` otherwise),
 and finished ``fast``'s way from: each fit alone ("draw k": draw 0 is ``fast`` as it is), the mean occupancy
-of the first two fits and of all of them. So the ensemble is compared with the very fits it averages, and
-the draws give the spread of one case between seeds. Prints clDice, Dice, topology precision / sensitivity,
+of the first two fits and of all of them, and the draw whose result reprojects best onto the masks (highest
+mean reprojection Dice, what ``ensemble_combine`` "best_reprojection" keeps) of the first two and of all.
+So the ensemble and the choice are compared with the very fits they are made from, and the draws give the
+spread of one case between seeds. Prints clDice, Dice, topology precision / sensitivity,
 components and times per row, and means over the cases; ``--jsonl FILE`` appends one JSON line per row.
 """
 
@@ -80,22 +82,36 @@ def main() -> int:
         t0 = time.perf_counter()
         fitted = fit_field(case.geometry, case.targets, settings, case.target_kind, frames=case.frames, keep_members=True)
         fit_s = time.perf_counter() - t0
+        finished_draws = []
         for name, volumes, row_settings in rows_of(fitted, settings):
             t0 = time.perf_counter()
             result = finish(dataclasses.replace(fitted.problem, settings=row_settings), fitted.model, fitted.history,
                             fitted.optimise_s, fitted.t_start, volumes=(volumes[0].copy(), volumes[1].copy()))
             finish_s = time.perf_counter() - t0
+            if name.startswith("draw"):
+                finished_draws.append(result)
             m = evaluate(result.segmentation, case.label, case.geometry.volume, case.geometry.views, case.masks)
             row = {"case": spec.name, "row": name, "cldice": m["cldice"], "dice": m["dice"],
                    "tprec": m["tprec"], "tsens": m["tsens"],
                    "components": m.get("components"), "components_truth": m.get("components_label"),
-                   "prepare_s": round(prepare_s, 1), "fits_s": round(fit_s, 1), "finish_s": round(finish_s, 1),
+                   "reprojection_dice": result.report["reprojection_dice"], "prepare_s": round(prepare_s, 1), "fits_s": round(fit_s, 1), "finish_s": round(finish_s, 1),
                    "device": result.report["device"]}
             table.setdefault(name, []).append(row)
-            print(f"{spec.name:7s} {name:22s} clDice {row['cldice']:.3f}  Dice {row['dice']:.3f}  Tprec "
+            print(f"{spec.name:7s} {name:26s} clDice {row['cldice']:.3f}  Dice {row['dice']:.3f}  Tprec "
                   f"{row['tprec']:.3f}  Tsens {row['tsens']:.3f}  components {row['components']}/"
                   f"{row['components_truth']}  (prepare {prepare_s:.0f} s, {args.fits} fits {fit_s:.0f} s, finish "
                   f"{finish_s:.0f} s; {row['device']})", flush=True)
+            if args.jsonl is not None:
+                with open(args.jsonl, "a") as out:
+                    out.write(json.dumps(row) + "\n")
+        for among in sorted({2, args.fits}):  # the chosen draw's row again, under the choice's name
+            scores = [float(np.mean(r.report["reprojection_dice"])) for r in finished_draws[:among]]
+            chosen = int(np.argmax(scores))
+            row = {**table[f"draw {chosen}"][-1], "row": f"best of {among} by reprojection", "chosen_draw": chosen}
+            table.setdefault(row["row"], []).append(row)
+            print(f"{spec.name:7s} {row['row']:26s} clDice {row['cldice']:.3f}  Dice {row['dice']:.3f}  components "
+                  f"{row['components']}/{row['components_truth']}  (draw {chosen}; mean reprojection Dice of the draws "
+                  f"{', '.join(f'{x:.4f}' for x in scores)})", flush=True)
             if args.jsonl is not None:
                 with open(args.jsonl, "a") as out:
                     out.write(json.dumps(row) + "\n")
@@ -103,7 +119,7 @@ def main() -> int:
         draws = np.array([[r["cldice"] for r in rows] for name, rows in table.items() if name.startswith("draw")])
         for name, rows in table.items():
             cl = np.array([r["cldice"] for r in rows])
-            print(f"mean    {name:22s} clDice {cl.mean():.4f}  Dice {np.mean([r['dice'] for r in rows]):.4f}  components "
+            print(f"mean    {name:26s} clDice {cl.mean():.4f}  Dice {np.mean([r['dice'] for r in rows]):.4f}  components "
                   f"{np.mean([r['components'] for r in rows]):.1f}  better clDice than draw 0 on "
                   f"{int(np.sum(cl > draws[0]))}/{len(cl)}, than the mean of the draws on {int(np.sum(cl > draws.mean(0)))}/{len(cl)}")
     return 0
