@@ -899,7 +899,8 @@ def fit_field(geometry: Geometry, targets: Sequence[np.ndarray], settings: Setti
     if settings.optimisation.ensemble_fits > 1 and settings.optimisation.ensemble_combine == "best_reprojection":
         fits, optimise_s = _ensemble_fits(problem, model, history, optimise_s, progress, cancel, **loop)
     elif settings.optimisation.ensemble_fits > 1:
-        volumes, optimise_s, members = _ensemble_volumes(problem, model, optimise_s, progress, cancel, keep_members, **loop)
+        volumes, optimise_s, members = _ensemble_volumes(problem, model, history, optimise_s, progress, cancel, keep_members,
+                                                         **loop)
     return FittedField(problem, model, history, optimise_s, t_start, calibrations, evidence, volumes, members, fits)
 
 
@@ -921,37 +922,28 @@ def _ensemble_fits(problem: Problem, first: ImplicitField, first_history: List[D
     return fits, optimise_s
 
 
-def _ensemble_volumes(problem: Problem, first: ImplicitField, first_s: float, progress: Progress, cancel: Cancel,
-                      keep_members: bool = False, **loop: Any
+def _ensemble_volumes(problem: Problem, first: ImplicitField, first_history: List[Dict[str, float]], first_s: float,
+                      progress: Progress, cancel: Cancel, keep_members: bool = False, **loop: Any
                       ) -> Tuple[Tuple[np.ndarray, np.ndarray], float, List[Tuple[np.ndarray, np.ndarray]]]:
-    """``ensemble_fits`` fits of the problem (``first`` already trained on the run's seed; the others on
-    seed + 1, …, each from its own initialisation, with its own mid-fit exclusion). Returns the mean of their
-    occupancy volumes with the raw field that gives it, the fits' seconds together, and (``keep_members``)
-    each fit's (occupancy, raw field). Afterwards ``problem.excluded`` is None (each fit's exclusion is in
-    its own volume) and ``problem.exclusion`` and ``problem.revival`` list every fit's."""
-    settings = problem.settings
-    first_volumes = evaluate_volume(first, problem)
-    occupancy_sum = first_volumes[0].astype(np.float64)
-    members = [first_volumes] if keep_members else []
-    records = [problem.exclusion]
-    revivals = [problem.revival]
-    optimise_s = first_s
-    for member in range(1, settings.optimisation.ensemble_fits):
-        FitState(None, None, None, None).apply_to(problem)
-        torch.manual_seed(settings.run.seed + member)
-        model = ImplicitField(field_config(settings)).to(problem.device)
-        _, seconds = optimise(problem, model, progress, cancel, fit=member, **loop)
-        optimise_s += seconds
-        volumes = evaluate_volume(model, problem)
+    """``_ensemble_fits``, averaged: the mean of the fits' occupancy volumes (each with its own exclusion and
+    revival) with the raw field that gives it, the fits' seconds together, and (``keep_members``) each fit's
+    (occupancy, raw field). Afterwards ``problem.excluded`` is None (each fit's exclusion is in its own
+    volume) and ``problem.exclusion`` and ``problem.revival`` list every fit's."""
+    fits, optimise_s = _ensemble_fits(problem, first, first_history, first_s, progress, cancel, **loop)
+    occupancy_sum = np.zeros(problem.geometry.volume.shape, dtype=np.float64)
+    members = []
+    for fit in fits:
+        fit.state.apply_to(problem)
+        volumes = evaluate_volume(fit.model, problem)
         occupancy_sum += volumes[0]
         if keep_members:
             members.append(volumes)
-        records.append(problem.exclusion)
-        revivals.append(problem.revival)
+    records = [fit.state.exclusion for fit in fits]
+    revivals = [fit.state.revival for fit in fits]
     problem.excluded, problem.logit_offset = None, None
     problem.exclusion = {"fits": records} if any(records) else None
     problem.revival = {"fits": revivals} if any(revivals) else None
-    return volumes_of_occupancy(occupancy_sum / settings.optimisation.ensemble_fits, settings), optimise_s, members
+    return volumes_of_occupancy(occupancy_sum / len(fits), problem.settings), optimise_s, members
 
 
 def volumes_of_occupancy(occupancy: np.ndarray, settings: Settings) -> Tuple[np.ndarray, np.ndarray]:
