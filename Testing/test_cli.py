@@ -393,13 +393,13 @@ def test_demo_with_the_ensemble_preset_says_how_many_fits_and_reports_their_seed
     assert report["settings"]["ensemble_fits"] == 3 and report["ensemble_seeds"] == [7, 8, 9]
 
 
-def test_demo_keeping_the_best_reprojecting_fit_says_which_it_kept(tmp_path, capsys, monkeypatch, tiny_case):
+def test_demo_with_the_ensemble_preset_says_which_fit_it_kept(tmp_path, capsys, monkeypatch, tiny_case):
     import SDFCARLib.sample_data as sample_data
 
     tiny = sample_data.SampleCase(tiny_case.geometry, tiny_case.masks, tiny_case.label, tmp_path)
     monkeypatch.setattr(sample_data, "load_sample_case", lambda directory=None: tiny)
     code, out, err = run(capsys, "demo", "--out", tmp_path / "demo", "--preset", "ensemble", "--steps", 2, "--seed", 7,
-                         "--set", "ensemble_combine=best_reprojection", "--no-progress")
+                         "--no-progress")
     assert code == 0, err
     report = json.loads((tmp_path / "demo" / "report.json").read_text())
     choice = report["ensemble_choice"]
