@@ -380,20 +380,7 @@ def test_demo_reconstructs_the_sample_case_and_compares_with_the_hull(tmp_path, 
     assert note is None and all(np.array_equal(a, b) for a, b in zip(masks, tiny_case.masks))
 
 
-def test_demo_with_the_ensemble_preset_says_how_many_fits_and_reports_their_seeds(tmp_path, capsys, monkeypatch, tiny_case):
-    import SDFCARLib.sample_data as sample_data
-
-    tiny = sample_data.SampleCase(tiny_case.geometry, tiny_case.masks, tiny_case.label, tmp_path)
-    monkeypatch.setattr(sample_data, "load_sample_case", lambda directory=None: tiny)
-    code, _, err = run(capsys, "demo", "--out", tmp_path / "demo", "--preset", "ensemble", "--steps", 2, "--seed", 7,
-                       "--no-progress")
-    assert code == 0, err
-    assert "ensemble preset, mode sdfcar, 3 fits of 2 steps" in err
-    report = json.loads((tmp_path / "demo" / "report.json").read_text())
-    assert report["settings"]["ensemble_fits"] == 3 and report["ensemble_seeds"] == [7, 8, 9]
-
-
-def test_demo_with_the_ensemble_preset_says_which_fit_it_kept(tmp_path, capsys, monkeypatch, tiny_case):
+def test_demo_with_the_ensemble_preset_says_how_many_fits_and_which_it_kept(tmp_path, capsys, monkeypatch, tiny_case):
     import SDFCARLib.sample_data as sample_data
 
     tiny = sample_data.SampleCase(tiny_case.geometry, tiny_case.masks, tiny_case.label, tmp_path)
@@ -401,7 +388,9 @@ def test_demo_with_the_ensemble_preset_says_which_fit_it_kept(tmp_path, capsys, 
     code, out, err = run(capsys, "demo", "--out", tmp_path / "demo", "--preset", "ensemble", "--steps", 2, "--seed", 7,
                          "--no-progress")
     assert code == 0, err
+    assert "ensemble preset, mode sdfcar, 3 fits of 2 steps" in err
     report = json.loads((tmp_path / "demo" / "report.json").read_text())
+    assert report["settings"]["ensemble_fits"] == 3 and report["ensemble_seeds"] == [7, 8, 9]
     choice = report["ensemble_choice"]
     assert choice["seeds"] == [7, 8, 9] and len(choice["reprojection_dice"]) == 3
     assert all(len(dice) == 2 for dice in choice["reprojection_dice"])  # per fit, per view
