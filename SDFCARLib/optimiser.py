@@ -846,17 +846,17 @@ class FittedField:
     def _best_reprojecting(self, problem: Problem, progress: Progress, cancel: Cancel) -> Reconstruction:
         """Each fit finished on its own; the result is the one whose segmentation reprojects best onto the
         masks (highest mean reprojection Dice over the views; the first fit on a tie). The fits' own
-        reprojection Dice and the choice are in the report's ``ensemble_choice``."""
-        best: Optional[Reconstruction] = None
+        reprojection Dice and the choice are in the report's ``ensemble_choice``; the problem is left with
+        the kept fit's exclusion and revival."""
+        best, chosen = None, 0
         scores: List[List[float]] = []
-        for fit in self.fits:
+        for n, fit in enumerate(self.fits):
             fit.state.apply_to(problem)
             result = finish(problem, fit.model, fit.history, self.optimise_s, self.t_start, progress, cancel)
             scores.append([float(d) for d in result.report["reprojection_dice"]])
-            if best is None or np.mean(scores[-1]) > np.mean(best.report["reprojection_dice"]):
-                best = result
-        chosen = int(np.argmax([np.mean(s) for s in scores]))
-        assert best is not None
+            if best is None or np.mean(scores[-1]) > np.mean(scores[chosen]):
+                best, chosen = result, n
+        self.fits[chosen].state.apply_to(problem)
         best.report["ensemble_choice"] = {
             "combine": "best_reprojection", "seeds": [fit.seed for fit in self.fits],
             "reprojection_dice": scores, "chosen_fit": chosen, "chosen_seed": self.fits[chosen].seed}
