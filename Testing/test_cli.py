@@ -380,13 +380,13 @@ def test_demo_reconstructs_the_sample_case_and_compares_with_the_hull(tmp_path, 
     assert note is None and all(np.array_equal(a, b) for a, b in zip(masks, tiny_case.masks))
 
 
-def test_demo_with_the_ensemble_preset_says_how_many_fits_and_which_it_kept(tmp_path, capsys, monkeypatch, tiny_case):
+def test_demo_with_the_ensemble_preset_keeping_the_best_reprojecting_fit_says_which(tmp_path, capsys, monkeypatch, tiny_case):
     import SDFCARLib.sample_data as sample_data
 
     tiny = sample_data.SampleCase(tiny_case.geometry, tiny_case.masks, tiny_case.label, tmp_path)
     monkeypatch.setattr(sample_data, "load_sample_case", lambda directory=None: tiny)
     code, out, err = run(capsys, "demo", "--out", tmp_path / "demo", "--preset", "ensemble", "--steps", 2, "--seed", 7,
-                         "--no-progress")
+                         "--set", "ensemble_combine=best_reprojection", "--no-progress")
     assert code == 0, err
     assert "ensemble preset, mode sdfcar, 3 fits of 2 steps" in err
     report = json.loads((tmp_path / "demo" / "report.json").read_text())

@@ -33,9 +33,9 @@ def _blur_sigma(text: str) -> Optional[float]:
 
 def _add_optimiser_options(p: argparse.ArgumentParser, preset_default: str = "fast") -> None:
     p.add_argument("--preset", default=preset_default,
-                   help="fast: sized for a CPU (default); ensemble: fast fitted three times from different seeds, the "
-                        "fit whose result reprojects best onto the masks kept (1-2 clDice points better, three times the "
-                        "fit's time: for a GPU); paper: the published recipe (5000 steps, needs a GPU)")
+                   help="fast: sized for a CPU (default); ensemble: fast fitted three times from different seeds and "
+                        "averaged (1-2 clDice points better, three times the fit's time: for a GPU); paper: the published "
+                        "recipe (5000 steps, needs a GPU)")
     p.add_argument("--mode", default=None,
                    help="; ".join(f"{key}: {mode.title}" for key, mode in MODES.items()) + f" (default {DEFAULT_MODE})")
     p.add_argument("--device", default="auto", choices=("auto", "cpu", "cuda"), help="auto: CUDA when available")
