@@ -985,7 +985,22 @@ class SDFCARLogic(ScriptedLoadableModuleLogic):
         return base / f"{safe}-{time.strftime('%Y%m%d-%H%M%S')}"
 
     @staticmethod
-    def _startJob(jobDir, geometry, masks, settings, name, frames=None):
+    def frameIntensity(frameNodes, frameIndices):
+        """Per view, the Pixel Intensity Relationship (0028,1040) of the DICOM file the frame was loaded from;
+        None where it was not loaded from the DICOM database. Path lengths are read only off LIN frames."""
+        from SDFCARLib import mrml
+        from SDFCARLib.dicom import pixel_intensity_relationship_of_file
+
+        database = getattr(slicer, "dicomDatabase", None)
+        values = []
+        for node, index in zip(frameNodes, frameIndices):
+            uid, _ = mrml.dicom_frame_reference(slicer.mrmlScene, node, index)
+            path = database.fileForInstance(uid) if uid and database else None
+            values.append(pixel_intensity_relationship_of_file(path) if path else None)
+        return values
+
+    @staticmethod
+    def _startJob(jobDir, geometry, masks, settings, name, frames=None, frameIntensity=None):
         import shutil
 
         from SDFCARLib.jobs import ReconstructionJob
@@ -994,13 +1009,15 @@ class SDFCARLogic(ScriptedLoadableModuleLogic):
         # The worker runs in Slicer's own Python (PythonSlicer), outside the GUI process. The frames go
         # with the masks: with the frame_evidence setting the occupancy is fitted to them.
         return ReconstructionJob.start(jobDir, geometry, masks, settings, name, python=shutil.which("PythonSlicer"),
-                                       frames=frames)
+                                       frames=frames, frame_intensity=frameIntensity)
 
     def startReconstruction(self, p):
         """Start a background job; returns (job, context for ``addResults``)."""
         geometry, masks, frames, frameNodes = self.inputs(p, withFrameNodes=True)
+        views = [self.viewParameters(p, n) for n in range(1, self.viewCount(p) + 1)]
+        intensity = self.frameIntensity([v.frame for v in views], [v.frameIndex for v in views])
         jobDir = self.jobDirectory(p)
-        job = self._startJob(jobDir, geometry, masks, self.settings(p), p.outputName, frames)
+        job = self._startJob(jobDir, geometry, masks, self.settings(p), p.outputName, frames, intensity)
         context = {"name": p.outputName, "geometry": geometry, "frames": frames, "frameNodes": frameNodes,
                    "jobDir": str(jobDir), "includeOccupancy": p.includeOccupancy, "showCArm": p.showCArm,
                    "analyse": p.analyseAfterReconstruction}
@@ -1050,7 +1067,8 @@ class SDFCARLogic(ScriptedLoadableModuleLogic):
                              f"of {count} views: give one frame, one mask and one index per view, in the geometry's order")
         frameArrays, maskArrays, frameNodes = self._viewInputs(frames, masks, indices)
         jobDir = Path(jobDir) if jobDir else Path(slicer.app.temporaryPath) / "SDFCAR" / f"console-{time.strftime('%Y%m%d-%H%M%S')}"
-        job = self._startJob(jobDir, geometry, maskArrays, settings or {"preset": "fast"}, name, frameArrays)
+        job = self._startJob(jobDir, geometry, maskArrays, settings or {"preset": "fast"}, name, frameArrays,
+                             self.frameIntensity(frames, indices))
         if job.wait(timeout) == "running":
             job.cancel()
         context = {"name": name, "geometry": geometry, "frames": frameArrays, "frameNodes": frameNodes, "jobDir": str(jobDir),

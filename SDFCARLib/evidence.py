@@ -33,7 +33,7 @@ Units: detector mm for the frame's lengths (pixel spacing), mm of vessel for L̂
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any, Dict, Sequence
+from typing import Any, Dict, Optional, Sequence
 
 import numpy as np
 from scipy import ndimage
@@ -63,6 +63,27 @@ class ViewEvidence:
     line_integral_mm: np.ndarray  # (rows, cols) float32: L̂
     attenuation_per_mm: float  # μ
     info: Dict[str, Any]
+
+
+#: DICOM Pixel Intensity Relationship (0028,1040) of frames whose grey levels follow the X-ray intensity:
+#: PS3.3's LIN. A LOG frame holds a logarithm of it, a DISP frame (and a vendor's own term, e.g. GE's DRM)
+#: has been processed for display — windowed, contrast-managed, edge-enhanced — so −log of its grey level
+#: is no absorbance and no path length can be read from it.
+LINEAR_INTENSITY = "LIN"
+
+
+def unreadable_intensity(relationship: Optional[str]) -> Optional[str]:
+    """Why a frame of this Pixel Intensity Relationship gives no path lengths, or None where it does: LIN,
+    or not known (frames handed over as arrays — simulated ones, the user's own images)."""
+    if relationship is None or not str(relationship).strip():
+        return None
+    value = str(relationship).strip().upper()
+    if value == LINEAR_INTENSITY:
+        return None
+    meaning = {"LOG": "a logarithm of the X-ray intensity", "DISP": "processed for display"}.get(
+        value, "a vendor's processed image")
+    return (f"its Pixel Intensity Relationship (0028,1040) is {value} ({meaning}), not LIN: its grey levels are not "
+            "proportional to the X-ray intensity, so no path length can be read from them")
 
 
 def is_binary_image(image: np.ndarray) -> bool:

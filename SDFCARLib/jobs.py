@@ -68,23 +68,28 @@ class JobFolderError(ValueError):
 # --- job folder ---------------------------------------------------------------------------------------
 def prepare_job(job_dir: PathLike, geometry: Geometry, targets: Sequence[np.ndarray], settings: Optional[Dict[str, Any]] = None,
                 name: str = "reconstruction", target_kind: str = "mask",
-                frames: Optional[Sequence[np.ndarray]] = None) -> Path:
+                frames: Optional[Sequence[np.ndarray]] = None,
+                frame_intensity: Optional[Sequence[Optional[str]]] = None) -> Path:
     """Write a job folder (refusing a folder that already holds a job) and validate it. ``frames``:
-    the X-ray frames the masks were made from (one per view), for ``frame_evidence``."""
+    the X-ray frames the masks were made from (one per view), for ``frame_evidence``; ``frame_intensity``:
+    their DICOM Pixel Intensity Relationship per view (None where not known; ``reconstruct``)."""
     job_dir = Path(job_dir)
     if (job_dir / "job.json").exists():
         raise JobFolderError(f"{job_dir} already holds a job; choose a new folder for a new job")
     _check_inputs(geometry, targets, dict(settings or {}), target_kind)  # before anything is written
     if frames is not None:
         _check_frames(geometry, frames)
+    intensity = _checked_intensity(geometry, frame_intensity)
     job_dir.mkdir(parents=True, exist_ok=True)
     geometry.save(job_dir / "geometry.json")
     for n, target in enumerate(targets, start=1):
         np.save(job_dir / f"view{n}.npy", np.asarray(target, dtype=np.float32))
     for n, frame in enumerate(frames or [], start=1):
         np.save(job_dir / f"frame{n}.npy", np.asarray(frame, dtype=np.float32))
-    write_json(job_dir / "job.json", {"name": name, "target_kind": target_kind, "settings": dict(settings or {}),
-                                       "views": len(targets)})
+    manifest = {"name": name, "target_kind": target_kind, "settings": dict(settings or {}), "views": len(targets)}
+    if intensity is not None:
+        manifest["frame_intensity"] = intensity
+    write_json(job_dir / "job.json", manifest)
     validate_job_folder(job_dir)
     return job_dir
 
@@ -100,6 +105,17 @@ def _check_inputs(geometry: Geometry, targets: Sequence[np.ndarray], settings: D
     except ReconstructionError as exc:
         raise JobFolderError(str(exc)) from exc
     return checked
+
+
+def _checked_intensity(geometry: Geometry, frame_intensity: Optional[Sequence[Optional[str]]]) -> Optional[List[Optional[str]]]:
+    """The frames' Pixel Intensity Relationships as job.json keeps them (one string or None per view)."""
+    if frame_intensity is None:
+        return None
+    values = list(frame_intensity)
+    if len(values) != len(geometry.views) or not all(v is None or isinstance(v, str) for v in values):
+        raise JobFolderError(f"frame_intensity must give one Pixel Intensity Relationship (a string such as 'LIN', or None) "
+                             f"per view: {len(geometry.views)} views, got {values!r}")
+    return values
 
 
 def _check_frames(geometry: Geometry, frames: Sequence[np.ndarray]) -> None:
@@ -146,6 +162,7 @@ def _load_job(job_dir: Path):
             raise JobFolderError(f"{job_dir}: the frames (frame1.npy …) must be one readable .npy image per view: "
                                  f"{exc}") from exc
         _check_frames(geometry, frames)
+    _checked_intensity(geometry, manifest.get("frame_intensity"))
     return manifest, geometry, targets, settings, kind, frames
 
 
@@ -171,7 +188,7 @@ def run_job(job_dir: PathLike, progress: Optional[Callable[[Dict[str, Any]], Non
     try:
         manifest, geometry, targets, settings, kind, frames = _load_job(job_dir)
         result = reconstruct(geometry, targets, settings, target_kind=kind, progress=on_progress,
-                             cancel=cancel_flag.exists, frames=frames)
+                             cancel=cancel_flag.exists, frames=frames, frame_intensity=manifest.get("frame_intensity"))
         on_progress({"phase": "writing", "step": settings.optimisation.total_steps, "total": settings.optimisation.total_steps})
         paths = write_reconstruction(result, job_dir / "output", name=manifest.get("name"))
         paths = {k: str(v) for k, v in paths.items()}
@@ -270,9 +287,10 @@ class ReconstructionJob:
     @classmethod
     def start(cls, job_dir: PathLike, geometry: Geometry, targets: Sequence[np.ndarray], settings: Optional[Dict[str, Any]] = None,
               name: str = "reconstruction", target_kind: str = "mask", python: Optional[str] = None,
-              frames: Optional[Sequence[np.ndarray]] = None) -> "ReconstructionJob":
+              frames: Optional[Sequence[np.ndarray]] = None,
+              frame_intensity: Optional[Sequence[Optional[str]]] = None) -> "ReconstructionJob":
         """Write the job folder, validate it, and start the worker. Bad inputs raise before any start."""
-        prepare_job(job_dir, geometry, targets, settings, name, target_kind, frames)
+        prepare_job(job_dir, geometry, targets, settings, name, target_kind, frames, frame_intensity)
         return cls.launch(job_dir, python)
 
     @classmethod

@@ -54,7 +54,7 @@ from .hull import support_mask
 from .losses import (DistanceSettings, GeometricLoss, ViewTarget, excess_path_loss, frame_target, make_target,
                      occupancy_loss, partial_occupancy_loss)
 from .consistency import consistency_warnings, view_consistency
-from .evidence import EvidenceError, EvidenceSettings, is_binary_image, view_evidence
+from .evidence import EvidenceError, EvidenceSettings, is_binary_image, unreadable_intensity, view_evidence
 from .mask_checks import mask_warnings, support_masks
 from .masks import MaskError, binarise_mask
 from .connectivity import ReconnectSettings, field_values, reconnect_fragments
@@ -204,11 +204,20 @@ class FrameEvidence:
     images: Optional[List[np.ndarray]]  # per view, mm; None: not read (``record["why"]`` says why)
     record: Dict[str, Any]  # report.json's ``frame_evidence``
     warnings: List[str]
+    # False: frames processed for display — the images serve the motion search, L_occ fits the masks
+    fits_path_lengths: bool = True
 
 
 def read_frame_evidence(frames: Optional[Sequence[np.ndarray]], targets: Sequence[np.ndarray], geometry: Geometry,
-                        settings: Settings, target_kind: str) -> FrameEvidence:
-    """The frames' line integrals where a setting uses them (``frame_evidence``, ``calibrate_from_frames``)."""
+                        settings: Settings, target_kind: str,
+                        frame_intensity: Optional[Sequence[Optional[str]]] = None) -> FrameEvidence:
+    """The frames' line integrals where a setting uses them (``frame_evidence``, ``calibrate_from_frames``).
+    ``frame_intensity``: per view, the frame's DICOM Pixel Intensity Relationship (None: not known); where one
+    is not LIN, L_occ does not fit the path lengths (``evidence.unreadable_intensity``), the motion search still
+    reads the line integrals' positions off them."""
+    if frame_intensity is not None and len(frame_intensity) != len(geometry.views):
+        raise ReconstructionError(f"{len(frame_intensity)} pixel intensity relationship(s) for {len(geometry.views)} views: "
+                                  "give one per view (None where not known), in the geometry's order")
     if not (settings.loss.frame_evidence or settings.calibration.calibrate_from_frames):
         return FrameEvidence(None, dict(FRAME_EVIDENCE_OFF), [])
     masks = vessel_pixels(validate_targets(targets, geometry, target_kind), target_kind)
@@ -224,6 +233,14 @@ def read_frame_evidence(frames: Optional[Sequence[np.ndarray]], targets: Sequenc
         images = [(i * f).astype(i.dtype) for i, f in zip(images, factors)]
         for view, f in zip(record["views"], factors):
             view["equal_total_factor"] = round(f, 4)
+    unreadable = [(n, why) for n, why in enumerate(map(unreadable_intensity, frame_intensity or ()), start=1) if why]
+    if images is not None and unreadable and settings.loss.frame_evidence:
+        message = ("; ".join(f"view {n}: the frame's path lengths are not fitted: {why}" for n, why in unreadable)
+                   + ". The masks alone are fitted (the frames still place the views, calibrate_from_frames); for the "
+                   "frames' evidence export the runs unprocessed (Pixel Intensity Relationship LIN)")
+        record = {"used": False, "why": message, "pixel_intensity_relationship": list(frame_intensity or ()),
+                  "views": record.get("views")}
+        return FrameEvidence(images, record, warnings + [message], fits_path_lengths=False)
     return FrameEvidence(images, record, warnings)
 
 
@@ -289,7 +306,7 @@ def build_problem(geometry: Geometry, targets: Sequence[np.ndarray], settings: S
         warnings += left_out
     if evidence is None:
         evidence = read_frame_evidence(frames, targets, geometry, settings, target_kind)
-    evidence_images = evidence.images if settings.loss.frame_evidence else None
+    evidence_images = evidence.images if settings.loss.frame_evidence and evidence.fits_path_lengths else None
     warnings += evidence.warnings
     if evidence_images is not None and target_kind == "mask" and settings.loss.frame_trim_mask_mm > 0:
         # the support keeps the masks as given (``pixels``): only what the fit, the finishing and the reprojection QA
@@ -865,7 +882,8 @@ class FittedField:
 
 def fit_field(geometry: Geometry, targets: Sequence[np.ndarray], settings: Settings, target_kind: str = "mask",
               frames: Optional[Sequence[np.ndarray]] = None, progress: Progress = None, cancel: Cancel = None,
-              keep_members: bool = False, **loop: Any) -> FittedField:
+              keep_members: bool = False, frame_intensity: Optional[Sequence[Optional[str]]] = None,
+              **loop: Any) -> FittedField:
     """``reconstruct`` up to the trained field: the frames' evidence, the calibrations asked for, the
     problem and the optimisation (``reconstruct``'s arguments; ``loop``: ``optimise``'s progress interval
     and snapshots; ``keep_members``: with ``ensemble_fits`` > 1, keep each fit's volumes, for benchmarks).
@@ -876,7 +894,7 @@ def fit_field(geometry: Geometry, targets: Sequence[np.ndarray], settings: Setti
         torch.set_num_threads(int(settings.run.threads))
     torch.manual_seed(settings.run.seed)
     np.random.seed(settings.run.seed % (2**32))
-    evidence = read_frame_evidence(frames, targets, geometry, settings, target_kind)
+    evidence = read_frame_evidence(frames, targets, geometry, settings, target_kind, frame_intensity)
     calibrations = []
     if settings.calibration.calibrate_from_frames and len(geometry.views) > 1 and evidence.images is not None:
         from .calibration import calibrate_from_frames
@@ -963,17 +981,20 @@ def reconstruct(
     snapshot: Optional[Callable[[int, np.ndarray], None]] = None,
     snapshot_every: int = 0,
     frames: Optional[Sequence[np.ndarray]] = None,
+    frame_intensity: Optional[Sequence[Optional[str]]] = None,
 ) -> Reconstruction:
     """Reconstruct the vessel tree seen in ``targets`` (one image per view of ``geometry``).
 
     ``frames``: the X-ray frames the masks were drawn or segmented on, one per view (optional);
     with ``frame_evidence`` the occupancy is fitted to the path lengths read off them (``evidence.py``).
+    ``frame_intensity``: per view, the frame's DICOM Pixel Intensity Relationship (0028,1040), None where not
+    known; path lengths are read only off LIN frames (``evidence.unreadable_intensity``).
 
     ``snapshot(step, occupancy)`` — for benchmarks of time to accuracy — receives the occupancy
     volume every ``snapshot_every`` steps (its time is excluded from the optimisation timings).
     """
     settings = settings or make_settings()
-    fitted = fit_field(geometry, targets, settings, target_kind, frames, progress, cancel,
+    fitted = fit_field(geometry, targets, settings, target_kind, frames, progress, cancel, frame_intensity=frame_intensity,
                        progress_interval_s=progress_interval_s, snapshot=snapshot, snapshot_every=snapshot_every)
     calibrations, evidence = fitted.calibrations, fitted.evidence
     result = fitted.finished(progress=progress, cancel=cancel)

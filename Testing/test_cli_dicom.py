@@ -10,6 +10,7 @@ import pytest
 
 import dicom_fixtures as fx
 from xa_writer import write_xa
+from SDFCARLib import dicom
 from SDFCARLib.cli import main
 from SDFCARLib.geometry import CArmView, Geometry, VolumeGrid
 from SDFCARLib.io import write_mask_png
@@ -92,6 +93,33 @@ def test_reconstruct_from_dicom_files(dicom_pair, tmp_path, capsys):
     assert code == 2 and "not both" in capsys.readouterr().err and not (tmp_path / "b").exists()
     code = main(["reconstruct", "--mask1", str(masks[0]), "--mask2", str(masks[1]), "--out", str(tmp_path / "c")])
     assert code == 2 and "--dicom1" in capsys.readouterr().err
+
+
+def test_display_processed_runs_give_no_path_lengths(dicom_pair, tmp_path, capsys):
+    """A run whose frames were processed for display (0028,1040 DISP, as real GE runs are) is not read as
+    absorbance: the masks alone are fitted, and the report and the terminal say which view and why."""
+    import pydicom
+
+    _, paths, masks = dicom_pair
+    processed = tmp_path / "view2-disp.dcm"
+    ds = pydicom.dcmread(str(paths[1]))
+    ds.PixelIntensityRelationship = "DISP"
+    ds.save_as(str(processed))
+    assert dicom.load_xa(processed).pixel_intensity_relationship == "DISP"
+    assert dicom.pixel_intensity_relationship_of_file(paths[0]) == "LIN"
+    assert dicom.pixel_intensity_relationship_of_file(masks[0]) is None  # not DICOM: nothing known
+    out = tmp_path / "result"
+    args = ["reconstruct", "--dicom1", str(paths[0]), "--dicom2", str(processed), "--pixel-spacing1", "1", "1",
+            "--volume-shape", "24", "24", "24", "--volume-spacing", "2", "--mask1", str(masks[0]),
+            "--mask2", str(masks[1]), "--out", str(out), "--steps", "3", "--no-progress"]
+    assert main(args) == 0
+    err = capsys.readouterr().err
+    report = json.loads((out / "report.json").read_text())
+    evidence = report["frame_evidence"]
+    assert evidence["used"] is False and evidence["pixel_intensity_relationship"] == ["LIN", "DISP"]
+    assert "view 2" in evidence["why"] and "is DISP" in evidence["why"] and "LIN" in evidence["why"]
+    assert evidence["why"] in report["warnings"] and "is DISP" in err
+    assert "consistency" in report["calibration"]["method"]  # the frames still place the views
 
 
 def test_geometry_places_the_grid_on_the_masks_or_says_it_could_not(dicom_pair, tmp_path, capsys):

@@ -11,7 +11,7 @@ from scipy import ndimage
 
 from SDFCARLib.angiogram import AngiogramSettings, simulate_angiogram
 from SDFCARLib.evidence import (EvidenceError, EvidenceSettings, absorbance_above_background, border_trimmed_mask,
-                                estimate_attenuation_per_mm, view_evidence)
+                                estimate_attenuation_per_mm, unreadable_intensity, view_evidence)
 from SDFCARLib.geometry import CArmView, Geometry, VolumeGrid
 from SDFCARLib.losses import make_target, frame_target, occupancy_loss
 from SDFCARLib.masks import segment_angiogram
@@ -418,3 +418,37 @@ def test_the_motion_is_read_from_the_frames_when_asked(angiogram_case):
     assert corrected == entry["object_translation_mm"]  # the reconstruction used the corrected pose
     without = reconstruct(geometry, masks, settings, "mask")
     assert without.report["calibration"] == {"method": "none", "why": "no frames to read the motion from"}
+
+
+def test_only_linear_frames_give_path_lengths():
+    assert unreadable_intensity("LIN") is None and unreadable_intensity(" lin ") is None
+    assert unreadable_intensity(None) is None and unreadable_intensity("") is None  # not known: arrays handed over
+    for value, meaning in (("DISP", "processed for display"), ("LOG", "a logarithm"), ("DRM", "a vendor's")):
+        why = unreadable_intensity(value)
+        assert f"(0028,1040) is {value}" in why and meaning in why and "not LIN" in why
+
+
+def test_display_processed_frames_place_the_views_but_are_not_fitted(angiogram_case):
+    """A frame whose DICOM says its grey levels were processed (DISP, LOG, a vendor's DRM) gives no path lengths:
+    L_occ fits the masks, the report and the warnings say which view and why; the line integrals still reach the
+    motion search. LIN frames, and frames of no known relationship, are fitted as before."""
+    geometry, _, frames, masks = angiogram_case
+    settings = make_settings("fast")
+    linear = read_frame_evidence(frames, masks, geometry, settings, "mask", ["LIN", None])
+    assert linear.fits_path_lengths and linear.record["used"] is True and not linear.warnings
+    processed = read_frame_evidence(frames, masks, geometry, settings, "mask", ["LIN", "DISP"])
+    assert not processed.fits_path_lengths and processed.record["used"] is False
+    assert "view 2" in processed.record["why"] and "DISP" in processed.record["why"] and "view 1" not in processed.record["why"]
+    assert processed.record["pixel_intensity_relationship"] == ["LIN", "DISP"]
+    assert processed.warnings == [processed.record["why"]]
+    for kept, read in zip(processed.images, linear.images):  # the motion search reads the same line integrals
+        np.testing.assert_array_equal(kept, read)
+    problem = build_problem(geometry, masks, settings, "mask", evidence=processed)
+    assert problem.mask_targets is None and problem.evidence["used"] is False  # L_occ fits the masks
+    for target, mask in zip(problem.view_targets, masks):
+        np.testing.assert_array_equal(target.image.cpu().numpy() > 0, mask > 0)
+    assert processed.record["why"] in problem.warnings
+    fitted = build_problem(geometry, masks, settings, "mask", evidence=linear)
+    assert fitted.mask_targets is not None and fitted.evidence["used"] is True
+    with pytest.raises(ReconstructionError, match="1 pixel intensity relationship\\(s\\) for 2 views"):
+        read_frame_evidence(frames, masks, geometry, settings, "mask", ["LIN"])

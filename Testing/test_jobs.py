@@ -262,3 +262,14 @@ def test_frames_travel_with_the_job_and_are_checked_first(tiny_case, tmp_path):
     with pytest.raises(JobFolderError, match="frame 2 has shape"):
         prepare_job(tmp_path / "bad", tiny_case.geometry, tiny_case.masks, SMALL, frames=[frames[0], frames[1][:10]])
     assert not (tmp_path / "bad").exists()
+    # the frames' Pixel Intensity Relationship goes with them: a frame processed for display gives no path lengths
+    processed = prepare_job(tmp_path / "disp", tiny_case.geometry, tiny_case.masks, dict(SMALL, steps=3, frame_evidence=True),
+                            frames=frames, frame_intensity=["DISP", "LIN"])
+    assert json.loads((processed / "job.json").read_text())["frame_intensity"] == ["DISP", "LIN"]
+    evidence = json.loads(Path(run_job(processed)["report"]).read_text())["frame_evidence"]
+    assert evidence["used"] is False and "view 1" in evidence["why"] and "DISP" in evidence["why"]
+    for bad in (["LIN"], ["LIN", 3]):
+        with pytest.raises(JobFolderError, match="frame_intensity must give one Pixel Intensity Relationship"):
+            prepare_job(tmp_path / "bad-intensity", tiny_case.geometry, tiny_case.masks, SMALL, frames=frames,
+                        frame_intensity=bad)
+        assert not (tmp_path / "bad-intensity").exists()

@@ -122,6 +122,25 @@ def test_read_geometry_without_the_dicom_module(sdfcar, monkeypatch):
         sdfcar.SDFCARLogic().readGeometryFromDicom(node)
 
 
+def test_the_frames_pixel_intensity_relationship_goes_with_the_job(sdfcar, monkeypatch, tmp_path):
+    """A frame loaded from the DICOM database carries its file's (0028,1040) to the job, which reads path lengths
+    only off LIN frames; a frame from elsewhere carries None."""
+    from SDFCARLib import mrml
+    from xa_writer import write_xa
+
+    import numpy as np
+
+    files = {}
+    for uid, relationship in (("1.2.3.1", "DISP"), ("1.2.3.2", "LIN")):
+        files[uid] = str(write_xa(tmp_path / f"{uid}.dcm", np.full((1, 8, 8), 100, np.uint16),
+                                  extra={"PixelIntensityRelationship": relationship}))
+    references = {"disp": "1.2.3.1", "lin": "1.2.3.2", "png": None}
+    monkeypatch.setattr(mrml, "dicom_frame_reference", lambda scene, node, index: (references[node], None), raising=False)
+    monkeypatch.setattr(sys.modules["slicer"], "dicomDatabase", types.SimpleNamespace(fileForInstance=files.get),
+                        raising=False)
+    assert sdfcar.SDFCARLogic.frameIntensity(["disp", "lin", "png"], [-1, -1, -1]) == ["DISP", "LIN", None]
+
+
 # --- Sample Data from the console ----------------------------------------------------------------------------
 def _register_5_6(category="Custom", sampleName=None, uris=None, fileNames=None, nodeNames=None, customDownloader=None,
                   thumbnailFileName=None, loadFileType="VolumeFile", loadFiles=None, loadFileProperties={}, checksums=None):
@@ -308,13 +327,18 @@ def test_apply_sends_every_view_to_the_job(sdfcar, monkeypatch):
     row.spinBoxes["secondaryAngle"].emit("valueChanged(double)", 30.0)
     p.analyseAfterReconstruction = True
     started = {}
+    from SDFCARLib import mrml
+
+    # these fake frames were not loaded from the DICOM database (the fake scene has no sequence nodes to look in)
+    monkeypatch.setattr(mrml, "dicom_frame_reference", lambda scene, node, index: (None, None), raising=False)
     monkeypatch.setattr(sdfcar.SDFCARLogic, "_startJob", staticmethod(
-        lambda jobDir, geometry, masks, settings, name, frames=None:
-        started.update(geometry=geometry, masks=masks, frames=frames) or "job"))
+        lambda jobDir, geometry, masks, settings, name, frames=None, frameIntensity=None:
+        started.update(geometry=geometry, masks=masks, frames=frames, intensity=frameIntensity) or "job"))
     job, context = widget.logic.startReconstruction(p)
     geometry = started["geometry"]
     assert len(started["masks"]) == 3 and len(geometry.views) == 3 and len(context["frameNodes"]) == 3
     assert [f.shape for f in started["frames"]] == [m.shape for m in started["masks"]]  # the frames go with the job
+    assert started["intensity"] == [None, None, None]  # none of these frames came from the DICOM database
     assert (geometry.views[2].secondary_deg, geometry.views[1].sid_mm, geometry.views[2].sid_mm) == (30.0, 1100.0, 1100.0)
     assert geometry.views[2].detector_shape == (20, 30) and context["analyse"] is True
 

@@ -87,14 +87,15 @@ class CancelOnInterrupt:
             self._previous = None
 
 
-def run_reconstruction(geometry, targets, settings, target_kind: str, show_progress: bool, frames=None):
+def run_reconstruction(geometry, targets, settings, target_kind: str, show_progress: bool, frames=None,
+                       frame_intensity=None):
     from ..optimiser import reconstruct
 
     bar = ProgressBar(show_progress)
     try:
         with CancelOnInterrupt() as cancel:
             return reconstruct(geometry, targets, settings, target_kind=target_kind, progress=bar, cancel=cancel,
-                               frames=frames)
+                               frames=frames, frame_intensity=frame_intensity)
     finally:
         bar.close()
 

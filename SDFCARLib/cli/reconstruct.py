@@ -167,8 +167,10 @@ def cmd_geometry(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
-def _auto_masks(args: argparse.Namespace, geometry, provenance) -> List[Tuple[Dict[str, Any], np.ndarray, Any]]:
-    """--auto-masks: the segment pipeline on the chosen frame of each XA run the geometry was read from."""
+def _auto_masks(args: argparse.Namespace, geometry, provenance
+                ) -> Tuple[List[Tuple[Dict[str, Any], np.ndarray, Any]], List[Optional[str]]]:
+    """--auto-masks: the segment pipeline on the chosen frame of each XA run the geometry was read from, and each
+    run's Pixel Intensity Relationship."""
     from ..masks import segment_angiogram
 
     runs = dicom_runs_from_args(args)
@@ -180,24 +182,27 @@ def _auto_masks(args: argparse.Namespace, geometry, provenance) -> List[Tuple[Di
     if given:
         raise ValueError(f"--auto-masks makes the masks itself; remove {', '.join(given)}")
     auto = []
-    frames = _dicom_frames(args, provenance, "mask")
+    frames, intensity = _dicom_frames(args, provenance, "mask")
     for n, (frame, view, info) in enumerate(zip(frames, geometry.views, provenance["views"]), start=1):
         frame_info = info["frame"]
         auto.append((frame_info, frame, segment_angiogram(frame, view.pixel_spacing_mm, view.sid_mm / view.sod_mm)))
         p = auto[-1][2].parameters
         print(f"view {n}: auto mask of frame {frame_info['index']}: {p['components']} component(s), "
               f"{100 * p['vessel_fraction']:.1f}% of the frame", file=sys.stderr)
-    return auto
+    return auto, intensity
 
 
-def _dicom_frames(args: argparse.Namespace, provenance, kind: str) -> Optional[List[np.ndarray]]:
-    """The chosen frame of each XA run the geometry was read from (the frames the masks were drawn on), or None."""
+def _dicom_frames(args: argparse.Namespace, provenance, kind: str) -> Tuple[Optional[List[np.ndarray]], Optional[List[Optional[str]]]]:
+    """The chosen frame of each XA run the geometry was read from (the frames the masks were drawn on) and each
+    run's Pixel Intensity Relationship (whether path lengths can be read off it), or (None, None)."""
     runs = dicom_runs_from_args(args)
     if not runs or kind != "mask" or provenance is None:
-        return None
+        return None, None
     from ..dicom import load_xa
 
-    return [load_xa(run.path).frames[int(info["frame"]["index"])] for run, info in zip(runs, provenance["views"])]
+    loaded = [load_xa(run.path) for run in runs]
+    return ([xa.frames[int(info["frame"]["index"])] for xa, info in zip(loaded, provenance["views"])],
+            [xa.pixel_intensity_relationship for xa in loaded])
 
 
 def cmd_reconstruct(args: argparse.Namespace) -> int:
@@ -205,7 +210,7 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
     from ..outputs import check_destination, result_file_names, write_reconstruction
 
     geometry, provenance, request = _geometry_for_reconstruct(args)
-    auto = _auto_masks(args, geometry, provenance) if args.auto_masks else None
+    auto, intensity = _auto_masks(args, geometry, provenance) if args.auto_masks else (None, None)
     targets, kind, masks = ([a.mask for _, _, a in auto], "mask", [a.mask for _, _, a in auto]) if auto \
         else _read_targets(args, geometry)
     placement = None
@@ -223,8 +228,12 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
     settings = settings_from_args(args)
     check_destination(args.out, result_file_names(len(geometry.views)), args.overwrite)  # before minutes of work
     # the frames the masks were made on: the path-length evidence of frame_evidence (on in fast)
-    frames = [frame for _, frame, _ in auto] if auto else _dicom_frames(args, provenance, kind)
-    result = run_reconstruction(geometry, targets, settings, kind, not args.no_progress, frames=frames)
+    if auto:  # the very frames the masks were segmented on
+        frames = [frame for _, frame, _ in auto]
+    else:
+        frames, intensity = _dicom_frames(args, provenance, kind)
+    result = run_reconstruction(geometry, targets, settings, kind, not args.no_progress, frames=frames,
+                                frame_intensity=intensity)
     result.report["warnings"] = grid_warnings + list(result.report.get("warnings", []))
     inputs = {"geometry": absolute_path(args.geometry), "label": absolute_path(args.label),
               "dicom": [absolute_path(run.path) for run in dicom_runs_from_args(args)] or None,

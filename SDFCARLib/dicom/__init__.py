@@ -25,7 +25,7 @@ from .frames import (CONTRAST_MAX_SIDE_PX, CONTRAST_NOISE_K, CONTRAST_TOPHAT_PX,
 from .geometry import (DEFAULT_VOLUME, OVERRIDE_KEYS, geometry_from_dicom, geometry_from_dicom_runs, view_from_dicom,
                        write_geometry_json)
 from .read import (ENHANCED_SOP_CLASSES, XA_SOP_CLASS, XA_SOP_CLASSES, XRF_SOP_CLASS, DicomInputError, PathLike,
-                   XARun, check_decodable, load_xa, tag_label)
+                   XARun, check_decodable, load_xa, pixel_intensity_relationship_of_file, tag_label)
 
 __all__ = [
     "CONTRAST_MAX_SIDE_PX", "CONTRAST_NOISE_K", "CONTRAST_TOPHAT_PX", "DEFAULT_VOLUME", "ENHANCED_SOP_CLASSES",
@@ -33,6 +33,6 @@ __all__ = [
     "PathLike",
     "XARun", "add_dicom_arguments", "check_decodable", "check_frame_index", "choose_frame", "cli_geometry_from_args",
     "contrast_scores", "dicom_runs_from_args", "end_diastolic_frames", "frame_times_ms", "geometry_from_dicom",
-    "geometry_from_dicom_runs", "load_xa",
+    "geometry_from_dicom_runs", "load_xa", "pixel_intensity_relationship_of_file",
     "tag_label", "view_from_dicom", "write_geometry_json",
 ]

@@ -120,27 +120,53 @@ class XARun:
     def detector_shape(self) -> Tuple[int, int]:
         return (int(self.frames.shape[1]), int(self.frames.shape[2]))
 
+    @property
+    def pixel_intensity_relationship(self) -> Optional[str]:
+        """(0028,1040), upper case — LIN, LOG, DISP or a vendor's term (``evidence.unreadable_intensity``);
+        None when absent."""
+        return _intensity_relationship(self.dataset)
+
     def lookup(self, keyword: str, frame: int = 0) -> Tuple[Any, Optional[str]]:
         """(value, where) of a non-empty attribute: top level, else the per-frame then shared
         functional groups of an enhanced object; (None, None) when absent or empty."""
-        ds = self.dataset
-        if keyword in ds and not _is_empty(ds[keyword].value):
-            return ds[keyword].value, ""
-        for label, seq_keyword, index in (("per-frame", "PerFrameFunctionalGroupsSequence", frame),
-                                          ("shared", "SharedFunctionalGroupsSequence", 0)):
-            groups = ds.get(seq_keyword)
-            if not groups or index >= len(groups):
-                continue
-            for element in groups[index]:
-                if element.VR != "SQ" or len(element.value) == 0:
-                    continue
-                item = element.value[0]
-                if keyword in item and not _is_empty(item[keyword].value):
-                    return item[keyword].value, f" in {tag_label(element.keyword)} ({label} functional groups)"
-        return None, None
+        return lookup(self.dataset, keyword, frame)
 
     def source(self, keyword: str, where: Optional[str]) -> str:
         return f"tag {tag_label(keyword)}{where or ''}"
+
+
+def lookup(ds: Any, keyword: str, frame: int = 0) -> Tuple[Any, Optional[str]]:
+    """``XARun.lookup`` on a pydicom dataset (e.g. a header read without its pixels)."""
+    if keyword in ds and not _is_empty(ds[keyword].value):
+        return ds[keyword].value, ""
+    for label, seq_keyword, index in (("per-frame", "PerFrameFunctionalGroupsSequence", frame),
+                                      ("shared", "SharedFunctionalGroupsSequence", 0)):
+        groups = ds.get(seq_keyword)
+        if not groups or index >= len(groups):
+            continue
+        for element in groups[index]:
+            if element.VR != "SQ" or len(element.value) == 0:
+                continue
+            item = element.value[0]
+            if keyword in item and not _is_empty(item[keyword].value):
+                return item[keyword].value, f" in {tag_label(element.keyword)} ({label} functional groups)"
+    return None, None
+
+
+def _intensity_relationship(ds: Any) -> Optional[str]:
+    value, _ = lookup(ds, "PixelIntensityRelationship")
+    return None if value is None else str(value).strip().upper()
+
+
+def pixel_intensity_relationship_of_file(path: PathLike) -> Optional[str]:
+    """A DICOM file's Pixel Intensity Relationship (0028,1040), read from its header alone (no pixel data
+    decoded); None when the tag is absent or the file cannot be read as DICOM."""
+    import pydicom
+
+    try:
+        return _intensity_relationship(pydicom.dcmread(str(path), stop_before_pixels=True))
+    except Exception:  # not DICOM, unreadable: nothing is known of its grey levels
+        return None
 
 
 def _sop_class_check(ds: Any, path: Path) -> str:
