@@ -998,6 +998,8 @@ def reconstruct(
                        progress_interval_s=progress_interval_s, snapshot=snapshot, snapshot_every=snapshot_every)
     calibrations, evidence = fitted.calibrations, fitted.evidence
     result = fitted.finished(progress=progress, cancel=cancel)
+    if frame_intensity is not None:  # for `analyse`: whether its frames' absorbance can be read (densitometry)
+        result.report["frame_intensity"] = list(frame_intensity)
     if settings.optimisation.ensemble_fits > 1:
         result.report["ensemble_seeds"] = [settings.run.seed + k for k in range(settings.optimisation.ensemble_fits)]
     if calibrations:

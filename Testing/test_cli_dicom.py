@@ -119,6 +119,7 @@ def test_display_processed_runs_give_no_path_lengths(dicom_pair, tmp_path, capsy
     assert evidence["used"] is False and evidence["pixel_intensity_relationship"] == ["LIN", "DISP"]
     assert "view 2" in evidence["why"] and "is DISP" in evidence["why"] and "LIN" in evidence["why"]
     assert evidence["why"] in report["warnings"] and "is DISP" in err
+    assert report["frame_intensity"] == ["LIN", "DISP"]  # for `analyse`: no densitometry on these frames
     assert "consistency" in report["calibration"]["method"]  # the frames still place the views
 
 

@@ -145,6 +145,31 @@ def test_the_blur_is_estimated_from_the_frames(tmp_path, tube_frames, capsys):
     assert "'auto'" in capsys.readouterr().err
 
 
+def test_frames_of_display_processed_runs_give_widths_but_no_lumen_area(tmp_path, tube_frames, capsys):
+    """Where report.json says the reconstruction's DICOM runs were processed for display (DISP), the frames'
+    absorbance is no path length: the widths are still fitted to their edges, no densitometric area is read,
+    and the analysis says why."""
+    import json
+
+    from SDFCARLib.cli import main
+
+    folder, masks, frames = _tube_result_folder(tmp_path, tube_frames[0])
+    report = json.loads((folder / "report.json").read_text())
+    (folder / "report.json").write_text(json.dumps(dict(report, frame_intensity=["LIN", "DISP"])))
+    assert main(["analyse", str(folder), "--frames", *frames, "--view-step-deg", "20"]) == 0
+    err = capsys.readouterr().err
+    data = json.loads((folder / "analysis" / "analysis.json").read_text())
+    branch = data["branches"][0]
+    assert branch["diameter_frames"]["mean_mm"] == pytest.approx(2.0, abs=0.15)  # the edges, as with LIN frames
+    assert branch["diameter_frames_density"] is None and data["settings"]["densitometry"] is False
+    assert any("view 2" in n and "DISP" in n and "densitometry" in n for n in data["notes"]) and "DISP" in err
+    (folder / "report.json").write_text(json.dumps(dict(report, frame_intensity=["LIN", "LIN"])))
+    assert main(["analyse", str(folder), "--frames", *frames, "--view-step-deg", "20", "--overwrite"]) == 0
+    linear = json.loads((folder / "analysis" / "analysis.json").read_text())
+    assert linear["branches"][0]["diameter_frames_density"]["mean_mm"] == pytest.approx(2.0, abs=0.15)
+    assert "densitometry" not in linear["settings"] and not linear["notes"]
+
+
 def test_the_frame_diameters_reach_the_slicer_profile_table(tmp_path, tube_frames):
     pytest.importorskip("slicer", reason="needs the slicer-core package (pip install slicer-core)")
     from SDFCARLib.analysis.mrml_nodes import add_analysis_nodes

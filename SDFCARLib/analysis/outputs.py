@@ -28,6 +28,7 @@ from typing import Any, Dict, List, Optional, Sequence, Union
 
 import numpy as np
 
+from ..evidence import unreadable_intensity
 from ..geometry import Geometry
 from ..io import InputError, read_image, read_label, read_mask, read_volume, write_json
 from ..outputs import staged_directory
@@ -332,6 +333,9 @@ def analyse_result_dir(result_dir: PathLike, out_dir: Optional[PathLike] = None,
     geometry = Geometry.from_dict(report["geometry"]) if isinstance(report.get("geometry"), dict) else None
     view_masks, mask_note = _masks_for(report, geometry, masks)
     view_frames = _frames_for(geometry, view_masks, frames, psf_sigma_mm)
+    # the frames the reconstruction was given, as their DICOM runs said (report.json "frame_intensity")
+    processed = [(n, why) for n, why in enumerate(map(unreadable_intensity, report.get("frame_intensity") or ()), start=1)
+                 if why]
     if centreline_on_masks and (view_masks is None or len(view_masks) < 2):
         raise InputError(f"the centreline on the masks needs the masks of two views or more ({mask_note or 'one view'}); "
                          "give --masks, or analyse with the volume's centreline (--centreline volume)")
@@ -343,6 +347,7 @@ def analyse_result_dir(result_dir: PathLike, out_dir: Optional[PathLike] = None,
                                 ostium_mm=ostium_mm, view_step_deg=view_step_deg, min_stenosis_pct=min_stenosis_pct,
                                 bridges=bridges, frames=view_frames, psf_sigma_mm=psf_sigma_mm,
                                 centreline_on_masks=centreline_on_masks, segment_mm=segment_mm,
+                                densitometry=not processed,
                                 **({} if min_component_share is None
                                                     else {"min_component_share": min_component_share}))
     except SegmentError as exc:
@@ -351,6 +356,9 @@ def analyse_result_dir(result_dir: PathLike, out_dir: Optional[PathLike] = None,
     data["source"] = {"result_dir": str(result_dir.absolute()), "volume": source, "level": level,
                       "report": report_path.name if report else None}
     notes = [mask_note] if mask_note else []
+    if view_frames is not None and processed:
+        notes.append("; ".join(f"view {n}: {why}" for n, why in processed) + " (the reconstruction's DICOM runs): the frames' "
+                     "widths are fitted to their edges, no lumen area is read from them (densitometry needs LIN frames)")
     if reconnection.get("joined") and not reconnection.get("bridges"):
         notes.append(f"report.json says reconnection bridged {reconnection['joined']} gap(s) but not where (a result "
                      "from before bridges were recorded): lesions on them cannot be flagged; reconstruct again to check")

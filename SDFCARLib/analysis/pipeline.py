@@ -262,7 +262,7 @@ def analyse_volume(volume: np.ndarray, grid: VolumeGrid, level: float = 0.5, vie
                    psf_sigma_mm: Optional[float] = DEFAULT_PSF_SIGMA_MM,
                    centreline_on_masks: Optional[bool] = None,
                    segment_mm: Optional[Sequence[Sequence[float]]] = None, search_masks: bool = True,
-                   centre_on_sections: bool = True) -> QCAResult:
+                   centre_on_sections: bool = True, densitometry: bool = True) -> QCAResult:
     """Every QCA measure of a vessel volume (module docstring); ``target`` overrides the chosen segment,
     as do two marked points ``segment_mm`` (LPS mm, ``segment_between``: SegmentError where they mark none).
 
@@ -270,6 +270,8 @@ def analyse_volume(volume: np.ndarray, grid: VolumeGrid, level: float = 0.5, vie
     ``frames`` (with ``masks``): the views' intensity images; the widths are then also fitted to
     their profiles (``frame_widths.py``, detector blur ``psf_sigma_mm``; None: estimated per view
     from the frames, the default where too few profiles allow it), starting from the masks'.
+    ``densitometry`` False: the frames were processed for display, their widths are fitted but no lumen area
+    is read from their absorbance (``evidence.unreadable_intensity``).
     ``centreline_on_masks``: the centreline is re-placed on the masks' midlines (``mask_centreline.py``)
     for the lengths, positions, angles, foreshortening and views, while the 3D sections and the 2D
     widths stay on the volume's own centreline (through the lumen, lesions too); None: where masks of
@@ -347,7 +349,7 @@ def analyse_volume(volume: np.ndarray, grid: VolumeGrid, level: float = 0.5, vie
     fore = {b.branch_id: [foreshortening(b.points_mm, v) for v in views] for b in tree.branches if len(b.points_mm) > 1}
     blur: Dict[str, Any] = {}
     if frames is not None and profiles:  # before the target: the worst lesion is the worst graded one
-        blur = _fit_frame_widths(profiles, frames, views, psf_sigma_mm)
+        blur = _fit_frame_widths(profiles, frames, views, psf_sigma_mm, densitometry)
         for prof in profiles:
             frames_lesions(prof, min_stenosis_pct, fragments, bridges)
     elif search_masks:
@@ -471,8 +473,9 @@ def _lesions_missed_in_3d(p: BranchProfile, values: np.ndarray, min_stenosis_pct
 
 
 def _fit_frame_widths(profiles: List[BranchProfile], frames: Sequence[np.ndarray], views: Sequence[CArmView],
-                      psf_sigma_mm: Optional[float]) -> Dict[str, Any]:
-    """Each profile's widths fitted to the frames; the blur used per view (estimated when None)."""
+                      psf_sigma_mm: Optional[float], densitometry: bool = True) -> Dict[str, Any]:
+    """Each profile's widths fitted to the frames; the blur used per view (estimated when None). ``densitometry``
+    False (frames processed for display: their grey levels are no absorbance) leaves the lumen areas unread."""
     sigmas, estimated = [], []
     for n, (frame, view) in enumerate(zip(frames, views)):
         sigma = psf_sigma_mm
@@ -487,9 +490,16 @@ def _fit_frame_widths(profiles: List[BranchProfile], frames: Sequence[np.ndarray
         fitted = np.stack([frame_widths(p.width_branch.points_mm, p.width_branch.tangents(), f, v, w, sigma)
                            for f, v, w, sigma in zip(frames, views, p.view_widths_mm, sigmas)])
         p.frame_view_widths_mm = fitted
-        per_profile.append(np.stack([densities(p.width_branch.points_mm, p.width_branch.tangents(), f, v, w, sigma)
-                                     for f, v, w, sigma in zip(frames, views, p.view_widths_mm, sigmas)]))
+        if densitometry:
+            per_profile.append(np.stack([densities(p.width_branch.points_mm, p.width_branch.tangents(), f, v, w, sigma)
+                                         for f, v, w, sigma in zip(frames, views, p.view_widths_mm, sigmas)]))
     crowded = [_crowded_views(p, profiles, views, sigmas) for p in profiles]
+    for p, c in zip(profiles, crowded):
+        p.frame_diameter_mm = left_out_beyond_sections(ellipse_diameter(_uncrowded_widths(p.frame_view_widths_mm, c)),
+                                                       p.diameter_mm)
+        p.frame_views_crowded = c
+    if not densitometry:
+        return {"psf_sigma_mm": sigmas, "psf_sigma_estimated": estimated, "attenuation_per_mm": None, "densitometry": False}
     # Each view's iodine attenuation from all branches' healthy points, where the vessel is round and
     # no other vessel lies in that view's window.
     attenuations = [attenuation_per_mm(np.concatenate([d[n] for d in per_profile]),
@@ -497,10 +507,8 @@ def _fit_frame_widths(profiles: List[BranchProfile], frames: Sequence[np.ndarray
                                        np.concatenate([~p.excluded & ~c[n] for p, c in zip(profiles, crowded)]))
                     for n in range(len(views))]
     for p, d, c in zip(profiles, per_profile, crowded):
-        p.frame_diameter_mm = left_out_beyond_sections(ellipse_diameter(_uncrowded_widths(p.frame_view_widths_mm, c)),
-                                                       p.diameter_mm)
         p.frame_density_diameter_mm = left_out_beyond_sections(density_diameter(d, attenuations, ~c), p.diameter_mm)
-        p.frame_views_crowded, p.frame_density_views = c, density_views(d, attenuations, ~c)
+        p.frame_density_views = density_views(d, attenuations, ~c)
     return {"psf_sigma_mm": sigmas, "psf_sigma_estimated": estimated, "attenuation_per_mm": attenuations}
 
 
