@@ -336,6 +336,15 @@ def test_untreated_tilts_and_flips_are_noted(tmp_path):
     assert "FieldOfViewHorizontalFlip = YES" in notes and "PatientOrientation = R/F" in notes
 
 
+def test_frames_processed_for_display_are_noted_with_the_geometry(tmp_path):
+    for relationship, noted in (("DISP", True), ("DRM", True), ("LIN", False)):
+        _, prov = dicom.view_from_dicom(xa(tmp_path, f"{relationship}.dcm", extra={"PixelIntensityRelationship": relationship}), 0)
+        said = [n for n in prov["notes"] if "(0028,1040)" in n]
+        assert bool(said) == noted, relationship
+        if noted:
+            assert f"is {relationship}" in said[0] and "fits the masks alone" in said[0]
+
+
 # --- frame choice ----------------------------------------------------------------------------------
 @pytest.mark.parametrize("peak", [3, 8])
 def test_automatic_frame_is_the_most_contrast(tmp_path, peak):

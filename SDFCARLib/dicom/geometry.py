@@ -45,6 +45,7 @@ from pathlib import Path
 from typing import Any, Dict, List, Optional, Sequence, Tuple, Union
 
 from .. import __version__
+from ..evidence import unreadable_intensity
 from ..geometry import CArmView, Geometry, GeometryError, VolumeGrid
 from ..io import json_compatible, write_text_atomically
 from ..settings import PAPER_SPACING_MM, PAPER_VOLUME_SHAPE
@@ -334,6 +335,10 @@ def view_from_dicom(
                                         "source": "default: the image centre (no DICOM tag gives the principal point)"}
 
     notes.extend(_unmodelled_notes(run, f, fields["primary_deg"]["value"]))
+    processed = unreadable_intensity(run.pixel_intensity_relationship)
+    if processed:  # said with the geometry, before the run: its frames' path lengths will not be fitted
+        notes.append(f"this run's frames give no path lengths — {processed}; reconstructing fits the masks alone "
+                     "(the frames still place the views)")
 
     try:
         view = CArmView(
