@@ -985,19 +985,27 @@ class SDFCARLogic(ScriptedLoadableModuleLogic):
         return base / f"{safe}-{time.strftime('%Y%m%d-%H%M%S')}"
 
     @staticmethod
-    def frameIntensity(frameNodes, frameIndices):
-        """Per view, the Pixel Intensity Relationship (0028,1040) of the DICOM file the frame was loaded from;
-        None where it was not loaded from the DICOM database. Path lengths are read only off LIN frames."""
+    def jobFrames(frames, frameNodes, frameIndices):
+        """(frames, relationships): the views' frame arrays as the job reads them, and per view the Pixel Intensity
+        Relationship (0028,1040) of those arrays, from the header of the DICOM file each frame was loaded from (None
+        where it was not loaded from the DICOM database). Path lengths are read only off LIN frames: a LOG frame is
+        brought to a linear scale here (SDFCARLib.dicom.intensity). Slicer's DICOM readers (GDCM) hand over the
+        rescaled values with MONOCHROME1 already mirrored, as SDFCARLib's own reader does."""
         from SDFCARLib import mrml
-        from SDFCARLib.dicom import pixel_intensity_relationship_of_file
+        from SDFCARLib.dicom.intensity import intensity_tags_of_file, linearised
 
         database = getattr(slicer, "dicomDatabase", None)
-        values = []
-        for node, index in zip(frameNodes, frameIndices):
+        arrays, relationships = [], []
+        for n, (frame, node, index) in enumerate(zip(frames, frameNodes, frameIndices), start=1):
             uid, _ = mrml.dicom_frame_reference(slicer.mrmlScene, node, index)
             path = database.fileForInstance(uid) if uid and database else None
-            values.append(pixel_intensity_relationship_of_file(path) if path else None)
-        return values
+            tags = intensity_tags_of_file(path) if path else None
+            array, relationship, note = linearised(frame, tags, inverted=tags is not None and tags.photometric == "MONOCHROME1")
+            if note:
+                logging.info(f"SDFCAR: view {n}: {note}")
+            arrays.append(array)
+            relationships.append(relationship)
+        return arrays, relationships
 
     @staticmethod
     def _startJob(jobDir, geometry, masks, settings, name, frames=None, frameIntensity=None):
@@ -1015,9 +1023,9 @@ class SDFCARLogic(ScriptedLoadableModuleLogic):
         """Start a background job; returns (job, context for ``addResults``)."""
         geometry, masks, frames, frameNodes = self.inputs(p, withFrameNodes=True)
         views = [self.viewParameters(p, n) for n in range(1, self.viewCount(p) + 1)]
-        intensity = self.frameIntensity([v.frame for v in views], [v.frameIndex for v in views])
+        jobFrames, intensity = self.jobFrames(frames, [v.frame for v in views], [v.frameIndex for v in views])
         jobDir = self.jobDirectory(p)
-        job = self._startJob(jobDir, geometry, masks, self.settings(p), p.outputName, frames, intensity)
+        job = self._startJob(jobDir, geometry, masks, self.settings(p), p.outputName, jobFrames, intensity)
         context = {"name": p.outputName, "geometry": geometry, "frames": frames, "frameNodes": frameNodes,
                    "jobDir": str(jobDir), "includeOccupancy": p.includeOccupancy, "showCArm": p.showCArm,
                    "analyse": p.analyseAfterReconstruction}
@@ -1067,8 +1075,8 @@ class SDFCARLogic(ScriptedLoadableModuleLogic):
                              f"of {count} views: give one frame, one mask and one index per view, in the geometry's order")
         frameArrays, maskArrays, frameNodes = self._viewInputs(frames, masks, indices)
         jobDir = Path(jobDir) if jobDir else Path(slicer.app.temporaryPath) / "SDFCAR" / f"console-{time.strftime('%Y%m%d-%H%M%S')}"
-        job = self._startJob(jobDir, geometry, maskArrays, settings or {"preset": "fast"}, name, frameArrays,
-                             self.frameIntensity(frames, indices))
+        job = self._startJob(jobDir, geometry, maskArrays, settings or {"preset": "fast"}, name,
+                             *self.jobFrames(frameArrays, frames, indices))
         if job.wait(timeout) == "running":
             job.cancel()
         context = {"name": name, "geometry": geometry, "frames": frameArrays, "frameNodes": frameNodes, "jobDir": str(jobDir),

@@ -66,9 +66,10 @@ class ViewEvidence:
 
 
 #: DICOM Pixel Intensity Relationship (0028,1040) of frames whose grey levels follow the X-ray intensity:
-#: PS3.3's LIN. A LOG frame holds a logarithm of it, a DISP frame (and a vendor's own term, e.g. GE's DRM)
-#: has been processed for display — windowed, contrast-managed, edge-enhanced — so −log of its grey level
-#: is no absorbance and no path length can be read from it.
+#: PS3.3's LIN. A LOG frame holds a logarithm of it (the DICOM reader brings it to a linear scale first,
+#: ``dicom.intensity``), a DISP frame (and a vendor's own term, e.g. GE's DRM) has been processed for
+#: display — windowed, contrast-managed, edge-enhanced — so −log of its grey level is no absorbance and no
+#: path length can be read from it.
 LINEAR_INTENSITY = "LIN"
 
 
@@ -82,8 +83,12 @@ def unreadable_intensity(relationship: Optional[str]) -> Optional[str]:
         return None
     meaning = {"LOG": "a logarithm of the X-ray intensity", "DISP": "processed for display"}.get(
         value, "a vendor's processed image")
-    return (f"its Pixel Intensity Relationship (0028,1040) is {value} ({meaning}), not LIN: its grey levels are not "
-            "proportional to the X-ray intensity, so no path length can be read from them")
+    why = (f"its Pixel Intensity Relationship (0028,1040) is {value} ({meaning}), not LIN: its grey levels are not "
+           "proportional to the X-ray intensity, so no path length can be read from them")
+    if value == "LOG":  # handed over as stored; the DICOM readers linearise such frames
+        why += (" (read the run with SDFCARLib.dicom.load_xa, or pass the stored frame through "
+                "SDFCARLib.dicom.intensity.linearised: either brings LOG frames to a linear scale)")
+    return why
 
 
 def is_binary_image(image: np.ndarray) -> bool:

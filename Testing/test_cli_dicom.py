@@ -123,6 +123,30 @@ def test_display_processed_runs_give_no_path_lengths(dicom_pair, tmp_path, capsy
     assert "consistency" in report["calibration"]["method"]  # the frames still place the views
 
 
+def test_a_log_run_is_read_on_a_linear_scale_and_its_path_lengths_fitted(dicom_pair, tmp_path, capsys):
+    """A run stored as a logarithm of the intensity (0028,1040 LOG, sign −1) is linearised where it is read: its
+    path lengths are fitted like the LIN run's, and the geometry's notes say how it was read."""
+    _, paths, masks = dicom_pair
+    counts = np.maximum(dicom.load_xa(paths[1]).frames, 1.0)
+    log = np.log(counts)
+    stored = np.round(4000.0 - 900.0 * (log - log.min())).astype(np.uint16)  # higher values, less intensity
+    log_run = write_xa(tmp_path / "view2-log.dcm", stored, dicom.view_from_dicom(dicom.load_xa(paths[1]), 1)[0],
+                       bits_stored=12, extra={"PixelIntensityRelationship": "LOG", "PixelIntensityRelationshipSign": -1})
+    out = tmp_path / "result"
+    args = ["reconstruct", "--dicom1", str(paths[0]), "--dicom2", str(log_run), "--pixel-spacing1", "1", "1",
+            "--volume-shape", "24", "24", "24", "--volume-spacing", "2", "--mask1", str(masks[0]),
+            "--mask2", str(masks[1]), "--out", str(out), "--steps", "3", "--no-progress"]
+    assert main(args) == 0
+    err = capsys.readouterr().err
+    report = json.loads((out / "report.json").read_text())
+    assert report["frame_evidence"]["used"] is True and report["frame_intensity"] == ["LIN", "LIN"]
+    # the same iodine per mm of path as the LIN run's, up to the slope the LOG run does not record
+    mu = [v["attenuation_per_mm"] for v in report["frame_evidence"]["views"]]
+    assert mu[0] == pytest.approx(0.25, rel=0.25) and mu[1] == pytest.approx(0.25 * 900 * 8 / 4096, rel=0.25)
+    notes = " ".join(report["inputs"]["geometry_provenance"]["views"][1]["notes"])
+    assert "LOG" in notes and "linear scale" in notes and "(0028,1041) -1" in notes and "linear scale" in err
+
+
 def test_geometry_places_the_grid_on_the_masks_or_says_it_could_not(dicom_pair, tmp_path, capsys):
     geometry, paths, masks = dicom_pair
     base = ["geometry", "--dicom1", str(paths[0]), "--dicom2", str(paths[1]), "--pixel-spacing1", "1", "1",

@@ -124,21 +124,35 @@ def test_read_geometry_without_the_dicom_module(sdfcar, monkeypatch):
 
 def test_the_frames_pixel_intensity_relationship_goes_with_the_job(sdfcar, monkeypatch, tmp_path):
     """A frame loaded from the DICOM database carries its file's (0028,1040) to the job, which reads path lengths
-    only off LIN frames; a frame from elsewhere carries None."""
+    only off LIN frames; a LOG frame goes on a linear scale, whichever way its values run; a frame from elsewhere
+    carries None and goes as it is."""
     from SDFCARLib import mrml
+    from SDFCARLib.dicom.intensity import linear_from_log
     from xa_writer import write_xa
 
     import numpy as np
 
+    stored = np.arange(64, dtype=np.uint16).reshape(8, 8) * 50 + 100  # a LOG frame, larger = more intensity
     files = {}
-    for uid, relationship in (("1.2.3.1", "DISP"), ("1.2.3.2", "LIN")):
-        files[uid] = str(write_xa(tmp_path / f"{uid}.dcm", np.full((1, 8, 8), 100, np.uint16),
-                                  extra={"PixelIntensityRelationship": relationship}))
-    references = {"disp": "1.2.3.1", "lin": "1.2.3.2", "png": None}
+    for uid, extra in (("1.2.3.1", {"PixelIntensityRelationship": "DISP"}), ("1.2.3.2", {}),
+                       ("1.2.3.3", {"PixelIntensityRelationship": "LOG", "PixelIntensityRelationshipSign": 1}),
+                       ("1.2.3.4", {"PixelIntensityRelationship": "LOG", "PixelIntensityRelationshipSign": -1})):
+        photometric = "MONOCHROME1" if uid == "1.2.3.4" else "MONOCHROME2"
+        files[uid] = str(write_xa(tmp_path / f"{uid}.dcm", stored[None], bits_stored=12, photometric=photometric,
+                                  extra=extra))
+    references = {"disp": "1.2.3.1", "lin": "1.2.3.2", "png": None, "log": "1.2.3.3", "log-mono1": "1.2.3.4"}
     monkeypatch.setattr(mrml, "dicom_frame_reference", lambda scene, node, index: (references[node], None), raising=False)
     monkeypatch.setattr(sys.modules["slicer"], "dicomDatabase", types.SimpleNamespace(fileForInstance=files.get),
                         raising=False)
-    assert sdfcar.SDFCARLogic.frameIntensity(["disp", "lin", "png"], [-1, -1, -1]) == ["DISP", "LIN", None]
+    # the arrays as Slicer's DICOM reader (GDCM) gives them: larger = brighter, MONOCHROME1 mirrored
+    arrays = [stored.astype(np.float32)] * 5
+    frames, relationships = sdfcar.SDFCARLogic.jobFrames(arrays, list(references), [-1] * 5)
+    assert relationships == ["DISP", "LIN", None, "LIN", "LIN"]
+    for kept in frames[:3]:
+        np.testing.assert_array_equal(kept, stored)
+    linear = linear_from_log(stored, True, 12)
+    np.testing.assert_allclose(frames[3], linear, rtol=1e-6)
+    np.testing.assert_allclose(frames[4], linear, rtol=1e-6)  # sign −1 of the stored values, mirrored by the reader
 
 
 # --- Sample Data from the console ----------------------------------------------------------------------------

@@ -193,8 +193,9 @@ def _auto_masks(args: argparse.Namespace, geometry, provenance
 
 
 def _dicom_frames(args: argparse.Namespace, provenance, kind: str) -> Tuple[Optional[List[np.ndarray]], Optional[List[Optional[str]]]]:
-    """The chosen frame of each XA run the geometry was read from (the frames the masks were drawn on) and each
-    run's Pixel Intensity Relationship (whether path lengths can be read off it), or (None, None)."""
+    """The chosen frame of each XA run the geometry was read from (the frames the masks were drawn on) and the
+    Pixel Intensity Relationship of those frames as read (LIN for LOG runs, ``dicom.intensity``: whether path
+    lengths can be read off them), or (None, None)."""
     runs = dicom_runs_from_args(args)
     if not runs or kind != "mask" or provenance is None:
         return None, None
@@ -202,7 +203,7 @@ def _dicom_frames(args: argparse.Namespace, provenance, kind: str) -> Tuple[Opti
 
     loaded = [load_xa(run.path) for run in runs]
     return ([xa.frames[int(info["frame"]["index"])] for xa, info in zip(loaded, provenance["views"])],
-            [xa.pixel_intensity_relationship for xa in loaded])
+            [xa.frames_relationship for xa in loaded])
 
 
 def cmd_reconstruct(args: argparse.Namespace) -> int:

@@ -6,6 +6,9 @@ works for all of them.
 ``read``
     ``load_xa`` and ``XARun`` (XA/XRF and enhanced objects, decoders, rescale, MONOCHROME1),
     ``check_decodable``, the SOP classes, ``tag_label`` and ``DicomInputError``.
+``intensity``
+    The grey levels against the X-ray intensity (0028,1040 and its Sign): ``IntensityTags``,
+    ``intensity_tags_of_file`` (header only) and ``linearised`` (LOG frames on a linear scale).
 ``frames``
     Frame times, end diastole (ECG tags and waveforms), ``contrast_scores`` and ``choose_frame``.
 ``geometry``
@@ -24,15 +27,16 @@ from .frames import (CONTRAST_MAX_SIDE_PX, CONTRAST_NOISE_K, CONTRAST_TOPHAT_PX,
                      choose_frame, contrast_scores, end_diastolic_frames, frame_times_ms)
 from .geometry import (DEFAULT_VOLUME, OVERRIDE_KEYS, geometry_from_dicom, geometry_from_dicom_runs, view_from_dicom,
                        write_geometry_json)
+from .intensity import IntensityTags, intensity_tags_of_file, linearised
 from .read import (ENHANCED_SOP_CLASSES, XA_SOP_CLASS, XA_SOP_CLASSES, XRF_SOP_CLASS, DicomInputError, PathLike,
                    XARun, check_decodable, load_xa, pixel_intensity_relationship_of_file, tag_label)
 
 __all__ = [
     "CONTRAST_MAX_SIDE_PX", "CONTRAST_NOISE_K", "CONTRAST_TOPHAT_PX", "DEFAULT_VOLUME", "ENHANCED_SOP_CLASSES",
-    "OVERRIDE_KEYS", "XA_SOP_CLASS", "XA_SOP_CLASSES", "XRF_SOP_CLASS", "DicomInputError", "DicomRun", "FrameChoice",
+    "IntensityTags", "OVERRIDE_KEYS", "XA_SOP_CLASS", "XA_SOP_CLASSES", "XRF_SOP_CLASS", "DicomInputError", "DicomRun", "FrameChoice",
     "PathLike",
     "XARun", "add_dicom_arguments", "check_decodable", "check_frame_index", "choose_frame", "cli_geometry_from_args",
     "contrast_scores", "dicom_runs_from_args", "end_diastolic_frames", "frame_times_ms", "geometry_from_dicom",
-    "geometry_from_dicom_runs", "load_xa", "pixel_intensity_relationship_of_file",
+    "geometry_from_dicom_runs", "intensity_tags_of_file", "linearised", "load_xa", "pixel_intensity_relationship_of_file",
     "tag_label", "view_from_dicom", "write_geometry_json",
 ]

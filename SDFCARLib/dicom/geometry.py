@@ -335,7 +335,9 @@ def view_from_dicom(
                                         "source": "default: the image centre (no DICOM tag gives the principal point)"}
 
     notes.extend(_unmodelled_notes(run, f, fields["primary_deg"]["value"]))
-    processed = unreadable_intensity(run.pixel_intensity_relationship)
+    processed = unreadable_intensity(run.frames_relationship)
+    if run.linearised_note:
+        notes.append(f"this run's frames: {run.linearised_note}")
     if processed:  # said with the geometry, before the run: its frames' path lengths will not be fitted
         notes.append(f"this run's frames give no path lengths — {processed}; reconstructing fits the masks alone "
                      "(the frames still place the views)")

@@ -5,7 +5,8 @@ SOP classes, single- or multi-frame, 8–16 bit, in any transfer syntax pydicom 
 plugins installed (pylibjpeg + pylibjpeg-libjpeg: JPEG baseline, extended, lossless and JPEG-LS;
 pylibjpeg-openjpeg: JPEG 2000; RLE natively). Frames come back as float32 ``(n, rows, cols)`` with
 the modality rescale applied and MONOCHROME1 inverted, so that larger always means brighter (more
-X-ray intensity): contrast-filled vessels are dark. ``XARun.lookup`` finds an attribute at the top
+X-ray intensity): contrast-filled vessels are dark; LOG frames are brought to a linear scale
+(``intensity``). ``XARun.lookup`` finds an attribute at the top
 level or in the functional groups of an enhanced object, for ``frames`` and ``geometry``.
 
 pydicom is imported inside the functions: the command line imports this package for its options
@@ -20,6 +21,8 @@ from pathlib import Path
 from typing import Any, Dict, List, Optional, Tuple, Union
 
 import numpy as np
+
+from .intensity import intensity_tags, intensity_tags_of_file, linearised
 
 PathLike = Union[str, Path]
 
@@ -97,6 +100,7 @@ class XARun:
     photometric: str
     bits_stored: int
     inverted: bool  # MONOCHROME1 was inverted
+    linearised_note: Optional[str] = None  # set where LOG frames were brought to a linear scale (``intensity``)
 
     @property
     def sop_class_name(self) -> str:
@@ -124,7 +128,12 @@ class XARun:
     def pixel_intensity_relationship(self) -> Optional[str]:
         """(0028,1040), upper case — LIN, LOG, DISP or a vendor's term (``evidence.unreadable_intensity``);
         None when absent."""
-        return _intensity_relationship(self.dataset)
+        return intensity_tags(self.dataset).relationship
+
+    @property
+    def frames_relationship(self) -> Optional[str]:
+        """The relationship of ``frames`` as read: LIN where LOG frames were linearised, else the tag's."""
+        return "LIN" if self.linearised_note else self.pixel_intensity_relationship
 
     def lookup(self, keyword: str, frame: int = 0) -> Tuple[Any, Optional[str]]:
         """(value, where) of a non-empty attribute: top level, else the per-frame then shared
@@ -153,20 +162,11 @@ def lookup(ds: Any, keyword: str, frame: int = 0) -> Tuple[Any, Optional[str]]:
     return None, None
 
 
-def _intensity_relationship(ds: Any) -> Optional[str]:
-    value, _ = lookup(ds, "PixelIntensityRelationship")
-    return None if value is None else str(value).strip().upper()
-
-
 def pixel_intensity_relationship_of_file(path: PathLike) -> Optional[str]:
     """A DICOM file's Pixel Intensity Relationship (0028,1040), read from its header alone (no pixel data
     decoded); None when the tag is absent or the file cannot be read as DICOM."""
-    import pydicom
-
-    try:
-        return _intensity_relationship(pydicom.dcmread(str(path), stop_before_pixels=True))
-    except Exception:  # not DICOM, unreadable: nothing is known of its grey levels
-        return None
+    tags = intensity_tags_of_file(path)
+    return None if tags is None else tags.relationship
 
 
 def _sop_class_check(ds: Any, path: Path) -> str:
@@ -283,5 +283,6 @@ def load_xa(path: PathLike) -> XARun:
         lo, hi = (-(2 ** (bits - 1)), 2 ** (bits - 1) - 1) if signed else (0, 2**bits - 1)
         values = np.float32((lo * slope + intercept) + (hi * slope + intercept)) - values
         run.inverted = True
-    run.frames = values
+    # LOG frames on a linear scale, so that −log I is absorbance wherever the frames are read
+    run.frames, _, run.linearised_note = linearised(values, intensity_tags(ds), run.inverted)
     return run
