@@ -95,6 +95,15 @@ def test_reconstruct_from_dicom_files(dicom_pair, tmp_path, capsys):
     assert code == 2 and "--dicom1" in capsys.readouterr().err
 
 
+def _three_steps_on(run1, run2, masks, out, capsys):
+    """(report, stderr) of a three-step `reconstruct` of the pair's masks on the runs ``run1``, ``run2``."""
+    args = ["reconstruct", "--dicom1", str(run1), "--dicom2", str(run2), "--pixel-spacing1", "1", "1",
+            "--volume-shape", "24", "24", "24", "--volume-spacing", "2", "--mask1", str(masks[0]),
+            "--mask2", str(masks[1]), "--out", str(out), "--steps", "3", "--no-progress"]
+    assert main(args) == 0
+    return json.loads((out / "report.json").read_text()), capsys.readouterr().err
+
+
 def test_display_processed_runs_give_no_path_lengths(dicom_pair, tmp_path, capsys):
     """A run whose frames were processed for display (0028,1040 DISP, as real GE runs are) is not read as
     absorbance: the masks alone are fitted, and the report and the terminal say which view and why."""
@@ -108,13 +117,7 @@ def test_display_processed_runs_give_no_path_lengths(dicom_pair, tmp_path, capsy
     assert dicom.load_xa(processed).pixel_intensity_relationship == "DISP"
     assert dicom.pixel_intensity_relationship_of_file(paths[0]) == "LIN"
     assert dicom.pixel_intensity_relationship_of_file(masks[0]) is None  # not DICOM: nothing known
-    out = tmp_path / "result"
-    args = ["reconstruct", "--dicom1", str(paths[0]), "--dicom2", str(processed), "--pixel-spacing1", "1", "1",
-            "--volume-shape", "24", "24", "24", "--volume-spacing", "2", "--mask1", str(masks[0]),
-            "--mask2", str(masks[1]), "--out", str(out), "--steps", "3", "--no-progress"]
-    assert main(args) == 0
-    err = capsys.readouterr().err
-    report = json.loads((out / "report.json").read_text())
+    report, err = _three_steps_on(paths[0], processed, masks, tmp_path / "result", capsys)
     evidence = report["frame_evidence"]
     assert evidence["used"] is False and evidence["pixel_intensity_relationship"] == ["LIN", "DISP"]
     assert "view 2" in evidence["why"] and "is DISP" in evidence["why"] and "LIN" in evidence["why"]
@@ -132,13 +135,7 @@ def test_a_log_run_is_read_on_a_linear_scale_and_its_path_lengths_fitted(dicom_p
     stored = np.round(4000.0 - 900.0 * (log - log.min())).astype(np.uint16)  # higher values, less intensity
     log_run = write_xa(tmp_path / "view2-log.dcm", stored, dicom.view_from_dicom(dicom.load_xa(paths[1]), 1)[0],
                        bits_stored=12, extra={"PixelIntensityRelationship": "LOG", "PixelIntensityRelationshipSign": -1})
-    out = tmp_path / "result"
-    args = ["reconstruct", "--dicom1", str(paths[0]), "--dicom2", str(log_run), "--pixel-spacing1", "1", "1",
-            "--volume-shape", "24", "24", "24", "--volume-spacing", "2", "--mask1", str(masks[0]),
-            "--mask2", str(masks[1]), "--out", str(out), "--steps", "3", "--no-progress"]
-    assert main(args) == 0
-    err = capsys.readouterr().err
-    report = json.loads((out / "report.json").read_text())
+    report, err = _three_steps_on(paths[0], log_run, masks, tmp_path / "result", capsys)
     assert report["frame_evidence"]["used"] is True and report["frame_intensity"] == ["LIN", "LIN"]
     # the same iodine per mm of path as the LIN run's, up to the slope the LOG run does not record
     mu = [v["attenuation_per_mm"] for v in report["frame_evidence"]["views"]]
