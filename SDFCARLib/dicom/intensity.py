@@ -11,8 +11,8 @@ Why
 
 Conventions
     The Sign is about the *stored* values: +1, lower values mean less X-ray intensity; −1, higher
-    values mean less. Where a LOG run omits it (it is required there), the display convention is
-    assumed: after the photometric interpretation, brighter means more intensity (vessels dark).
+    values mean less. Where a LOG run omits it, the display convention is assumed: after the
+    photometric interpretation, brighter means more intensity (vessels dark).
     The slope is not recorded: the full stored range (2^BitsStored values) is taken as
     ``LOG_SPAN_E_FOLDS`` e-folds of intensity. The slope only multiplies each view's absorbance, and
     every reader of it divides the same factor out — the path lengths by the attenuation per mm read
