@@ -115,8 +115,8 @@ def test_display_processed_runs_give_no_path_lengths(dicom_pair, tmp_path, capsy
     ds.PixelIntensityRelationship = "DISP"
     ds.save_as(str(processed))
     assert dicom.load_xa(processed).pixel_intensity_relationship == "DISP"
-    assert dicom.pixel_intensity_relationship_of_file(paths[0]) == "LIN"
-    assert dicom.pixel_intensity_relationship_of_file(masks[0]) is None  # not DICOM: nothing known
+    assert dicom.intensity_tags_of_file(paths[0]).relationship == "LIN"
+    assert dicom.intensity_tags_of_file(masks[0]) is None  # not DICOM: nothing known
     report, err = _three_steps_on(paths[0], processed, masks, tmp_path / "result", capsys)
     evidence = report["frame_evidence"]
     assert evidence["used"] is False and evidence["pixel_intensity_relationship"] == ["LIN", "DISP"]

@@ -29,7 +29,7 @@ from .geometry import (DEFAULT_VOLUME, OVERRIDE_KEYS, geometry_from_dicom, geome
                        write_geometry_json)
 from .intensity import IntensityTags, intensity_tags_of_file, linearised
 from .read import (ENHANCED_SOP_CLASSES, XA_SOP_CLASS, XA_SOP_CLASSES, XRF_SOP_CLASS, DicomInputError, PathLike,
-                   XARun, check_decodable, load_xa, pixel_intensity_relationship_of_file, tag_label)
+                   XARun, check_decodable, load_xa, tag_label)
 
 __all__ = [
     "CONTRAST_MAX_SIDE_PX", "CONTRAST_NOISE_K", "CONTRAST_TOPHAT_PX", "DEFAULT_VOLUME", "ENHANCED_SOP_CLASSES",
@@ -37,6 +37,6 @@ __all__ = [
     "PathLike",
     "XARun", "add_dicom_arguments", "check_decodable", "check_frame_index", "choose_frame", "cli_geometry_from_args",
     "contrast_scores", "dicom_runs_from_args", "end_diastolic_frames", "frame_times_ms", "geometry_from_dicom",
-    "geometry_from_dicom_runs", "intensity_tags_of_file", "linearised", "load_xa", "pixel_intensity_relationship_of_file",
+    "geometry_from_dicom_runs", "intensity_tags_of_file", "linearised", "load_xa",
     "tag_label", "view_from_dicom", "write_geometry_json",
 ]

@@ -22,7 +22,7 @@ from typing import Any, Dict, List, Optional, Tuple, Union
 
 import numpy as np
 
-from .intensity import intensity_tags, intensity_tags_of_file, linearised
+from .intensity import intensity_tags, linearised
 
 PathLike = Union[str, Path]
 
@@ -160,13 +160,6 @@ def lookup(ds: Any, keyword: str, frame: int = 0) -> Tuple[Any, Optional[str]]:
             if keyword in item and not _is_empty(item[keyword].value):
                 return item[keyword].value, f" in {tag_label(element.keyword)} ({label} functional groups)"
     return None, None
-
-
-def pixel_intensity_relationship_of_file(path: PathLike) -> Optional[str]:
-    """A DICOM file's Pixel Intensity Relationship (0028,1040), read from its header alone (no pixel data
-    decoded); None when the tag is absent or the file cannot be read as DICOM."""
-    tags = intensity_tags_of_file(path)
-    return None if tags is None else tags.relationship
 
 
 def _sop_class_check(ds: Any, path: Path) -> str:
