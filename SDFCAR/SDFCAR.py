@@ -986,16 +986,17 @@ class SDFCARLogic(ScriptedLoadableModuleLogic):
 
     @staticmethod
     def jobFrames(frames, frameNodes, frameIndices):
-        """(frames, relationships): the views' frame arrays as the job reads them, and per view the Pixel Intensity
-        Relationship (0028,1040) of those arrays, from the header of the DICOM file each frame was loaded from (None
-        where it was not loaded from the DICOM database). Path lengths are read only off LIN frames: a LOG frame is
-        brought to a linear scale here (SDFCARLib.dicom.intensity). Slicer's DICOM readers (GDCM) hand over the
-        rescaled values with MONOCHROME1 already mirrored, as SDFCARLib's own reader does."""
+        """(frames, relationships, notes): the views' frame arrays as the job reads them, per view the Pixel
+        Intensity Relationship (0028,1040) of those arrays, from the header of the DICOM file each frame was loaded
+        from (None where it was not loaded from the DICOM database), and per view how the frame was read where it
+        was changed (None elsewhere; the job's report.json keeps them). Path lengths are read only off LIN frames: a
+        LOG frame is brought to a linear scale here (SDFCARLib.dicom.intensity). Slicer's DICOM readers (GDCM) hand
+        over the rescaled values with MONOCHROME1 already mirrored, as SDFCARLib's own reader does."""
         from SDFCARLib import mrml
         from SDFCARLib.dicom.intensity import intensity_tags_of_file, linearised
 
         database = getattr(slicer, "dicomDatabase", None)
-        arrays, relationships = [], []
+        arrays, relationships, notes = [], [], []
         for n, (frame, node, index) in enumerate(zip(frames, frameNodes, frameIndices), start=1):
             uid, _ = mrml.dicom_frame_reference(slicer.mrmlScene, node, index)
             path = database.fileForInstance(uid) if uid and database else None
@@ -1005,10 +1006,11 @@ class SDFCARLogic(ScriptedLoadableModuleLogic):
                 logging.info(f"SDFCAR: view {n}: {note}")
             arrays.append(array)
             relationships.append(relationship)
-        return arrays, relationships
+            notes.append(note or None)
+        return arrays, relationships, notes
 
     @staticmethod
-    def _startJob(jobDir, geometry, masks, settings, name, frames=None, frameIntensity=None):
+    def _startJob(jobDir, geometry, masks, settings, name, frames=None, frameIntensity=None, frameNotes=None):
         import shutil
 
         from SDFCARLib.jobs import ReconstructionJob
@@ -1017,15 +1019,16 @@ class SDFCARLogic(ScriptedLoadableModuleLogic):
         # The worker runs in Slicer's own Python (PythonSlicer), outside the GUI process. The frames go
         # with the masks: with the frame_evidence setting the occupancy is fitted to them.
         return ReconstructionJob.start(jobDir, geometry, masks, settings, name, python=shutil.which("PythonSlicer"),
-                                       frames=frames, frame_intensity=frameIntensity)
+                                       frames=frames, frame_intensity=frameIntensity,
+                                       frame_notes=frameNotes if frameNotes and any(frameNotes) else None)
 
     def startReconstruction(self, p):
         """Start a background job; returns (job, context for ``addResults``)."""
         geometry, masks, frames, frameNodes = self.inputs(p, withFrameNodes=True)
         views = [self.viewParameters(p, n) for n in range(1, self.viewCount(p) + 1)]
-        jobFrames, intensity = self.jobFrames(frames, [v.frame for v in views], [v.frameIndex for v in views])
+        jobFrames, intensity, notes = self.jobFrames(frames, [v.frame for v in views], [v.frameIndex for v in views])
         jobDir = self.jobDirectory(p)
-        job = self._startJob(jobDir, geometry, masks, self.settings(p), p.outputName, jobFrames, intensity)
+        job = self._startJob(jobDir, geometry, masks, self.settings(p), p.outputName, jobFrames, intensity, notes)
         context = {"name": p.outputName, "geometry": geometry, "frames": frames, "frameNodes": frameNodes,
                    "jobDir": str(jobDir), "includeOccupancy": p.includeOccupancy, "showCArm": p.showCArm,
                    "analyse": p.analyseAfterReconstruction}

@@ -69,10 +69,13 @@ class JobFolderError(ValueError):
 def prepare_job(job_dir: PathLike, geometry: Geometry, targets: Sequence[np.ndarray], settings: Optional[Dict[str, Any]] = None,
                 name: str = "reconstruction", target_kind: str = "mask",
                 frames: Optional[Sequence[np.ndarray]] = None,
-                frame_intensity: Optional[Sequence[Optional[str]]] = None) -> Path:
+                frame_intensity: Optional[Sequence[Optional[str]]] = None,
+                frame_notes: Optional[Sequence[Optional[str]]] = None) -> Path:
     """Write a job folder (refusing a folder that already holds a job) and validate it. ``frames``:
     the X-ray frames the masks were made from (one per view), for ``frame_evidence``; ``frame_intensity``:
-    their DICOM Pixel Intensity Relationship per view (None where not known; ``reconstruct``)."""
+    their DICOM Pixel Intensity Relationship per view (None where not known; ``reconstruct``); ``frame_notes``:
+    per view, how the frames were read where it matters (e.g. a LOG run brought to a linear scale), or None;
+    report.json keeps them (``frame_notes``)."""
     job_dir = Path(job_dir)
     if (job_dir / "job.json").exists():
         raise JobFolderError(f"{job_dir} already holds a job; choose a new folder for a new job")
@@ -80,6 +83,7 @@ def prepare_job(job_dir: PathLike, geometry: Geometry, targets: Sequence[np.ndar
     if frames is not None:
         _check_frames(geometry, frames)
     intensity = _checked_intensity(geometry, frame_intensity)
+    notes = _checked_per_view(geometry, frame_notes, "frame_notes", "note on how the view's frame was read (a string)")
     job_dir.mkdir(parents=True, exist_ok=True)
     geometry.save(job_dir / "geometry.json")
     for n, target in enumerate(targets, start=1):
@@ -89,6 +93,8 @@ def prepare_job(job_dir: PathLike, geometry: Geometry, targets: Sequence[np.ndar
     manifest = {"name": name, "target_kind": target_kind, "settings": dict(settings or {}), "views": len(targets)}
     if intensity is not None:
         manifest["frame_intensity"] = intensity
+    if notes is not None:
+        manifest["frame_notes"] = notes
     write_json(job_dir / "job.json", manifest)
     validate_job_folder(job_dir)
     return job_dir
@@ -109,12 +115,17 @@ def _check_inputs(geometry: Geometry, targets: Sequence[np.ndarray], settings: D
 
 def _checked_intensity(geometry: Geometry, frame_intensity: Optional[Sequence[Optional[str]]]) -> Optional[List[Optional[str]]]:
     """The frames' Pixel Intensity Relationships as job.json keeps them (one string or None per view)."""
-    if frame_intensity is None:
+    return _checked_per_view(geometry, frame_intensity, "frame_intensity", "Pixel Intensity Relationship (a string such as 'LIN')")
+
+
+def _checked_per_view(geometry: Geometry, values: Optional[Sequence[Optional[str]]], key: str,
+                      what: str) -> Optional[List[Optional[str]]]:
+    """``values`` as job.json keeps them: one string or None per view (None: not given)."""
+    if values is None:
         return None
-    values = list(frame_intensity)
+    values = list(values)
     if len(values) != len(geometry.views) or not all(v is None or isinstance(v, str) for v in values):
-        raise JobFolderError(f"frame_intensity must give one Pixel Intensity Relationship (a string such as 'LIN', or None) "
-                             f"per view: {len(geometry.views)} views, got {values!r}")
+        raise JobFolderError(f"{key} must give one {what} or None per view: {len(geometry.views)} views, got {values!r}")
     return values
 
 
@@ -163,6 +174,7 @@ def _load_job(job_dir: Path):
                                  f"{exc}") from exc
         _check_frames(geometry, frames)
     _checked_intensity(geometry, manifest.get("frame_intensity"))
+    _checked_per_view(geometry, manifest.get("frame_notes"), "frame_notes", "note on how the view's frame was read (a string)")
     return manifest, geometry, targets, settings, kind, frames
 
 
@@ -190,7 +202,9 @@ def run_job(job_dir: PathLike, progress: Optional[Callable[[Dict[str, Any]], Non
         result = reconstruct(geometry, targets, settings, target_kind=kind, progress=on_progress,
                              cancel=cancel_flag.exists, frames=frames, frame_intensity=manifest.get("frame_intensity"))
         on_progress({"phase": "writing", "step": settings.optimisation.total_steps, "total": settings.optimisation.total_steps})
-        paths = write_reconstruction(result, job_dir / "output", name=manifest.get("name"))
+        notes = manifest.get("frame_notes")
+        paths = write_reconstruction(result, job_dir / "output", name=manifest.get("name"),
+                                     extra={"frame_notes": notes} if notes else None)
         paths = {k: str(v) for k, v in paths.items()}
         _finished(job_dir, paths, on_progress, settings.optimisation.total_steps)
         return paths
@@ -288,9 +302,10 @@ class ReconstructionJob:
     def start(cls, job_dir: PathLike, geometry: Geometry, targets: Sequence[np.ndarray], settings: Optional[Dict[str, Any]] = None,
               name: str = "reconstruction", target_kind: str = "mask", python: Optional[str] = None,
               frames: Optional[Sequence[np.ndarray]] = None,
-              frame_intensity: Optional[Sequence[Optional[str]]] = None) -> "ReconstructionJob":
+              frame_intensity: Optional[Sequence[Optional[str]]] = None,
+              frame_notes: Optional[Sequence[Optional[str]]] = None) -> "ReconstructionJob":
         """Write the job folder, validate it, and start the worker. Bad inputs raise before any start."""
-        prepare_job(job_dir, geometry, targets, settings, name, target_kind, frames, frame_intensity)
+        prepare_job(job_dir, geometry, targets, settings, name, target_kind, frames, frame_intensity, frame_notes)
         return cls.launch(job_dir, python)
 
     @classmethod

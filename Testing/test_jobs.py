@@ -273,3 +273,12 @@ def test_frames_travel_with_the_job_and_are_checked_first(tiny_case, tmp_path):
             prepare_job(tmp_path / "bad-intensity", tiny_case.geometry, tiny_case.masks, SMALL, frames=frames,
                         frame_intensity=bad)
         assert not (tmp_path / "bad-intensity").exists()
+    # how each frame was read (a LOG run brought to a linear scale) goes into the result's report
+    note = "LOG frames (sign −1) brought to a linear scale"
+    noted = prepare_job(tmp_path / "noted", tiny_case.geometry, tiny_case.masks, dict(SMALL, steps=3), frames=frames,
+                        frame_intensity=["LIN", None], frame_notes=[note, None])
+    assert json.loads(Path(run_job(noted)["report"]).read_text())["frame_notes"] == [note, None]
+    for bad in ([note], [note, 3]):
+        with pytest.raises(JobFolderError, match="frame_notes must give one note"):
+            prepare_job(tmp_path / "bad-notes", tiny_case.geometry, tiny_case.masks, SMALL, frames=frames, frame_notes=bad)
+        assert not (tmp_path / "bad-notes").exists()

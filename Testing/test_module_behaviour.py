@@ -146,8 +146,9 @@ def test_the_frames_pixel_intensity_relationship_goes_with_the_job(sdfcar, monke
                         raising=False)
     # the arrays as Slicer's DICOM reader (GDCM) gives them: larger = brighter, MONOCHROME1 mirrored
     arrays = [stored.astype(np.float32)] * 5
-    frames, relationships = sdfcar.SDFCARLogic.jobFrames(arrays, list(references), [-1] * 5)
+    frames, relationships, notes = sdfcar.SDFCARLogic.jobFrames(arrays, list(references), [-1] * 5)
     assert relationships == ["DISP", "LIN", None, "LIN", "LIN"]
+    assert notes[:3] == [None, None, None] and all("LOG" in note for note in notes[3:])  # for the job's report.json
     for kept in frames[:3]:
         np.testing.assert_array_equal(kept, stored)
     linear = linear_from_log(stored, True, 12)
@@ -346,13 +347,14 @@ def test_apply_sends_every_view_to_the_job(sdfcar, monkeypatch):
     # these fake frames were not loaded from the DICOM database (the fake scene has no sequence nodes to look in)
     monkeypatch.setattr(mrml, "dicom_frame_reference", lambda scene, node, index: (None, None), raising=False)
     monkeypatch.setattr(sdfcar.SDFCARLogic, "_startJob", staticmethod(
-        lambda jobDir, geometry, masks, settings, name, frames=None, frameIntensity=None:
-        started.update(geometry=geometry, masks=masks, frames=frames, intensity=frameIntensity) or "job"))
+        lambda jobDir, geometry, masks, settings, name, frames=None, frameIntensity=None, frameNotes=None:
+        started.update(geometry=geometry, masks=masks, frames=frames, intensity=frameIntensity, notes=frameNotes) or "job"))
     job, context = widget.logic.startReconstruction(p)
     geometry = started["geometry"]
     assert len(started["masks"]) == 3 and len(geometry.views) == 3 and len(context["frameNodes"]) == 3
     assert [f.shape for f in started["frames"]] == [m.shape for m in started["masks"]]  # the frames go with the job
     assert started["intensity"] == [None, None, None]  # none of these frames came from the DICOM database
+    assert started["notes"] == [None, None, None]
     assert (geometry.views[2].secondary_deg, geometry.views[1].sid_mm, geometry.views[2].sid_mm) == (30.0, 1100.0, 1100.0)
     assert geometry.views[2].detector_shape == (20, 30) and context["analyse"] is True
 
