@@ -600,6 +600,12 @@ def _exclude_disagreeing_pieces(problem: Problem, model: ImplicitField, step: in
     return torch.as_tensor(keep, dtype=torch.float32, device=problem.device)
 
 
+def prune_settings(region: RegionSettings) -> PruneSettings:
+    """The pruning ``region`` asks for."""
+    return PruneSettings(max_piece_mm=region.prune_piece_mm, tolerance=region.prune_tolerance,
+                         keep_connected=region.prune_keep_connected)
+
+
 def finishing_removals(segmentation: np.ndarray, references: Sequence[np.ndarray], geometry: Geometry,
                        region: RegionSettings, projectors: Optional[Sequence[ConeBeamProjector]]) -> Tuple[np.ndarray, Dict[str, int]]:
     """The segmentation less what ``finish``'s pruning and fragment check (as ``region`` asks) would remove,
@@ -607,7 +613,7 @@ def finishing_removals(segmentation: np.ndarray, references: Sequence[np.ndarray
     counts: Dict[str, int] = {}
     if region.prune:
         kept, _ = prune_redundant_branches(segmentation, references, geometry,
-                                           PruneSettings(max_piece_mm=region.prune_piece_mm, tolerance=region.prune_tolerance),
+                                           prune_settings(region),
                                            projectors=projectors)
         counts["pruned_voxels"] = int((segmentation & ~kept).sum())
         segmentation = segmentation & kept
@@ -650,7 +656,7 @@ def finish(problem: Problem, model: ImplicitField, history: List[Dict[str, float
         _report(progress, phase="prune", step=steps, total=steps, elapsed_s=optimise_s, eta_s=None, device=str(problem.device))
         kept, pruning = prune_redundant_branches(
             segmentation, references, geometry,
-            PruneSettings(max_piece_mm=settings.region.prune_piece_mm, tolerance=settings.region.prune_tolerance),
+            prune_settings(settings.region),
             projectors=traced)
         segmentation = erase_removed(segmentation, kept, occupancy_volume, field_volume, geometry, settings)
     unconfirmed: Optional[Dict[str, Any]] = None

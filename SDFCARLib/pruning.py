@@ -19,6 +19,11 @@ Method (a greedy minimal set cover at the level of skeleton pieces)
     Every removed piece therefore explained at most ``tolerance`` of its own pixels alone, so the
     reprojection of what is kept matches the masks almost exactly as before.
 
+    ``keep_connected``: a piece is removed only where the pieces left of its component stay one part
+    (26-adjacent pieces), so a ghost spur is peeled from its tip and a detached ghost piece by piece,
+    while a stretch of a true vessel whose pixels other vessels happen to cover in both views (where
+    it crosses them, or runs along the epipolar lines) is not cut out of its tube.
+
 Pieces of about 6 mm are the default: whole branches are too coarse to separate a ghost from
 its true vessel, pieces of a few voxels too short to be told apart (bench/RESULTS.md).
 
@@ -46,7 +51,7 @@ from typing import Any, Dict, Optional, Sequence, Tuple
 
 import numpy as np
 from scipy import ndimage
-from scipy.sparse import coo_matrix
+from scipy.sparse import coo_matrix, csr_matrix
 from scipy.sparse.csgraph import connected_components, dijkstra
 from skimage.morphology import skeletonize
 
@@ -60,6 +65,7 @@ class PruneSettings:
     max_piece_mm: float = 6.0
     threshold_mm: float = 0.1  # a piece covers a pixel when its line integral there exceeds this
     tolerance: float = 0.02  # largest fraction of its pixels a removed piece may cover alone
+    keep_connected: bool = False  # remove only pieces whose component stays one part without them
 
 
 def skeleton_pieces(segmentation: np.ndarray, spacing_mm: Sequence[float], max_piece_mm: float) -> Tuple[np.ndarray, int]:
@@ -183,6 +189,8 @@ def prune_redundant_branches(
     cover = cover[cover.any(axis=1)]  # mask pixels that some piece covers
     times_covered = cover.sum(axis=1)
     alive = np.ones(count, dtype=bool)
+    adjacency = piece_adjacency(pieces, count) if settings.keep_connected else None
+    kept_whole = 0  # redundant pieces left at the end because removing any of them splits its component
     while True:
         unique = (cover & (times_covered == 1)[:, None]).sum(axis=0)
         total = cover.sum(axis=0)
@@ -191,14 +199,63 @@ def prune_redundant_branches(
         if candidates.size == 0 or alive.sum() <= 1:
             break
         redundancy = np.array([times_covered[cover[:, k]].mean() if total[k] else np.inf for k in candidates])
-        chosen = candidates[np.lexsort((-redundancy, ratio[candidates]))[0]]
+        ordered = candidates[np.lexsort((-redundancy, ratio[candidates]))]
+        if adjacency is None:
+            chosen = ordered[0]
+        else:
+            chosen = next((k for k in ordered if not _splits_pieces(adjacency, alive, k)), None)
+            if chosen is None:
+                kept_whole = int(ordered.size)
+                break
         alive[chosen] = False
         times_covered -= cover[:, chosen]
         cover[:, chosen] = False
     kept = np.isin(pieces, np.flatnonzero(alive) + 1)
     info.update(removed_pieces=int(count - alive.sum()), removed_voxels=int(segmentation.sum() - kept.sum()),
                 seconds=time.perf_counter() - t0)
+    if adjacency is not None:
+        info["kept_whole_pieces"] = kept_whole
     return kept, info
+
+
+def piece_adjacency(pieces: np.ndarray, count: int) -> csr_matrix:
+    """Symmetric boolean matrix (count × count) of the pieces (labels 1..count of ``pieces``, index
+    label − 1) that touch: some voxel of one is a 26-neighbour of a voxel of the other."""
+    pieces = np.asarray(pieces)
+    nonzero = np.nonzero(pieces)
+    if not nonzero[0].size:
+        return csr_matrix((count, count), dtype=bool)
+    box = tuple(slice(int(a.min()), int(a.max()) + 1) for a in nonzero)
+    labels = np.pad(pieces[box], 1)
+    core = tuple(slice(1, n - 1) for n in labels.shape)
+    rows, cols = [], []
+    # half of the 26 offsets: each touching pair is seen once, the matrix is symmetrised below
+    for offset in np.argwhere(np.ones((3, 3, 3))) - 1:
+        if tuple(offset) <= (0, 0, 0):
+            continue
+        shifted = labels[tuple(slice(1 + o, n - 1 + o) for o, n in zip(offset, labels.shape))]
+        here = labels[core]
+        touching = (here > 0) & (shifted > 0) & (here != shifted)
+        rows.append(here[touching])
+        cols.append(shifted[touching])
+    rows_all = np.concatenate(rows) - 1
+    cols_all = np.concatenate(cols) - 1
+    graph = coo_matrix((np.ones(rows_all.size, bool), (rows_all, cols_all)), shape=(count, count)).tocsr()
+    return (graph + graph.T).astype(bool).tocsr()
+
+
+def _splits_pieces(adjacency: csr_matrix, alive: np.ndarray, piece: int) -> bool:
+    """Whether removing ``piece`` leaves the alive pieces it touches in more than one part."""
+    neighbours = adjacency.indices[adjacency.indptr[piece]:adjacency.indptr[piece + 1]]
+    neighbours = neighbours[alive[neighbours]]
+    if neighbours.size < 2:
+        return False
+    rest = alive.copy()
+    rest[piece] = False
+    order = np.flatnonzero(rest)
+    _, parts = connected_components(adjacency[order][:, order], directed=False)
+    position = np.searchsorted(order, neighbours)
+    return np.unique(parts[position]).size > 1
 
 
 def unconfirmed_fragments(

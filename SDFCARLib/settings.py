@@ -205,6 +205,9 @@ class RegionSettings:
     prune: bool = False  # remove the skeleton pieces no mask pixel needs (pruning.py)
     prune_piece_mm: float = 6.0
     prune_tolerance: float = 0.02
+    # prune only where the pieces left of a component stay one part (a ghost spur is peeled from its tip;
+    # a tube's stretch that other vessels cover in both views is not cut out)
+    prune_keep_connected: bool = False
     # remove the detached fragments that some view does not need (pruning.unconfirmed_fragments) ...
     drop_unconfirmed_fragments: bool = False
     # ... then join the remaining fragments to the tree along short paths of the field (connectivity.py)

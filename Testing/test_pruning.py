@@ -7,13 +7,13 @@ import pytest
 from scipy import ndimage
 
 from SDFCARLib.geometry import CArmView, Geometry, VolumeGrid
-from SDFCARLib.metrics import mask_dice
+from SDFCARLib.metrics import component_labels, mask_dice
 from SDFCARLib.settings import make_settings
 from SDFCARLib.phantoms import Branch, CentrelineTree, simulate_views, voxelize
 from SDFCARLib.projector import project_volume
 from SDFCARLib.hull import visual_hull
 from SDFCARLib.optimiser import exclusion_schedule, fit_field
-from SDFCARLib.pruning import (PruneSettings, prune_redundant_branches, removal_zone, skeleton_pieces,
+from SDFCARLib.pruning import (PruneSettings, piece_adjacency, prune_redundant_branches, removal_zone, skeleton_pieces,
                                unconfirmed_fragments)
 
 GRID = VolumeGrid((40, 40, 40), (1.0, 1.0, 1.0))
@@ -346,3 +346,36 @@ def test_the_exclusion_can_take_what_pruning_and_the_fragment_check_would_remove
     else:  # the hidden ghost goes, whichever step takes it, and the vessels stay whole
         np.testing.assert_array_equal(kept, truth)
         assert counts[removed_by] == int(ghost.sum())
+
+
+def test_keeping_the_tree_whole_leaves_a_tube_whose_middle_other_vessels_cover_in_both_views():
+    # A tube T along z; its middle is hidden behind a short tube A in AP and behind another, B, in LAO 90,
+    # while T's ends and A and B are each seen on their own somewhere: set cover alone cuts T's middle out.
+    tube = _tube(0.0, 0.0, -15.0, 15.0, 1.5)
+    behind_in_ap, behind_in_lao = _tube(0.0, 8.0, -5.0, 5.0, 1.5), _tube(8.0, 0.0, -5.0, 5.0, 1.5)
+    truth = tube | behind_in_ap | behind_in_lao
+    _, masks = simulate_views(truth, GRID, VIEWS)
+    geometry = Geometry(GRID, VIEWS)
+    cut, cut_info = prune_redundant_branches(truth, masks, geometry)
+    assert (tube & ~cut).sum() > 0 and component_labels(tube & cut)[1].size == 2
+    assert "kept_whole_pieces" not in cut_info
+    whole, info = prune_redundant_branches(truth, masks, geometry, PruneSettings(keep_connected=True))
+    np.testing.assert_array_equal(whole, truth)
+    assert info["removed_pieces"] == 0 and info["kept_whole_pieces"] >= 1
+
+
+def test_keeping_the_tree_whole_still_removes_a_detached_ghost_piece_by_piece(ghost_case):
+    geometry, truth, ghost, masks = ghost_case
+    pieces, _ = skeleton_pieces(truth | ghost, GRID.spacing_mm, PruneSettings().max_piece_mm)
+    assert np.unique(pieces[ghost]).size >= 2  # the ghost is more than one piece: they go one after another
+    kept, info = prune_redundant_branches(truth | ghost, masks, geometry, PruneSettings(keep_connected=True))
+    np.testing.assert_array_equal(kept, truth)
+    assert info["removed_voxels"] == int(ghost.sum()) and info["kept_whole_pieces"] == 0
+
+
+def test_piece_adjacency_links_the_touching_pieces_only():
+    pieces = np.zeros((6, 6, 6), np.int64)
+    pieces[0:2, 0, 0], pieces[2, 1, 1], pieces[4:, 4, 4] = 1, 2, 3  # 1 and 2 touch diagonally; 3 is apart
+    adjacency = piece_adjacency(pieces, 3).toarray()
+    np.testing.assert_array_equal(adjacency, [[False, True, False], [True, False, False], [False, False, False]])
+    assert piece_adjacency(np.zeros((3, 3, 3), np.int64), 0).shape == (0, 0)

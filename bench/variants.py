@@ -4,7 +4,9 @@
         --grid80 '{"prune": false}' '{"dt_downsample": 4}'
 
 Each variant is a JSON object of setting overrides (``settings.py`` keys) on the ``fast`` preset;
-the first row is always the unchanged preset. ``--save DIR`` keeps each run's report.json, occupancy, result,
+the first row is always the unchanged preset. ``--finish-only``: each case's field is fitted once (the
+preset) and finished once per variant, so variants of the finishing rules (``FINISH_ONLY_KEYS``) differ only
+in the rule, at one fit's cost. ``--save DIR`` keeps each run's report.json, occupancy, result,
 truth and masks for offline study. The realistic protocols' angiograms are given as the
 benchmark gives them (``frames``: evidence and motion read off them). Prints clDice, Dice, components (result / truth),
 support voxels and wall time per variant (with the scoring; the reconstruction's own and its phases in
@@ -29,7 +31,7 @@ import torch  # noqa: E402
 
 from SDFCARLib.benchmark import BenchmarkConfig, GridOptions, build_cases, prepare_case  # noqa: E402
 from SDFCARLib.metrics import evaluate  # noqa: E402
-from SDFCARLib.optimiser import reconstruct  # noqa: E402
+from SDFCARLib.optimiser import fit_field, reconstruct  # noqa: E402
 from SDFCARLib.settings import PROTOCOLS, REALISTIC_PROTOCOLS, make_settings  # noqa: E402
 
 
@@ -41,6 +43,12 @@ def save_run(folder: Path, stem: str, case, result) -> None:
     case.geometry.save(folder / f"{stem}.json")
     # what each step removed, joined and found (width_exclusion, pruning, …), to read the run's why
     (folder / f"{stem}-report.json").write_text(json.dumps(result.report, indent=1, default=str))
+
+
+# settings only ``finish`` reads in ``fast`` (pruning reaches the fit only with exclusion_takes_finishing_removals)
+FINISH_ONLY_KEYS = ("prune", "prune_tolerance", "prune_keep_connected", "drop_unconfirmed_fragments", "reconnect",
+                    "reconnect_max_gap_mm", "reconnect_min_occupancy", "grow_threshold", "final_reconnect_max_gap_mm",
+                    "min_fragment_volume_mm3")
 
 
 def main() -> int:
@@ -57,6 +65,8 @@ def main() -> int:
     parser.add_argument("--masks", type=json.loads, default=None,
                         help='JSON object of realistic.RealisticOptions overrides for every run, e.g. \'{"mask_edge_fraction": 0.2}\' '
                              '(the masks segmented otherwise; realistic protocols only)')
+    parser.add_argument("--finish-only", action="store_true",
+                        help="fit each case once and finish it once per variant (variants of FINISH_ONLY_KEYS only)")
     parser.add_argument("variants", nargs="*", help="JSON objects of setting overrides")
     args = parser.parse_args()
     if args.masks and args.protocol not in REALISTIC_PROTOCOLS:
@@ -66,6 +76,11 @@ def main() -> int:
     grid = GridOptions((80, 80, 80), 1.3, (192, 192), 0.8) if args.grid80 else GridOptions()
     config = BenchmarkConfig(args.suite, Path("unused"), cases=max(args.case) + 1, grid=grid, protocol=args.protocol)
     variants = [{}] + [json.loads(text) for text in args.variants]
+    if args.finish_only:
+        others = sorted({key for v in variants for key in v if key not in FINISH_ONLY_KEYS})
+        if others or args.skip_default:
+            parser.error(f"--finish-only finishes one fit per case: {', '.join(others) or '--skip-default'} would need "
+                         f"fits of their own; give only {', '.join(FINISH_ONLY_KEYS)}")
     print(f"# {platform.processor() or platform.machine()}, {os.cpu_count()} cores, torch {torch.__version__}, "
           f"{args.threads} thread(s); {args.suite} cases {args.case}, {args.protocol}, "
           f"{'grid80' if args.grid80 else 'paper grid'}{'; masks ' + json.dumps(args.masks) if args.masks else ''}", flush=True)
@@ -73,13 +88,16 @@ def main() -> int:
     for index in args.case:
         spec = build_cases(config)[index]
         case = prepare_case(spec, args.protocol, grid, realistic_overrides=args.masks)
+        fitted = (fit_field(case.geometry, case.targets, make_settings("fast", seed=spec.seed), case.target_kind,
+                            frames=case.frames) if args.finish_only else None)
         for number, variant in enumerate(variants):
             if number == 0 and args.skip_default:
                 continue
             t0 = time.perf_counter()
             # the fit's seed is the case's unless the variant sets it (another draw of the same case)
-            result = reconstruct(case.geometry, case.targets, make_settings("fast", **{"seed": spec.seed, **variant}),
-                                 case.target_kind, frames=case.frames)
+            settings = make_settings("fast", **{"seed": spec.seed, **variant})
+            result = (fitted.finished(settings) if fitted is not None
+                      else reconstruct(case.geometry, case.targets, settings, case.target_kind, frames=case.frames))
             m = evaluate(result.segmentation, case.label, case.geometry.volume, case.geometry.views, case.masks)
             if args.save is not None:
                 save_run(args.save, f"{spec.name}-v{number}", case, result)
