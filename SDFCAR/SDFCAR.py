@@ -990,7 +990,8 @@ class SDFCARLogic(ScriptedLoadableModuleLogic):
         Intensity Relationship (0028,1040) of those arrays, from the header of the DICOM file each frame was loaded
         from (None where it was not loaded from the DICOM database), and per view how the frame was read where it
         was changed (None elsewhere; the job's report.json keeps them). Path lengths are read only off LIN frames: a
-        LOG frame is brought to a linear scale here (SDFCARLib.dicom.intensity). Slicer's DICOM readers (GDCM) hand
+        LOG frame is brought to a linear scale here, a LIN frame whose values fall with intensity mirrored
+        (SDFCARLib.dicom.intensity). Slicer's DICOM readers (GDCM) hand
         over the rescaled values with MONOCHROME1 already mirrored, as SDFCARLib's own reader does."""
         from SDFCARLib import mrml
         from SDFCARLib.dicom.intensity import intensity_tags_of_file, linearised

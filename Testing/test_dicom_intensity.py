@@ -8,7 +8,7 @@ from scipy import ndimage
 
 from SDFCARLib import dicom
 from SDFCARLib.dicom.intensity import (LINEAR_PEAK_COUNTS, LOG_SPAN_E_FOLDS, IntensityTags, intensity_tags_of_file,
-                                       linear_from_log, linearised)
+                                       linear_from_log, linearised, rising_from_falling)
 from SDFCARLib.evidence import unreadable_intensity, view_evidence
 from SDFCARLib.geometry import CArmView
 from xa_writer import write_xa
@@ -96,3 +96,35 @@ def test_load_xa_gives_log_runs_as_linear_frames_and_says_so(tmp_path):
     np.testing.assert_array_equal(linear.frames[0], counts.round().astype(np.float32))
     assert "load_xa" in unreadable_intensity("LOG")
     assert intensity_tags_of_file(tmp_path / "missing.dcm") is None
+
+
+def test_a_lin_frame_whose_values_fall_with_intensity_is_mirrored_and_gives_the_path_lengths():
+    counts, mask = _tube_frame()  # counts up to 3000 of 4095: room left at the top of the 12-bit range
+    linear = view_evidence(counts.astype(np.float32), mask, VIEW)
+    stored = np.round(counts).astype(np.float32)
+    falling = 4095.0 - stored  # LIN, Sign −1: higher values, less intensity
+    for values, tags, inverted in ((falling, IntensityTags("LIN", -1, "MONOCHROME2", BITS), False),
+                                   (falling, IntensityTags("LIN", 1, "MONOCHROME1", BITS), True)):
+        # the second: stored rising (Sign +1) as MONOCHROME1, which the reader mirrored: the values handed over fall
+        frame, relationship, note = linearised(values, tags, inverted)
+        assert relationship == "LIN" and "mirrored" in note and "(0028,1041)" in note
+        np.testing.assert_allclose(frame, stored, atol=1e-3)
+        read = view_evidence(frame, mask, VIEW)
+        inside = mask & (linear.line_integral_mm > 0.5)
+        np.testing.assert_allclose(read.line_integral_mm[inside], linear.line_integral_mm[inside], rtol=0.02, atol=0.02)
+    # LIN rising (as the readers hand over Sign −1 on MONOCHROME1), or without a Sign: as given
+    for tags, inverted in ((IntensityTags("LIN", -1, "MONOCHROME1", BITS), True), (IntensityTags("LIN", None, "MONOCHROME2", BITS), False)):
+        frame, relationship, note = linearised(stored, tags, inverted)
+        assert frame is stored and relationship == "LIN" and note is None
+    # a value above the stored range (a rescale) is not mirrored below zero
+    assert rising_from_falling(np.array([0.0, 5000.0]), BITS).tolist() == [5000.0, 0.0]
+
+
+def test_load_xa_mirrors_a_lin_run_whose_values_fall_with_intensity(tmp_path):
+    counts, _ = _tube_frame()
+    falling = (4095 - np.round(counts)).astype(np.uint16)
+    path = write_xa(tmp_path / "lin-falling.dcm", falling, VIEW, bits_stored=BITS,
+                    extra={"PixelIntensityRelationship": "LIN", "PixelIntensityRelationshipSign": -1})
+    run = dicom.load_xa(path)
+    assert run.frames_relationship == "LIN" and "mirrored" in run.linearised_note
+    np.testing.assert_allclose(run.frames[0], np.round(counts), atol=1e-3)

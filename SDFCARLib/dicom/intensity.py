@@ -34,6 +34,7 @@ LOG_SPAN_E_FOLDS = 8.0
 #: floor of 1 that −log I applies (``lumen_profile.absorbance``)
 LINEAR_PEAK_COUNTS = 65535.0
 LOG_INTENSITY = "LOG"
+LINEAR_INTENSITY = "LIN"
 
 
 @dataclass(frozen=True)
@@ -93,13 +94,30 @@ def linear_from_log(values: np.ndarray, larger_means_more_intensity: bool, bits_
     return (LINEAR_PEAK_COUNTS * np.exp(-darker * (LOG_SPAN_E_FOLDS / 2.0 ** int(bits_stored)))).astype(np.float32)
 
 
+def rising_from_falling(values: np.ndarray, bits_stored: int) -> np.ndarray:
+    """Linear values that fall as the intensity rises, mirrored onto the stored range (0 … 2^bits_stored − 1,
+    or up to the largest value where one lies above it) so that larger means more intensity."""
+    v = np.asarray(values, np.float64)
+    top = max(2.0 ** int(bits_stored) - 1.0, float(v.max()) if v.size else 0.0)
+    return (top - v).astype(np.float32)
+
+
 def linearised(values: np.ndarray, tags: Optional[IntensityTags], inverted: bool = False
                ) -> Tuple[np.ndarray, Optional[str], Optional[str]]:
     """(frames, the relationship of the frames returned, a note or None): LOG frames on a linear scale
-    (then ``LIN``); any other frames unchanged with their own relationship (None when not known)."""
+    (then ``LIN``), LIN frames whose explicit Sign says their values fall with intensity mirrored (module
+    docstring); any other frames unchanged with their own relationship (None when not known)."""
+    if tags is not None and tags.relationship == LINEAR_INTENSITY and tags.sign is not None:
+        larger, source = tags.larger_means_more_intensity(inverted)
+        if larger:
+            return values, LINEAR_INTENSITY, None
+        note = (f"its Pixel Intensity Relationship (0028,1040) is LIN with values falling as the intensity rises "
+                f"({source}{', after the reader mirrored MONOCHROME1' if inverted else ''}): the frames were mirrored "
+                "onto their stored range, so that larger means more intensity")
+        return rising_from_falling(values, tags.bits_stored), LINEAR_INTENSITY, note
     if tags is None or tags.relationship != LOG_INTENSITY:
         return values, None if tags is None else tags.relationship, None
     larger, source = tags.larger_means_more_intensity(inverted)
     note = (f"its Pixel Intensity Relationship (0028,1040) is LOG: the frames were brought to a linear scale "
             f"({source}; the slope is not recorded and each view's is fitted away), so their path lengths are read")
-    return linear_from_log(values, larger, tags.bits_stored), "LIN", note
+    return linear_from_log(values, larger, tags.bits_stored), LINEAR_INTENSITY, note

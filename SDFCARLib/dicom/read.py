@@ -100,7 +100,7 @@ class XARun:
     photometric: str
     bits_stored: int
     inverted: bool  # MONOCHROME1 was inverted
-    linearised_note: Optional[str] = None  # set where LOG frames were brought to a linear scale (``intensity``)
+    linearised_note: Optional[str] = None  # set where LOG frames were linearised, or falling LIN ones mirrored (``intensity``)
 
     @property
     def sop_class_name(self) -> str:
@@ -132,7 +132,7 @@ class XARun:
 
     @property
     def frames_relationship(self) -> Optional[str]:
-        """The relationship of ``frames`` as read: LIN where LOG frames were linearised, else the tag's."""
+        """The relationship of ``frames`` as read: LIN where LOG frames were linearised (or LIN ones mirrored), else the tag's."""
         return "LIN" if self.linearised_note else self.pixel_intensity_relationship
 
     def lookup(self, keyword: str, frame: int = 0) -> Tuple[Any, Optional[str]]:
