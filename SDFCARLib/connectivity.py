@@ -30,6 +30,9 @@ Method
        includes the bridge; the caller writes the matching field values (``field_values``).
     5. Joined components become part of the tree and the search repeats from the grown tree
        until a round joins nothing, so a chain of fragments can be joined link by link.
+    6. ``every_component``: then the largest component still apart is taken as a tree of its own and
+       steps 2–5 repeat from it (the trees already done impassable), and so on until none is left: a
+       second tree (another ostium, a phantom's separate tubes) is mended too, not only the largest.
 
 Each bridge is reported (``bridges``: the gap's voxel indices, the tube's radius): the vessel was
 broken there and the bridge is thinner than the vessel by construction, so the 3D-QCA
@@ -60,6 +63,7 @@ class ReconnectSettings:
     max_gap_mm: float = 8.0  # longest stretch outside the segmentation a bridge may cross
     min_occupancy: float = 0.0  # lowest geometric-mean occupancy along that stretch (0: not asked)
     threshold: float = 0.5  # the segmentation's occupancy threshold
+    every_component: bool = False  # after the largest, each component still apart in turn joins what it reaches
 
 
 def field_values(occupancy: np.ndarray, field_kind: str, alpha: float) -> np.ndarray:
@@ -76,7 +80,8 @@ def reconnect_fragments(
     support: Optional[np.ndarray] = None,
     settings: Optional[ReconnectSettings] = None,
 ) -> Tuple[np.ndarray, np.ndarray, np.ndarray, Dict[str, Any]]:
-    """Join the smaller components of ``segmentation`` to the largest through the field (module docstring).
+    """Join the smaller components of ``segmentation`` to the largest (``every_component``: and to each other
+    tree in turn) through the field (module docstring).
 
     Returns (segmentation, occupancy, changed, report): new arrays (the inputs are not modified),
     the voxels whose occupancy was raised, and what was joined (components before and after,
@@ -105,46 +110,69 @@ def reconnect_fragments(
     if support is not None:
         reach &= np.asarray(support, bool) | segmentation
     radius_map = ndimage.distance_transform_edt(segmentation, sampling=spacing)
+    done = np.zeros(segmentation.shape, bool)  # the trees whose turn is over (every_component)
+    tree_seed = tuple(np.argwhere(labels == int(np.argmax(sizes)) + 1)[0])  # a voxel of the tree being grown
+    trees = 1
     while True:
-        cost = np.where(segmentation, _INSIDE_COST, -np.log(np.maximum(occupancy, _FLOOR))).astype(np.float64)
-        cost[~reach] = np.inf
-        largest = int(np.argmax(sizes)) + 1
-        mcp = MCP_Geometric(cost, sampling=tuple(spacing))
-        cumulative, _ = mcp.find_costs(np.argwhere(labels == largest))
-        joined_now = 0
-        reached = {largest}  # the components on the tree's side of the bridges laid this round
-        for label, box in enumerate(ndimage.find_objects(labels), start=1):
-            if label in reached:
-                continue
-            members = np.argwhere(labels[box] == label) + [b.start for b in box]
-            costs = cumulative[tuple(members.T)]
-            if not np.isfinite(costs).any():
-                continue
-            end = tuple(members[int(np.argmin(costs))])
-            path = np.asarray(mcp.traceback(end))
-            gap = ~segmentation[tuple(path.T)]
-            if not gap.any():  # a bridge laid earlier in this round already touches it
-                reached.add(label)
-                continue
-            steps = np.linalg.norm(np.diff(path, axis=0) * spacing, axis=1)
-            gap_mm = float(steps[gap[1:] | gap[:-1]].sum())
-            mean_occupancy = float(np.exp(np.mean(np.log(np.maximum(occupancy[tuple(path[gap].T)], _FLOOR)))))
-            if gap_mm > settings.max_gap_mm or mean_occupancy < settings.min_occupancy:
-                continue
-            radius = _bridge_radius(path, gap, radius_map, spacing)
-            _fill_tube(segmentation, occupancy, changed, path[gap], radius, spacing, settings.threshold)
-            reached.update(int(n) for n in np.unique(labels[tuple(path.T)]) if n)  # components it crosses too
-            info["gap_mm"].append(round(gap_mm, 3))
-            info["gap_occupancy"].append(round(mean_occupancy, 4))
-            info["bridges"].append({"gap_mm": round(gap_mm, 3), "radius_mm": round(radius, 3),
-                                    "voxels_ijk": path[gap].astype(int).tolist()})
-            joined_now += 1
-        info["joined"] += joined_now
+        joined_now = _join_round(segmentation, occupancy, changed, labels, reach & ~done, radius_map, spacing, settings,
+                                 int(labels[tree_seed]), info)
         labels, sizes = component_labels(segmentation)
-        if joined_now == 0 or sizes.size < 2:
+        if joined_now:
+            continue
+        if not settings.every_component:
             break
+        done |= labels == labels[tree_seed]
+        apart = np.flatnonzero(~np.isin(np.arange(1, sizes.size + 1), np.unique(labels[done])))
+        if apart.size < 2:  # one component left apart has nothing to join
+            break
+        next_tree = int(apart[np.argmax(sizes[apart])]) + 1
+        tree_seed = tuple(np.argwhere(labels == next_tree)[0])
+        trees += 1
+    if settings.every_component:
+        info["trees_grown"] = trees
     info.update(components_after=int(sizes.size), left_apart=int(sizes.size) - 1, seconds=time.perf_counter() - t0)
     return segmentation, occupancy, changed, info
+
+
+def _join_round(segmentation: np.ndarray, occupancy: np.ndarray, changed: np.ndarray, labels: np.ndarray,
+                passable: np.ndarray, radius_map: np.ndarray, spacing: np.ndarray, settings: ReconnectSettings,
+                tree: int, info: Dict[str, Any]) -> int:
+    """One round from component ``tree`` (label of ``labels``): each other component whose cheapest path through
+    ``passable`` voxels has an acceptable gap is bridged (in place; ``info`` records the bridges). Returns how many."""
+    cost = np.where(segmentation, _INSIDE_COST, -np.log(np.maximum(occupancy, _FLOOR))).astype(np.float64)
+    cost[~passable] = np.inf
+    mcp = MCP_Geometric(cost, sampling=tuple(spacing))
+    cumulative, _ = mcp.find_costs(np.argwhere(labels == tree))
+    joined_now = 0
+    reached = {tree}  # the components on the tree's side of the bridges laid this round
+    for label, box in enumerate(ndimage.find_objects(labels), start=1):
+        if label in reached or box is None:
+            continue
+        members = np.argwhere(labels[box] == label) + [b.start for b in box]
+        costs = cumulative[tuple(members.T)]
+        if not np.isfinite(costs).any():
+            continue
+        end = tuple(members[int(np.argmin(costs))])
+        path = np.asarray(mcp.traceback(end))
+        gap = ~segmentation[tuple(path.T)]
+        if not gap.any():  # a bridge laid earlier in this round already touches it
+            reached.add(label)
+            continue
+        steps = np.linalg.norm(np.diff(path, axis=0) * spacing, axis=1)
+        gap_mm = float(steps[gap[1:] | gap[:-1]].sum())
+        mean_occupancy = float(np.exp(np.mean(np.log(np.maximum(occupancy[tuple(path[gap].T)], _FLOOR)))))
+        if gap_mm > settings.max_gap_mm or mean_occupancy < settings.min_occupancy:
+            continue
+        radius = _bridge_radius(path, gap, radius_map, spacing)
+        _fill_tube(segmentation, occupancy, changed, path[gap], radius, spacing, settings.threshold)
+        reached.update(int(n) for n in np.unique(labels[tuple(path.T)]) if n)  # components it crosses too
+        info["gap_mm"].append(round(gap_mm, 3))
+        info["gap_occupancy"].append(round(mean_occupancy, 4))
+        info["bridges"].append({"gap_mm": round(gap_mm, 3), "radius_mm": round(radius, 3),
+                                "voxels_ijk": path[gap].astype(int).tolist()})
+        joined_now += 1
+    info["joined"] += joined_now
+    return joined_now
 
 
 def _bridge_radius(path: np.ndarray, gap: np.ndarray, radius_map: np.ndarray, spacing: np.ndarray) -> float:

@@ -788,7 +788,7 @@ def join_fragments(segmentation: np.ndarray, occupancy_volume: np.ndarray, field
     region = settings.region
     segmentation, joined_occupancy, changed, reconnection = reconnect_fragments(
         segmentation, occupancy_volume, geometry.volume.spacing_mm, support,
-        ReconnectSettings(max_gap_mm, region.reconnect_min_occupancy, region.threshold))
+        ReconnectSettings(max_gap_mm, region.reconnect_min_occupancy, region.threshold, region.reconnect_every_component))
     occupancy_volume[changed] = joined_occupancy[changed]
     field_volume[changed] = field_values(joined_occupancy[changed], settings.mode.field_kind, settings.field.alpha)
     for bridge in reconnection["bridges"]:  # where the vessel was broken, in LPS mm for the 3D-QCA

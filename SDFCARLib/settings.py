@@ -216,6 +216,9 @@ class RegionSettings:
     # lowest geometric-mean occupancy along the gap; 0: none asked, the support (both views show vessel
     # there) and the gap's length decide (σ(−α·s) is nearly binary, so a gap's occupancy tells little: RESULTS §19)
     reconnect_min_occupancy: float = 0.0
+    # false: fragments join the largest component only; true: then each component still apart in turn, largest
+    # first, joins what it reaches (a second tree, a phantom's separate tubes, is mended too)
+    reconnect_every_component: bool = False
     # 0: off. Otherwise, last, the skeleton pieces (prune_piece_mm) whose views see the vessel with
     # widths agreeing less than this (median of smaller / larger half-width, width_agreement.py) are
     # removed, each only where the rest of its component stays in one part (a ghost bridge is kept)

@@ -316,3 +316,23 @@ def test_the_small_fragment_removal_is_wired_into_the_finish_and_reported(small_
     _, sizes = component_labels(plain.segmentation)
     assert cleaned.segmentation.sum() == sizes.max()  # ... all but the largest piece
     np.testing.assert_array_equal(cleaned.segmentation, cleaned.occupancy >= 0.5)  # what the outputs read
+
+
+def test_every_component_mends_a_second_tree_too_without_joining_the_two():
+    n = 48
+    _, j, k = np.meshgrid(*[np.arange(n)] * 3, indexing="ij")
+    second = (1.0 / (1.0 + np.exp((np.hypot((j - n // 2 - 16) * H, (k - n // 2) * H) - 1.0) * 4.0))).astype(np.float32)
+    # two separate vessels 8 mm apart (5–6 mm between their walls), each broken over 2 mm
+    occupancy = np.maximum(_cut(_tube(), 22, 26, 0.3), _cut(second, 10, 14, 0.3))
+    segmentation = occupancy >= 0.5
+    assert component_counts(segmentation)["components"] == 4
+    settings = ReconnectSettings(max_gap_mm=3.0)
+    largest_only, _, _, info = reconnect_fragments(segmentation, occupancy, (H, H, H), settings=settings)
+    assert info["components_after"] == 3 and info["joined"] == 1 and "trees_grown" not in info
+    every = ReconnectSettings(max_gap_mm=3.0, every_component=True)
+    joined, _, _, info = reconnect_fragments(segmentation, occupancy, (H, H, H), settings=every)
+    assert info["components_after"] == 2 and info["joined"] == 2 and info["trees_grown"] == 2
+    labels, sizes = component_labels(joined)
+    assert labels[0, n // 2, n // 2] != labels[0, n // 2 + 16, n // 2]  # still two trees, each one piece
+    added = joined & ~largest_only
+    assert added.any() and not np.any(added & (j < n // 2 + 8))  # the bridge lies on the second vessel only

@@ -1,0 +1,77 @@
+"""Finishing rules side by side on a pair of real XA runs, as ``reconstruct --dicom A B --auto-masks`` prepares them.
+
+    .venv/bin/python bench/dicom_finishing.py --dicom ../shared/data/xa-phantom/IM3 ../shared/data/xa-phantom/IM7 \
+        --threads 1 '{"prune_keep_connected": true}' '{"reconnect_every_component": true}'
+
+The geometry from the runs' tags, the masks from the segment pipeline, the grid placed on them and the frames
+with their Pixel Intensity Relationship exactly as the command line does (its own functions); the field is
+fitted once (``fast``) and finished once per variant (``bench/variants.py``'s FINISH_ONLY_KEYS), the first
+the preset as it is. There is no 3D truth: each row gives what can be measured — the reprojection Dice per
+view, the share of each mask left unexplained, the voxels, the pieces and the largest piece's share — and
+the finishing time. Prints the machine.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import sys
+import time
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+import numpy as np  # noqa: E402
+import torch  # noqa: E402
+
+from bench.variants import FINISH_ONLY_KEYS  # noqa: E402
+from SDFCARLib.cli.parser import build_parser  # noqa: E402
+from SDFCARLib.cli.reconstruct import _auto_masks, _geometry_for_reconstruct, _place_grid  # noqa: E402
+from SDFCARLib.metrics import component_counts  # noqa: E402
+from SDFCARLib.optimiser import fit_field  # noqa: E402
+from SDFCARLib.settings import make_settings  # noqa: E402
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--dicom", nargs=2, required=True, metavar="RUN", help="two XA DICOM runs")
+    parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument("variants", nargs="*", help="JSON objects of finishing-setting overrides on fast")
+    args = parser.parse_args()
+    variants = [{}] + [json.loads(text) for text in args.variants]
+    others = sorted({key for v in variants for key in v if key not in FINISH_ONLY_KEYS})
+    if others:
+        parser.error(f"{', '.join(others)} would need fits of their own; give only {', '.join(FINISH_ONLY_KEYS)}")
+    torch.set_num_threads(args.threads)
+    print(f"# {platform.processor() or platform.machine()}, {os.cpu_count()} cores, torch {torch.__version__}, "
+          f"{args.threads} thread(s); {' + '.join(Path(r).name for r in args.dicom)}", flush=True)
+    cli = build_parser().parse_args(["reconstruct", "--dicom", *args.dicom, "--auto-masks", "--out", "unused",
+                                     "--threads", str(args.threads), "--no-progress"])
+    geometry, provenance, request = _geometry_for_reconstruct(cli)
+    auto, intensity = _auto_masks(cli, geometry, provenance)
+    masks = [a.mask for _, _, a in auto]
+    geometry, _, source = _place_grid(geometry, masks, request, provenance)
+    print(f"# grid {list(geometry.volume.shape)} at {geometry.volume.spacing_mm[0]} mm ({source})", flush=True)
+    t0 = time.perf_counter()
+    fitted = fit_field(geometry, masks, make_settings("fast", threads=args.threads), "mask",
+                       frames=[frame for _, frame, _ in auto], frame_intensity=intensity)
+    print(f"# fitted in {time.perf_counter() - t0:.0f} s", flush=True)
+    for variant in variants:
+        t1 = time.perf_counter()
+        result = fitted.finished(make_settings("fast", threads=args.threads, **variant))
+        report = result.report
+        pieces = component_counts(result.segmentation)
+        unexplained = [q["share_of_mask"]["mask_only"] for q in report["reprojection_qa"]]
+        print(f"{json.dumps(variant):42s} reprojection Dice {' / '.join(f'{d:.3f}' for d in report['reprojection_dice'])}  "
+              f"unexplained {' / '.join(f'{100 * u:.0f} %' for u in unexplained)}  "
+              f"voxels {int(result.segmentation.sum())}  pieces {pieces['components']} "
+              f"(largest {100 * pieces['largest_component_fraction']:.0f} %)  finish {time.perf_counter() - t1:.0f} s",
+              flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
