@@ -111,22 +111,31 @@ def reconnect_fragments(
         reach &= np.asarray(support, bool) | segmentation
     radius_map = ndimage.distance_transform_edt(segmentation, sampling=spacing)
     done = np.zeros(segmentation.shape, bool)  # the trees whose turn is over (every_component)
-    tree_seed = tuple(np.argwhere(labels == int(np.argmax(sizes)) + 1)[0])  # a voxel of the tree being grown
+    done_labels: set = set()  # their labels in ``labels``
+    tree = int(np.argmax(sizes)) + 1
+    whole = tuple(slice(0, n) for n in labels.shape)
+    window = whole  # the whole grid for the largest; a later tree searches its own surroundings
+    margin = np.ceil(settings.max_gap_mm / spacing).astype(int) + 2
     trees = 1
     while True:
-        joined_now = _join_round(segmentation, occupancy, changed, labels, reach & ~done, radius_map, spacing, settings,
-                                 int(labels[tree_seed]), info)
-        labels, sizes = component_labels(segmentation)
+        tree_seed = tuple(np.argwhere(labels[window] == tree)[0] + [w.start for w in window])
+        joined_now = _join_round(segmentation, occupancy, changed, labels, reach, done, radius_map, spacing, settings,
+                                 tree, info, window)
         if joined_now:
+            labels, sizes = component_labels(segmentation)
+            done_labels = {int(n) for n in np.unique(labels[done])} - {0}
+            tree = int(labels[tree_seed])
+            window = whole if trees == 1 else _around(labels, tree, margin)
             continue
         if not settings.every_component:
             break
-        done |= labels == labels[tree_seed]
-        apart = np.flatnonzero(~np.isin(np.arange(1, sizes.size + 1), np.unique(labels[done])))
+        done |= labels == tree
+        done_labels.add(tree)
+        apart = np.array([n for n in range(1, sizes.size + 1) if n not in done_labels], dtype=int)
         if apart.size < 2:  # one component left apart has nothing to join
             break
-        next_tree = int(apart[np.argmax(sizes[apart])]) + 1
-        tree_seed = tuple(np.argwhere(labels == next_tree)[0])
+        tree = int(apart[np.argmax(sizes[apart - 1])])
+        window = _around(labels, tree, margin)
         trees += 1
     if settings.every_component:
         info["trees_grown"] = trees
@@ -134,26 +143,35 @@ def reconnect_fragments(
     return segmentation, occupancy, changed, info
 
 
+def _around(labels: np.ndarray, label: int, margin: np.ndarray) -> Tuple[slice, ...]:
+    """The bounding box of component ``label`` widened by ``margin`` voxels per axis (clipped to the grid)."""
+    box = ndimage.find_objects((labels == label).astype(np.int8))[0]
+    return tuple(slice(max(b.start - m, 0), min(b.stop + m, n)) for b, m, n in zip(box, margin, labels.shape))
+
+
 def _join_round(segmentation: np.ndarray, occupancy: np.ndarray, changed: np.ndarray, labels: np.ndarray,
-                passable: np.ndarray, radius_map: np.ndarray, spacing: np.ndarray, settings: ReconnectSettings,
-                tree: int, info: Dict[str, Any]) -> int:
+                reach: np.ndarray, done: np.ndarray, radius_map: np.ndarray, spacing: np.ndarray,
+                settings: ReconnectSettings, tree: int, info: Dict[str, Any], window: Tuple[slice, ...]) -> int:
     """One round from component ``tree`` (label of ``labels``): each other component whose cheapest path through
-    ``passable`` voxels has an acceptable gap is bridged (in place; ``info`` records the bridges). Returns how many."""
-    cost = np.where(segmentation, _INSIDE_COST, -np.log(np.maximum(occupancy, _FLOOR))).astype(np.float64)
-    cost[~passable] = np.inf
+    voxels in ``reach`` but not ``done``, within ``window``, has an acceptable gap is bridged (in place; ``info``
+    records the bridges). Returns how many."""
+    origin = np.array([w.start for w in window])
+    local_labels = labels[window]
+    cost = np.where(segmentation[window], _INSIDE_COST, -np.log(np.maximum(occupancy[window], _FLOOR))).astype(np.float64)
+    cost[~reach[window] | done[window]] = np.inf
     mcp = MCP_Geometric(cost, sampling=tuple(spacing))
-    cumulative, _ = mcp.find_costs(np.argwhere(labels == tree))
+    cumulative, _ = mcp.find_costs(np.argwhere(local_labels == tree))
     joined_now = 0
     reached = {tree}  # the components on the tree's side of the bridges laid this round
-    for label, box in enumerate(ndimage.find_objects(labels), start=1):
+    for label, box in enumerate(ndimage.find_objects(local_labels), start=1):
         if label in reached or box is None:
             continue
-        members = np.argwhere(labels[box] == label) + [b.start for b in box]
+        members = np.argwhere(local_labels[box] == label) + [b.start for b in box]
         costs = cumulative[tuple(members.T)]
         if not np.isfinite(costs).any():
             continue
         end = tuple(members[int(np.argmin(costs))])
-        path = np.asarray(mcp.traceback(end))
+        path = np.asarray(mcp.traceback(end)) + origin
         gap = ~segmentation[tuple(path.T)]
         if not gap.any():  # a bridge laid earlier in this round already touches it
             reached.add(label)
