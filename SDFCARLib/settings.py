@@ -477,12 +477,17 @@ PRESETS: Dict[str, Dict[str, Any]] = {  # the default first: lists offer it firs
         # detail, and leaves it in fewer pieces (bench/RESULTS.md §27c, §28a)
         coarse_to_fine_fraction=0.5,
         dt_downsample=2,
-        # two views cannot rule out ghost branches: drop the pieces no mask pixel needs
+        # two views cannot rule out ghost branches: drop the pieces no mask pixel needs, but only where the
+        # component stays one part (a tube's stretch that other tubes cover in both views is not cut out: suites level,
+        # the real XA pair in 31 pieces instead of 56 and more of each mask explained, bench/RESULTS.md §78)
         prune=True,
+        prune_keep_connected=True,
         # then drop the detached fragments that not every view confirms (ghosts of pixels one view cannot place)
         drop_unconfirmed_fragments=True,
-        # and join the rest to the tree across short gaps inside the support (both views show vessel there)
+        # and join the rest to the tree across short gaps inside the support (both views show vessel there), then
+        # each component still apart in turn, so that a second tree or tube is mended too (§78: the real pair 31 → 19 pieces)
         reconnect=True,
+        reconnect_every_component=True,
         # then take in the partial occupancy connected to what was kept: vessels thinner than a voxel
         grow_threshold=0.3,
         # last, drop the pieces whose two views see different widths (where two vessels' rays cross),
