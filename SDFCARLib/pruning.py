@@ -245,7 +245,11 @@ def piece_adjacency(pieces: np.ndarray, count: int) -> csr_matrix:
 
 
 def _splits_pieces(adjacency: csr_matrix, alive: np.ndarray, piece: int) -> bool:
-    """Whether removing ``piece`` leaves the alive pieces it touches in more than one part."""
+    """Whether removing ``piece`` leaves the alive pieces it touches in more than one part.
+
+    On the pieces' graph rather than by relabelling voxels (``width_agreement._splits_its_component``): the
+    greedy loop asks at every removal, up to ~130 times per realistic 128³ case, where a voxel relabelling costs
+    ~10 ms and grows with the grid; on the graph of its 155 pieces a check costs 0.13 ms (the graph 26 ms)."""
     neighbours = adjacency.indices[adjacency.indptr[piece]:adjacency.indptr[piece + 1]]
     neighbours = neighbours[alive[neighbours]]
     if neighbours.size < 2:

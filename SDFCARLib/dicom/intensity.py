@@ -28,13 +28,14 @@ from typing import Any, Optional, Tuple
 
 import numpy as np
 
+from ..evidence import LINEAR_INTENSITY
+
 #: e-folds of X-ray intensity the full stored range of a LOG frame is taken to span (the slope is not recorded)
 LOG_SPAN_E_FOLDS = 8.0
 #: the linearised frame's brightest count; its darkest is e^−LOG_SPAN_E_FOLDS of it (≈ 22), above the count
 #: floor of 1 that −log I applies (``lumen_profile.absorbance``)
 LINEAR_PEAK_COUNTS = 65535.0
 LOG_INTENSITY = "LOG"
-LINEAR_INTENSITY = "LIN"
 
 
 @dataclass(frozen=True)

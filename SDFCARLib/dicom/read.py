@@ -22,7 +22,7 @@ from typing import Any, Dict, List, Optional, Tuple, Union
 
 import numpy as np
 
-from .intensity import intensity_tags, linearised
+from .intensity import LINEAR_INTENSITY, intensity_tags, linearised
 
 PathLike = Union[str, Path]
 
@@ -133,7 +133,7 @@ class XARun:
     @property
     def frames_relationship(self) -> Optional[str]:
         """The relationship of ``frames`` as read: LIN where LOG frames were linearised (or LIN ones mirrored), else the tag's."""
-        return "LIN" if self.linearised_note else self.pixel_intensity_relationship
+        return LINEAR_INTENSITY if self.linearised_note else self.pixel_intensity_relationship
 
     def lookup(self, keyword: str, frame: int = 0) -> Tuple[Any, Optional[str]]:
         """(value, where) of a non-empty attribute: top level, else the per-frame then shared
