@@ -14,6 +14,10 @@ makes the input a user has from a ground-truth label, and keeps the truth for sc
 3. Masks. Each frame is segmented by SDFCAR's own pipeline (``masks.segment_angiogram``) with the
    frame's pixel spacing and magnification — never from the truth — so thin, faint vessels drop
    out unevenly between the views and borders land a pixel off, as in real masks.
+4. Display processing (optional, ``display``): the frames are stored as a system stores them for
+   viewing (``display_processing.py``: logarithm, range compression, edge enhancement, 8-bit
+   window; Pixel Intensity Relationship ``DISP``) and the masks are segmented on those, as a user's
+   exported runs mostly are. ``RealisticInput.frame_intensity`` then says ``DISP`` per view.
 
 ``RealisticInput.info`` records the motion, the mask pipeline's parameters and the masks' Dice and
 clDice against the true silhouettes (line integral > ``settings.MASK_THRESHOLD_MM``).
@@ -27,6 +31,7 @@ from typing import Any, Dict, List, Optional
 import numpy as np
 
 from .angiogram import AngiogramSettings, simulate_angiogram
+from .display_processing import DISPLAY_INTENSITY, display_processed
 from .geometry import CArmView, Geometry
 from .masks import AngioMaskSettings, MaskError, segment_angiogram
 from .metrics import cldice, mask_dice
@@ -44,6 +49,7 @@ class RealisticOptions:
     mask_edge_taper_radius_mm: Optional[float] = AngioMaskSettings.edge_taper_radius_mm
     mask_edge_grow_mm: float = AngioMaskSettings.edge_grow_mm
     mask_edge_max_radius_mm: Optional[float] = AngioMaskSettings.edge_max_radius_mm
+    display: bool = False  # frames processed for display (DISP) before they are segmented and handed over
 
     def check(self) -> None:
         if self.max_shift_mm < 0 or self.max_rotation_deg < 0 or not self.snr > 0:
@@ -58,6 +64,9 @@ class RealisticInput:
     masks: List[np.ndarray]  # segmented from the frames: the reconstruction's input
     true_masks: List[np.ndarray]  # silhouettes of the moved truth (for scoring)
     info: Dict[str, Any] = field(default_factory=dict)
+    # per view, the frames' Pixel Intensity Relationship as a DICOM run would carry it; None: linear counts
+    # handed over as arrays (path lengths are read off them)
+    frame_intensity: Optional[List[str]] = None
 
 
 def random_motion(rng: np.random.Generator, max_shift_mm: float, max_rotation_deg: float):
@@ -84,12 +93,14 @@ def realistic_input(label: np.ndarray, geometry: Geometry, seed: int,
     frames, masks, per_view = [], [], []
     for n, (li, view, truth) in enumerate(zip(line_integrals, true_views, true_masks), start=1):
         frame, _ = simulate_angiogram(li, view.pixel_spacing_mm, rng, AngiogramSettings(snr=options.snr))
+        if options.display:  # no draw from rng: the scene and its noise are the linear protocol's
+            frame = display_processed(frame, view.pixel_spacing_mm)
         try:
-            segmented = segment_angiogram(frame, view.pixel_spacing_mm, view.magnification,
-                                          AngioMaskSettings(edge_fraction=options.mask_edge_fraction,
-                                                            edge_taper_radius_mm=options.mask_edge_taper_radius_mm,
-                                                            edge_grow_mm=options.mask_edge_grow_mm,
-                                                            edge_max_radius_mm=options.mask_edge_max_radius_mm))
+            settings = AngioMaskSettings(edge_fraction=options.mask_edge_fraction,
+                                         edge_taper_radius_mm=options.mask_edge_taper_radius_mm,
+                                         edge_grow_mm=options.mask_edge_grow_mm,
+                                         edge_max_radius_mm=options.mask_edge_max_radius_mm)
+            segmented = segment_angiogram(frame, view.pixel_spacing_mm, view.magnification, settings)
         except MaskError as exc:
             raise MaskError(f"view {n}: the simulated angiogram could not be segmented: {exc}") from None
         frames.append(frame)
@@ -100,5 +111,7 @@ def realistic_input(label: np.ndarray, geometry: Geometry, seed: int,
             "mask_components": int(segmented.parameters.get("components", -1)),
         })
     info = {"motion": motions, "views": per_view, "snr": options.snr,
-            "max_shift_mm": options.max_shift_mm, "max_rotation_deg": options.max_rotation_deg}
-    return RealisticInput(geometry, true_views, frames, masks, true_masks, info)
+            "max_shift_mm": options.max_shift_mm, "max_rotation_deg": options.max_rotation_deg,
+            "display": options.display}
+    intensity = [DISPLAY_INTENSITY] * len(frames) if options.display else None
+    return RealisticInput(geometry, true_views, frames, masks, true_masks, info, intensity)

@@ -622,16 +622,21 @@ PROTOCOLS: Dict[str, Tuple[str, str]] = {
     "realistic-static-lao50cra25-rao50cra25": ("lao50cra25-rao50cra25", "mask"),
     "realistic-lao30-rao30-cra30": ("lao30-rao30-cra30", "mask"),
     "realistic-static-lao30-rao30-cra30": ("lao30-rao30-cra30", "mask"),
+    "realistic-display-lao30-rao30": ("lao30-rao30", "mask"),
+    "realistic-static-display-lao30-rao30": ("lao30-rao30", "mask"),
 }
 #: the protocols whose masks are segmented from simulated angiograms (``realistic.py``), with the
-#: object motion between the acquisitions; "static" ones have the same images without motion
-REALISTIC_PROTOCOLS: Dict[str, Dict[str, float]] = {
+#: object motion between the acquisitions; "static" ones have the same images without motion; "display"
+#: ones the same frames processed for display (``display_processing.py``, DISP: no path lengths read)
+REALISTIC_PROTOCOLS: Dict[str, Dict[str, Any]] = {
     "realistic-lao30-rao30": {"max_shift_mm": 3.0, "max_rotation_deg": 2.0},
     "realistic-lao50cra25-rao50cra25": {"max_shift_mm": 3.0, "max_rotation_deg": 2.0},
     "realistic-static-lao30-rao30": {"max_shift_mm": 0.0, "max_rotation_deg": 0.0},
     "realistic-static-lao50cra25-rao50cra25": {"max_shift_mm": 0.0, "max_rotation_deg": 0.0},
     "realistic-lao30-rao30-cra30": {"max_shift_mm": 3.0, "max_rotation_deg": 2.0},
     "realistic-static-lao30-rao30-cra30": {"max_shift_mm": 0.0, "max_rotation_deg": 0.0},
+    "realistic-display-lao30-rao30": {"max_shift_mm": 3.0, "max_rotation_deg": 2.0, "display": True},
+    "realistic-static-display-lao30-rao30": {"max_shift_mm": 0.0, "max_rotation_deg": 0.0, "display": True},
 }
 
 

@@ -166,10 +166,10 @@ def test_failed_run_is_recorded_and_retried_on_request(tmp_path, capsys, monkeyp
 
     real = bm_run._reconstruct
 
-    def neca_fails(geometry, targets, settings, target_kind, frames=None):
+    def neca_fails(geometry, targets, settings, target_kind, frames=None, frame_intensity=None):
         if settings.run.mode == "neca":
             raise RuntimeError("injected failure")
-        return real(geometry, targets, settings, target_kind, frames)
+        return real(geometry, targets, settings, target_kind, frames, frame_intensity)
 
     monkeypatch.setattr(bm_run, "_reconstruct", neca_fails)
     out = tmp_path / "bench"

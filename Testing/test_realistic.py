@@ -51,3 +51,20 @@ def test_same_seed_same_input_and_static_has_no_motion(case):
 def test_realistic_protocols_are_registered():
     assert set(REALISTIC_PROTOCOLS) <= set(PROTOCOLS)
     assert all(PROTOCOLS[p][1] == "mask" for p in REALISTIC_PROTOCOLS)
+
+
+def test_display_frames_are_the_linear_frames_processed_and_say_disp(case):
+    from SDFCARLib.display_processing import display_processed
+
+    geometry, label = case
+    linear = realistic_input(label, geometry, seed=3, options=RealisticOptions(0.0, 0.0))
+    shown = realistic_input(label, geometry, seed=3, options=RealisticOptions(0.0, 0.0, display=True))
+    assert linear.frame_intensity is None and shown.frame_intensity == ["DISP", "DISP"]
+    assert shown.info["display"] is True and linear.info["display"] is False
+    for lin, disp, view in zip(linear.frames, shown.frames, geometry.views):
+        # the same scene and noise (no draw for the processing), stored for display
+        assert disp.dtype == np.uint8 and np.array_equal(disp, display_processed(lin, view.pixel_spacing_mm))
+    # the masks are segmented on the processed frames, and still find the vessels
+    for mask, truth in zip(shown.masks, shown.true_masks):
+        assert 0.5 < mask_dice(mask, truth) < 1.0
+    assert REALISTIC_PROTOCOLS["realistic-static-display-lao30-rao30"]["display"] is True

@@ -39,6 +39,11 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--dicom", nargs=2, required=True, metavar="RUN", help="two XA DICOM runs")
     parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument("--mask-edge-fraction", type=float, default=None, metavar="F",
+                        help="segment the masks with this AngioMaskSettings.edge_fraction (0: no edge rule) instead of the default")
+    parser.add_argument("--display-as-log", action="store_true",
+                        help="frames not read as LIN (DISP, a vendor's term) read as a LOG run with the header's sign "
+                             "(dicom.intensity.linear_from_log), so their path lengths are fitted")
     parser.add_argument("variants", nargs="*", help="JSON objects of finishing-setting overrides on fast")
     args = parser.parse_args()
     variants = [{}] + [json.loads(text) for text in args.variants]
@@ -53,11 +58,29 @@ def main() -> int:
     geometry, provenance, request = _geometry_for_reconstruct(cli)
     auto, intensity = _auto_masks(cli, geometry, provenance)
     masks = [a.mask for _, _, a in auto]
+    frames = [frame for _, frame, _ in auto]
+    print(f"# frames' Pixel Intensity Relationship as read: {intensity}", flush=True)
+    if args.mask_edge_fraction is not None:
+        from SDFCARLib.masks import AngioMaskSettings, segment_angiogram
+
+        masks = [segment_angiogram(f, v.pixel_spacing_mm, v.sid_mm / v.sod_mm,
+                                   AngioMaskSettings(edge_fraction=args.mask_edge_fraction)).mask
+                 for f, v in zip(frames, geometry.views)]
+        print(f"# masks segmented with edge_fraction {args.mask_edge_fraction}", flush=True)
+    if args.display_as_log:
+        from SDFCARLib.dicom.intensity import intensity_tags_of_file, linear_from_log
+
+        tags = [intensity_tags_of_file(r) for r in args.dicom]
+        read = [i == "LIN" for i in intensity or [None] * len(frames)]
+        frames = [f if lin else linear_from_log(f, t.larger_means_more_intensity(t.photometric == "MONOCHROME1")[0], t.bits_stored)
+                  for f, t, lin in zip(frames, tags, read)]
+        intensity = ["LIN"] * len(frames)
+        print(f"# frames not LIN read as LOG: {[not r for r in read]}", flush=True)
     geometry, _, source = _place_grid(geometry, masks, request, provenance)
     print(f"# grid {list(geometry.volume.shape)} at {geometry.volume.spacing_mm[0]} mm ({source})", flush=True)
     t0 = time.perf_counter()
     fitted = fit_field(geometry, masks, make_settings("fast", threads=args.threads), "mask",
-                       frames=[frame for _, frame, _ in auto], frame_intensity=intensity)
+                       frames=frames, frame_intensity=intensity)
     print(f"# fitted in {time.perf_counter() - t0:.0f} s", flush=True)
     for variant in variants:
         t1 = time.perf_counter()

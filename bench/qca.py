@@ -127,7 +127,7 @@ def score(phantom, volume, grid, level, masks, ostium, view_step_deg, frames=Non
         frames = None
     r = analyse_volume(volume, grid, level=level, views=views, masks=masks, ostium_mm=ostium, view_step_deg=view_step_deg,
                        frames=frames, psf_sigma_mm=AngiogramSettings().psf_sigma_mm, centreline_on_masks=centreline_on_masks,
-                       search_masks=SEARCH_MASKS)
+                       search_masks=SEARCH_MASKS, densitometry=not DISPLAY_FRAMES)
     elapsed = time.perf_counter() - t0
     tp, td, tw, tnames, tarc = _truth_samples(phantom)
     kd = cKDTree(tp)
@@ -336,7 +336,7 @@ def segmented_masks(tree, seed, moving=False):
     label = voxelize_exact(tree, label_grid)
     # the pair's protocol: its motion and noise settings are the three-view protocol's too
     protocol = "realistic-lao30-rao30" if moving else "realistic-static-lao30-rao30"
-    options = RealisticOptions(**{**REALISTIC_PROTOCOLS[protocol], **MASK_OPTIONS})
+    options = RealisticOptions(**{**REALISTIC_PROTOCOLS[protocol], **MASK_OPTIONS, "display": DISPLAY_FRAMES})
     realistic = realistic_input(label, Geometry(label_grid, VIEWS[:2]), seed, options)
     masks, frames, info = list(realistic.masks), list(realistic.frames), realistic.info
     dice, motions = [v["mask_dice"] for v in info["views"]], list(info["motion"])
@@ -374,6 +374,9 @@ def tube_direction(seed: int, max_foreshortening_pct=None) -> np.ndarray:
 CENTRELINES = ["volume"]  # the analysis' centreline: "volume", "masks" (main's --centreline)
 ANALYSE_WITHOUT_FRAMES = False  # --no-frames: the analysis on the masks alone, as analyse without --frames
 SEARCH_MASKS = True  # analyse_volume's search_masks (--no-masks-search: off, the analysis before RESULTS §43)
+# --display: the segmented masks' angiograms processed for display (``display_processing.py``) before they are
+# segmented and read, and analysed as ``analyse`` reads a DISP run (edges only, no densitometry)
+DISPLAY_FRAMES = False
 
 RECON_TUBES = [  # the recon suite's ten tubes: name, stenosed_tube's parameters
     ("50%/10mm/3mm/con", dict(stenosis_pct=50, lesion_length_mm=10, diameter_mm=3.0, eccentric=False)),
@@ -417,6 +420,8 @@ def run_recon(n_cases, view_step_deg, steps=None, save_dir=None, first=0, mask_s
         else:
             masks, frames = [render_mask(ph.tree, v) for v in VIEWS], None
         settings = make_settings("fast", **({"steps": steps} if steps else {}), **(overrides or {}))
+        # display-processed frames give no path lengths, as a DISP run's do not
+        frame_intensity = ["DISP"] * len(frames) if DISPLAY_FRAMES and frames is not None else None
 
         def add_row(occupancy, views, threshold, reconstruct_s, **rule):
             for centreline in CENTRELINES:
@@ -430,7 +435,7 @@ def run_recon(n_cases, view_step_deg, steps=None, save_dir=None, first=0, mask_s
                                               for k, v in rows[-1].items()), flush=True)
 
         if grow_thresholds:
-            fitted = fit_field(geometry, masks, settings, "mask", frames=frames)
+            fitted = fit_field(geometry, masks, settings, "mask", frames=frames, frame_intensity=frame_intensity)
             t_fit = time.perf_counter() - fitted.t_start
             for grow in grow_thresholds:
                 variant = settings.replace(grow_threshold=grow)
@@ -444,7 +449,7 @@ def run_recon(n_cases, view_step_deg, steps=None, save_dir=None, first=0, mask_s
             views = Geometry.from_dict(json.loads((Path(load_dir) / geometry_name).read_text())).views
             t_rec = None
         else:
-            rec = reconstruct(geometry, masks, settings, "mask", frames=frames)
+            rec = reconstruct(geometry, masks, settings, "mask", frames=frames, frame_intensity=frame_intensity)
             occupancy, views, t_rec = rec.occupancy, rec.geometry.views, time.perf_counter() - t0
         if save_dir:  # keep the reconstruction (occupancy on the 0.4 mm grid, LPS; the poses it ended with)
             Path(save_dir).mkdir(parents=True, exist_ok=True)
@@ -572,6 +577,9 @@ def main(argv=None) -> int:
                          "(analyse_volume's centreline_on_masks), or both side by side on the same volumes")
     ap.add_argument("--no-frames", action="store_true",
                     help="with --masks segmented: analyse on the masks alone, as analyse does without --frames")
+    ap.add_argument("--display", action="store_true",
+                    help="with --masks segmented*: the angiograms processed for display (DISP) before they are segmented "
+                         "and read; the frames then give edges only, as analyse reads a DISP run")
     ap.add_argument("--no-masks-search", action="store_true",
                     help="without frames, do not search the masks for lesions the 3D sections missed (as before RESULTS §43)")
     ap.add_argument("--frames-max-over-3d", type=float, default=None, metavar="RATIO",
@@ -609,8 +617,12 @@ def main(argv=None) -> int:
         MASK_OPTIONS[key] = value
     if MASK_OPTIONS:
         print(f"# segmented masks with {MASK_OPTIONS}", flush=True)
-    global ANALYSE_WITHOUT_FRAMES, SEARCH_MASKS
-    ANALYSE_WITHOUT_FRAMES, SEARCH_MASKS = args.no_frames, not args.no_masks_search
+    if args.display and args.masks == "clean":
+        ap.error("--display processes the simulated angiograms: it needs --masks segmented or segmented-moving")
+    global ANALYSE_WITHOUT_FRAMES, SEARCH_MASKS, DISPLAY_FRAMES
+    ANALYSE_WITHOUT_FRAMES, SEARCH_MASKS, DISPLAY_FRAMES = args.no_frames, not args.no_masks_search, args.display
+    if DISPLAY_FRAMES:
+        print("# frames processed for display (DISP): masks segmented on them, edges only", flush=True)
     if args.end_probe_radii is not None:
         from SDFCARLib.analysis import centreline
 

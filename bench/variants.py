@@ -89,7 +89,7 @@ def main() -> int:
         spec = build_cases(config)[index]
         case = prepare_case(spec, args.protocol, grid, realistic_overrides=args.masks)
         fitted = (fit_field(case.geometry, case.targets, make_settings("fast", seed=spec.seed), case.target_kind,
-                            frames=case.frames) if args.finish_only else None)
+                            frames=case.frames, frame_intensity=case.frame_intensity) if args.finish_only else None)
         for number, variant in enumerate(variants):
             if number == 0 and args.skip_default:
                 continue
@@ -97,7 +97,8 @@ def main() -> int:
             # the fit's seed is the case's unless the variant sets it (another draw of the same case)
             settings = make_settings("fast", **{"seed": spec.seed, **variant})
             result = (fitted.finished(settings) if fitted is not None
-                      else reconstruct(case.geometry, case.targets, settings, case.target_kind, frames=case.frames))
+                      else reconstruct(case.geometry, case.targets, settings, case.target_kind, frames=case.frames,
+                                       frame_intensity=case.frame_intensity))
             m = evaluate(result.segmentation, case.label, case.geometry.volume, case.geometry.views, case.masks)
             if args.save is not None:
                 save_run(args.save, f"{spec.name}-v{number}", case, result)

@@ -209,6 +209,8 @@ class PreparedCase:
     info: Dict[str, Any] = field(default_factory=dict)
     prepare_s: float = 0.0
     frames: Optional[List[np.ndarray]] = None  # the simulated angiograms of the realistic protocols
+    # their Pixel Intensity Relationship per view ("DISP" on the display protocols); None: linear counts
+    frame_intensity: Optional[List[str]] = None
 
 
 def prepare_case(spec: CaseSpec, protocol: str, grid: Optional[GridOptions] = None,
@@ -239,10 +241,11 @@ def prepare_case(spec: CaseSpec, protocol: str, grid: Optional[GridOptions] = No
         options = RealisticOptions(**{**REALISTIC_PROTOCOLS[protocol], **(realistic_overrides or {})})
         realistic = realistic_input(label, geometry, spec.seed, options)
         line_integrals, masks, frames = [], realistic.masks, realistic.frames
+        frame_intensity = realistic.frame_intensity
         info.update(realistic=realistic.info)
     else:
         line_integrals, masks = simulate_views(label, geometry.volume, geometry.views, MASK_THRESHOLD_MM)
-        frames = None
+        frames = frame_intensity = None
     for n, (mask, view) in enumerate(zip(masks, geometry.views), start=1):
         if not mask.any() or mask.all():
             raise BenchmarkError(f"case {spec.name}: view {n} ({view.describe()}) sees {'no' if not mask.any() else 'only'} "
@@ -250,4 +253,5 @@ def prepare_case(spec: CaseSpec, protocol: str, grid: Optional[GridOptions] = No
     target_kind = PROTOCOLS[protocol][1]
     targets = line_integrals if target_kind == "line_integral" else [m.astype(np.float32) for m in masks]
     info["label_voxels"] = int(label.sum())
-    return PreparedCase(geometry, label, masks, targets, target_kind, info, time.perf_counter() - t0, frames)
+    return PreparedCase(geometry, label, masks, targets, target_kind, info, time.perf_counter() - t0, frames,
+                        frame_intensity)

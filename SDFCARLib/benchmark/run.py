@@ -32,12 +32,14 @@ from ..settings import PROTOCOLS, make_settings
 
 
 # --- one task: a case × mode ------------------------------------------------------------------------
-def _reconstruct(geometry, targets, settings, target_kind, frames=None):
+def _reconstruct(geometry, targets, settings, target_kind, frames=None, frame_intensity=None):
     """The optimiser call (a seam: tests replace ``SDFCARLib.benchmark.run._reconstruct`` to inject failures).
-    ``frames``: the realistic protocols' angiograms, fitted where ``frame_evidence`` is set."""
+    ``frames``: the realistic protocols' angiograms, fitted where ``frame_evidence`` is set and their
+    ``frame_intensity`` allows (none off display-processed frames)."""
     from ..optimiser import reconstruct
 
-    return reconstruct(geometry, targets, settings, target_kind=target_kind, frames=frames)
+    return reconstruct(geometry, targets, settings, target_kind=target_kind, frames=frames,
+                       frame_intensity=frame_intensity)
 
 
 def _pack(mask: np.ndarray) -> Tuple[bytes, Tuple[int, ...]]:
@@ -101,7 +103,8 @@ def run_task(prepared: Dict[str, Any], spec: CaseSpec, mode: str, task: Dict[str
         else:
             settings = make_settings(task["preset"], mode=mode, seed=spec.seed, steps=task["steps"], **task["overrides"])
             row["steps"] = settings.optimisation.steps
-            result = _reconstruct(case.geometry, case.targets, settings, case.target_kind, case.frames)
+            result = _reconstruct(case.geometry, case.targets, settings, case.target_kind, case.frames,
+                                  case.frame_intensity)
             prediction = result.segmentation
             row["device"] = result.report.get("device", "")
             row["wall_s"] = float(result.report.get("timings_s", {}).get("total", time.perf_counter() - t0))
