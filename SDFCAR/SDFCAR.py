@@ -808,9 +808,12 @@ class SDFCARLogic(ScriptedLoadableModuleLogic):
         ``segment``); returns (segmentation, parameters). Pixel spacing (mm) and magnification
         (SID/SOD) set the physical vessel scales; without them typical values are assumed and reported."""
         from SDFCARLib import mrml
-        from SDFCARLib.masks import angiogram_mask
+        from SDFCARLib.masks import angiogram_mask, mask_settings_for_intensity
 
-        mask, parameters = angiogram_mask(self.frameArray(frameNode, index), pixelSpacingMm, magnification)
+        # a frame processed for display (its DICOM file says DISP or a vendor's term) is segmented without the edge rule
+        tags = self.frameIntensityTags(frameNode, index)
+        settings = mask_settings_for_intensity(tags.relationship if tags is not None else None)
+        mask, parameters = angiogram_mask(self.frameArray(frameNode, index), pixelSpacingMm, magnification, settings)
         with mrml.scene_transaction(slicer.mrmlScene):
             segmentation = self.maskSegmentation(frameNode, maskNode)
             mrml.set_segment_mask(segmentation, mask, frameNode, "Vessels")
@@ -985,6 +988,18 @@ class SDFCARLogic(ScriptedLoadableModuleLogic):
         return base / f"{safe}-{time.strftime('%Y%m%d-%H%M%S')}"
 
     @staticmethod
+    def frameIntensityTags(frameNode, index=-1):
+        """What the header of the DICOM file a frame was loaded from says of its grey levels
+        (SDFCARLib.dicom.intensity.IntensityTags), or None where it was not loaded from the DICOM database."""
+        from SDFCARLib import mrml
+        from SDFCARLib.dicom.intensity import intensity_tags_of_file
+
+        database = getattr(slicer, "dicomDatabase", None)
+        uid, _ = mrml.dicom_frame_reference(slicer.mrmlScene, frameNode, index)
+        path = database.fileForInstance(uid) if uid and database else None
+        return intensity_tags_of_file(path) if path else None
+
+    @staticmethod
     def jobFrames(frames, frameNodes, frameIndices):
         """(frames, relationships, notes): the views' frame arrays as the job reads them, per view the Pixel
         Intensity Relationship (0028,1040) of those arrays, from the header of the DICOM file each frame was loaded
@@ -993,15 +1008,11 @@ class SDFCARLogic(ScriptedLoadableModuleLogic):
         LOG frame is brought to a linear scale here, a LIN frame whose values fall with intensity mirrored
         (SDFCARLib.dicom.intensity). Slicer's DICOM readers (GDCM) hand
         over the rescaled values with MONOCHROME1 already mirrored, as SDFCARLib's own reader does."""
-        from SDFCARLib import mrml
-        from SDFCARLib.dicom.intensity import intensity_tags_of_file, linearised
+        from SDFCARLib.dicom.intensity import linearised
 
-        database = getattr(slicer, "dicomDatabase", None)
         arrays, relationships, notes = [], [], []
         for n, (frame, node, index) in enumerate(zip(frames, frameNodes, frameIndices), start=1):
-            uid, _ = mrml.dicom_frame_reference(slicer.mrmlScene, node, index)
-            path = database.fileForInstance(uid) if uid and database else None
-            tags = intensity_tags_of_file(path) if path else None
+            tags = SDFCARLogic.frameIntensityTags(node, index)
             array, relationship, note = linearised(frame, tags, inverted=tags is not None and tags.photometric == "MONOCHROME1")
             if note:
                 logging.info(f"SDFCAR: view {n}: {note}")

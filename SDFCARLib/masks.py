@@ -47,6 +47,10 @@ Angiogram masks (``segment_angiogram`` / ``angiogram_mask``), for when no mask e
        before, bench/RESULTS.md §59).
        (Defaults: bench/RESULTS.md §60 — the realistic suites' border errors a quarter fewer, extra
        and missed pixels alike.)
+       On frames processed for display (``mask_settings_for_intensity``: DISP, a vendor's term) the
+       share is ``DISPLAY_EDGE_FRACTION``, so the trim is as good as off and the growth stays: their
+       edges were enhanced, the profile overshoots beside the vessel and the usual share falls inside
+       the lumen — such masks came out a fifth too thin (bench/RESULTS.md §79).
 
     A frame where nothing is left (no contrast, a wrong frame) or where half the image would be
     vessel is refused with a ``MaskError`` that names the problem.
@@ -58,7 +62,7 @@ pipeline (bench/RESULTS.md compares them; the benchmark keeps it as its baseline
 from __future__ import annotations
 
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Any, Dict, List, Optional, Sequence, Tuple, Union
 
@@ -375,6 +379,25 @@ def _component_shape(mask: np.ndarray) -> Tuple[np.ndarray, np.ndarray, np.ndarr
     length = np.bincount(labels[skeletonize(mask)].ravel(), minlength=n + 1).astype(float)
     elongation = np.divide(length**2, area, out=np.zeros_like(area), where=area > 0)
     return labels, area, length, elongation
+
+
+#: the edge rule's share on frames processed for display (step 8; bench/RESULTS.md §79: 0 and 0.05 measured beside it)
+DISPLAY_EDGE_FRACTION = 0.02
+
+
+def frame_processed_for_display(relationship: Optional[str]) -> bool:
+    """Whether a frame of this Pixel Intensity Relationship (0028,1040) was processed for display: any value but
+    LIN and LOG (DISP, vendors' terms such as GE's DRM); None (not known, e.g. an array or a PNG) is not."""
+    value = str(relationship).strip().upper() if relationship is not None else ""
+    return value not in ("", "LIN", "LOG")
+
+
+def mask_settings_for_intensity(relationship: Optional[str],
+                                settings: Optional[AngioMaskSettings] = None) -> AngioMaskSettings:
+    """``settings`` (default: ``AngioMaskSettings()``) for a frame of this Pixel Intensity Relationship: the edge
+    rule's share ``DISPLAY_EDGE_FRACTION`` where the frame was processed for display (module docstring, step 8)."""
+    base = settings if settings is not None else AngioMaskSettings()
+    return replace(base, edge_fraction=DISPLAY_EDGE_FRACTION) if frame_processed_for_display(relationship) else base
 
 
 def segment_angiogram(

@@ -16,8 +16,9 @@ makes the input a user has from a ground-truth label, and keeps the truth for sc
    out unevenly between the views and borders land a pixel off, as in real masks.
 4. Display processing (optional, ``display``): the frames are stored as a system stores them for
    viewing (``display_processing.py``: logarithm, range compression, edge enhancement, 8-bit
-   window; Pixel Intensity Relationship ``DISP``) and the masks are segmented on those, as a user's
-   exported runs mostly are. ``RealisticInput.frame_intensity`` then says ``DISP`` per view.
+   window; Pixel Intensity Relationship ``DISP``) and the masks are segmented on those as the
+   product segments a DISP frame (``masks.mask_settings_for_intensity``), as a user's exported runs
+   mostly are. ``RealisticInput.frame_intensity`` then says ``DISP`` per view.
 
 ``RealisticInput.info`` records the motion, the mask pipeline's parameters and the masks' Dice and
 clDice against the true silhouettes (line integral > ``settings.MASK_THRESHOLD_MM``).
@@ -33,7 +34,7 @@ import numpy as np
 from .angiogram import AngiogramSettings, simulate_angiogram
 from .display_processing import DISPLAY_INTENSITY, display_processed
 from .geometry import CArmView, Geometry
-from .masks import AngioMaskSettings, MaskError, segment_angiogram
+from .masks import AngioMaskSettings, MaskError, mask_settings_for_intensity, segment_angiogram
 from .metrics import cldice, mask_dice
 from .phantoms import simulate_views
 from .settings import MASK_THRESHOLD_MM
@@ -96,10 +97,12 @@ def realistic_input(label: np.ndarray, geometry: Geometry, seed: int,
         if options.display:  # no draw from rng: the scene and its noise are the linear protocol's
             frame = display_processed(frame, view.pixel_spacing_mm)
         try:
-            settings = AngioMaskSettings(edge_fraction=options.mask_edge_fraction,
-                                         edge_taper_radius_mm=options.mask_edge_taper_radius_mm,
-                                         edge_grow_mm=options.mask_edge_grow_mm,
-                                         edge_max_radius_mm=options.mask_edge_max_radius_mm)
+            # as the product segments a frame of that relationship (the edge rule off on display frames)
+            settings = mask_settings_for_intensity(DISPLAY_INTENSITY if options.display else None,
+                                                   AngioMaskSettings(edge_fraction=options.mask_edge_fraction,
+                                                                     edge_taper_radius_mm=options.mask_edge_taper_radius_mm,
+                                                                     edge_grow_mm=options.mask_edge_grow_mm,
+                                                                     edge_max_radius_mm=options.mask_edge_max_radius_mm))
             segmented = segment_angiogram(frame, view.pixel_spacing_mm, view.magnification, settings)
         except MaskError as exc:
             raise MaskError(f"view {n}: the simulated angiogram could not be segmented: {exc}") from None

@@ -130,3 +130,34 @@ def test_reconstruct_with_auto_masks_of_three_runs_and_a_frame_per_run(run, tmp_
     views = report["inputs"]["geometry_provenance"]["views"]
     assert [v["frame"]["index"] for v in views] == [1, 2, 1]
     assert all((out / f"qa_view{n}.png").is_file() for n in (1, 2, 3))
+
+
+def test_a_run_processed_for_display_is_segmented_without_the_edge_trim(tmp_path, capsys):
+    """A run whose Pixel Intensity Relationship says it was processed for display (DISP, GE's DRM): `segment` and
+    `reconstruct --auto-masks` lower the mask's edge rule to the display share and say so; a LIN run keeps it."""
+    from SDFCARLib.display_processing import display_processed
+    from SDFCARLib.masks import DISPLAY_EDGE_FRACTION, AngioMaskSettings
+
+    line_integral = _vessel_line_integral()
+    frame = simulate_angiogram(line_integral, 0.3, 7, AngiogramSettings(ribs=1))[0]
+    shown = display_processed(frame, 0.39)[None]
+    views = [CArmView(a, 0.0, 975.0, 750.0, (0.39, 0.39), (128, 128)) for a in (30.0, -30.0)]
+    runs = {}
+    for relationship in ("DRM", "LIN"):
+        runs[relationship] = [write_xa(tmp_path / f"{relationship}{n}.dcm", shown, view, bits_stored=8,
+                                       extra={"PixelIntensityRelationship": relationship}) for n, view in enumerate(views)]
+    for relationship, share in (("DRM", DISPLAY_EDGE_FRACTION), ("LIN", AngioMaskSettings().edge_fraction)):
+        out = tmp_path / relationship / "view1.png"
+        assert main(["segment", "--dicom", str(runs[relationship][0]), "--out", str(out)]) == 0
+        err = capsys.readouterr().err
+        assert ("processed for display (Pixel Intensity Relationship DRM)" in err) == (relationship == "DRM")
+        report = json.loads(out.with_suffix(".json").read_text())
+        assert report["parameters"]["edge_fraction"] == share
+        assert report["source"]["pixel_intensity_relationship"] == relationship
+    result = tmp_path / "result"
+    assert main(["reconstruct", "--dicom", *map(str, runs["DRM"]), "--auto-masks", "--volume-shape", "8", "8", "8",
+                 "--volume-spacing", "8", "--steps", "1", "--no-progress", "--out", str(result)]) == 0
+    err = capsys.readouterr().err
+    assert err.count("processed for display, DRM") == 2
+    assert [a["edge_fraction"] for a in json.loads((result / "report.json").read_text())["inputs"]["auto_masks"]] == \
+        [DISPLAY_EDGE_FRACTION] * 2

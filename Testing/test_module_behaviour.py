@@ -156,6 +156,38 @@ def test_the_frames_pixel_intensity_relationship_goes_with_the_job(sdfcar, monke
     np.testing.assert_allclose(frames[4], linear, rtol=1e-6)  # sign −1 of the stored values, mirrored by the reader
 
 
+def test_the_vesselness_mask_of_a_frame_processed_for_display_does_not_trim_its_edges(sdfcar, monkeypatch, tmp_path):
+    """The Vesselness button on a frame whose DICOM file says DISP (or a vendor's term) segments it as the command
+    line does such a run (masks.mask_settings_for_intensity); a frame from elsewhere gets the usual rule."""
+    import contextlib
+
+    import numpy as np
+
+    from SDFCARLib import mrml
+    from SDFCARLib.masks import DISPLAY_EDGE_FRACTION, AngioMaskSettings
+    from xa_writer import write_xa
+
+    stored = np.full((1, 8, 8), 100, np.uint16)
+    files = {"1.2.3.1": str(write_xa(tmp_path / "disp.dcm", stored, bits_stored=8, extra={"PixelIntensityRelationship": "DRM"})),
+             "1.2.3.2": str(write_xa(tmp_path / "lin.dcm", stored, bits_stored=8, extra={"PixelIntensityRelationship": "LIN"}))}
+    references = {"drm": "1.2.3.1", "lin": "1.2.3.2", "png": None}
+    monkeypatch.setattr(mrml, "dicom_frame_reference", lambda scene, node, index: (references[node], None), raising=False)
+    monkeypatch.setattr(sys.modules["slicer"], "dicomDatabase", types.SimpleNamespace(fileForInstance=files.get),
+                        raising=False)
+    used = []
+    monkeypatch.setattr("SDFCARLib.masks.angiogram_mask",
+                        lambda frame, spacing, magnification, settings=None: used.append(settings) or (np.zeros((8, 8), bool), {}))
+    monkeypatch.setattr(mrml, "scene_transaction", lambda scene: contextlib.nullcontext())
+    monkeypatch.setattr(mrml, "set_segment_mask", lambda *args: None)
+    logic = sdfcar.SDFCARLogic()
+    monkeypatch.setattr(logic, "frameArray", lambda node, index: np.zeros((8, 8)))
+    monkeypatch.setattr(logic, "maskSegmentation", lambda node, mask: types.SimpleNamespace(SetAttribute=lambda *a: None))
+    for node in ("drm", "lin", "png"):
+        logic.vesselnessMask(node, -1)
+    assert [s.edge_fraction for s in used] == [DISPLAY_EDGE_FRACTION, AngioMaskSettings().edge_fraction,
+                                               AngioMaskSettings().edge_fraction]
+
+
 # --- Sample Data from the console ----------------------------------------------------------------------------
 def _register_5_6(category="Custom", sampleName=None, uris=None, fileNames=None, nodeNames=None, customDownloader=None,
                   thumbnailFileName=None, loadFileType="VolumeFile", loadFiles=None, loadFileProperties={}, checksums=None):

@@ -13,7 +13,8 @@ from ..io import write_text_atomically
 from .common import EXIT_OK, absolute_path, load_geometry, print_metrics
 
 def cmd_segment(args: argparse.Namespace) -> int:
-    from ..masks import AngioMaskSettings, segment_angiogram, segmentation_paths, write_segmentation
+    from ..masks import (AngioMaskSettings, frame_processed_for_display, mask_settings_for_intensity, segment_angiogram,
+                         segmentation_paths, write_segmentation)
 
     spacing, magnification = args.pixel_spacing, args.magnification
     if bool(args.dicom) == bool(args.image):
@@ -26,6 +27,9 @@ def cmd_segment(args: argparse.Namespace) -> int:
         choice = choose_frame(run, args.frame)
         frame = run.frames[choice.index]
         source = {"dicom": absolute_path(args.dicom), "frame": choice.to_dict()}
+        relationship = run.frames_relationship
+        if relationship:
+            source["pixel_intensity_relationship"] = relationship
         try:
             view, _ = view_from_dicom(run, choice.index)
             spacing = spacing or list(view.pixel_spacing_mm)
@@ -41,8 +45,13 @@ def cmd_segment(args: argparse.Namespace) -> int:
 
         frame = read_image(args.image, what="frame")
         source = {"image": absolute_path(args.image)}
-    settings = AngioMaskSettings(**({"method": args.method} if args.method else {}),
-                                 **({"vessel_radius_mm": tuple(args.vessel_radius_mm)} if args.vessel_radius_mm else {}))
+        relationship = None  # an image file does not say how its grey levels were made
+    settings = mask_settings_for_intensity(relationship, AngioMaskSettings(
+        **({"method": args.method} if args.method else {}),
+        **({"vessel_radius_mm": tuple(args.vessel_radius_mm)} if args.vessel_radius_mm else {})))
+    if frame_processed_for_display(relationship):
+        print(f"the run's frames were processed for display (Pixel Intensity Relationship {relationship}): their edges "
+              "are enhanced, so the mask's edge rule does not trim them", file=sys.stderr)
     result = segment_angiogram(frame, spacing, magnification, settings)
     paths = write_segmentation(args.out, frame, result, source, overwrite=args.overwrite)
     p = result.parameters

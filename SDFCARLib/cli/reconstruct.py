@@ -171,7 +171,7 @@ def _auto_masks(args: argparse.Namespace, geometry, provenance
                 ) -> Tuple[List[Tuple[Dict[str, Any], np.ndarray, Any]], List[Optional[str]]]:
     """--auto-masks: the segment pipeline on the chosen frame of each XA run the geometry was read from, and each
     run's Pixel Intensity Relationship."""
-    from ..masks import segment_angiogram
+    from ..masks import frame_processed_for_display, mask_settings_for_intensity, segment_angiogram
 
     runs = dicom_runs_from_args(args)
     if not runs:
@@ -185,10 +185,14 @@ def _auto_masks(args: argparse.Namespace, geometry, provenance
     frames, intensity = _dicom_frames(args, provenance, "mask")
     for n, (frame, view, info) in enumerate(zip(frames, geometry.views, provenance["views"]), start=1):
         frame_info = info["frame"]
-        auto.append((frame_info, frame, segment_angiogram(frame, view.pixel_spacing_mm, view.sid_mm / view.sod_mm)))
+        relationship = intensity[n - 1] if intensity else None
+        auto.append((frame_info, frame, segment_angiogram(frame, view.pixel_spacing_mm, view.sid_mm / view.sod_mm,
+                                                          mask_settings_for_intensity(relationship))))
         p = auto[-1][2].parameters
         print(f"view {n}: auto mask of frame {frame_info['index']}: {p['components']} component(s), "
-              f"{100 * p['vessel_fraction']:.1f}% of the frame", file=sys.stderr)
+              f"{100 * p['vessel_fraction']:.1f}% of the frame"
+              + (f" (processed for display, {relationship}: the edge rule's trim off)" if frame_processed_for_display(relationship) else ""),
+              file=sys.stderr)
     return auto, intensity
 
 
