@@ -48,6 +48,25 @@ def test_frame_widths_measure_the_tube_where_the_segmented_masks_are_off(tube_fr
         assert np.mean(np.abs(from_frame - 2.0)) < 0.5 * np.mean(np.abs(from_mask - 2.0))
 
 
+def test_a_display_processed_frame_is_read_as_log_intensity_not_as_counts(tube_frames):
+    """The same tube's frames as a system stores them for display (logarithm, range compression, unsharp masking,
+    8-bit window): read as a logarithm of the intensity their widths come out within 0.25 mm; read as counts
+    (−log of the grey level) far narrower."""
+    from SDFCARLib.display_processing import display_processed
+
+    realistic, points, tangents = tube_frames
+    psf = AngiogramSettings().psf_sigma_mm
+    for frame, mask, view in zip(realistic.frames, realistic.masks, VIEWS):
+        shown = display_processed(frame, view.pixel_spacing_mm)
+        guess = projected_widths(points, tangents, mask, view)
+        as_log = frame_widths(points, tangents, shown, view, guess, psf_sigma_mm=psf, grey_is_log_intensity=True)
+        as_counts = frame_widths(points, tangents, shown, view, guess, psf_sigma_mm=psf)
+        assert np.isfinite(as_log).mean() > 0.9
+        # (the sharpened edges still narrow the 2 mm tube by about 0.17 mm; counts, by 0.7)
+        assert np.nanmean(np.abs(as_log - 2.0)) < 0.25
+        assert np.nanmean(as_counts) < 2.0 - 0.4 and np.nanmean(np.abs(as_counts - 2.0)) > 2 * np.nanmean(np.abs(as_log - 2.0))
+
+
 def test_frame_widths_leave_unmeasurable_points_out_and_reject_bad_input(tube_frames):
     realistic, points, tangents = tube_frames
     frame, view = realistic.frames[0], VIEWS[0]
@@ -153,18 +172,25 @@ def test_frames_of_display_processed_runs_give_widths_but_no_lumen_area(tmp_path
 
     from SDFCARLib.cli import main
 
+    from SDFCARLib.display_processing import display_processed
+    from SDFCARLib.io import write_image_nrrd
+
     folder, masks, frames = _tube_result_folder(tmp_path, tube_frames[0])
     report = json.loads((folder / "report.json").read_text())
     (folder / "report.json").write_text(json.dumps(dict(report, frame_intensity=["LIN", "DISP"])))
+    # view 2's frame as that run stored it (its widths are read on the grey level as log-intensity)
+    linear_frames = list(frames)
+    frames[1] = str(write_image_nrrd(tmp_path / "frame2_disp.nrrd", display_processed(tube_frames[0].frames[1],
+                                                                                      VIEWS[1].pixel_spacing_mm)))
     assert main(["analyse", str(folder), "--frames", *frames, "--view-step-deg", "20"]) == 0
     err = capsys.readouterr().err
     data = json.loads((folder / "analysis" / "analysis.json").read_text())
     branch = data["branches"][0]
-    assert branch["diameter_frames"]["mean_mm"] == pytest.approx(2.0, abs=0.15)  # the edges, as with LIN frames
+    assert branch["diameter_frames"]["mean_mm"] == pytest.approx(2.0, abs=0.15)  # the edges
     assert branch["diameter_frames_density"] is None and data["settings"]["densitometry"] is False
     assert any("view 2" in n and "DISP" in n and "densitometry" in n for n in data["notes"]) and "DISP" in err
     (folder / "report.json").write_text(json.dumps(dict(report, frame_intensity=["LIN", "LIN"])))
-    assert main(["analyse", str(folder), "--frames", *frames, "--view-step-deg", "20", "--overwrite"]) == 0
+    assert main(["analyse", str(folder), "--frames", *linear_frames, "--view-step-deg", "20", "--overwrite"]) == 0
     linear = json.loads((folder / "analysis" / "analysis.json").read_text())
     assert linear["branches"][0]["diameter_frames_density"]["mean_mm"] == pytest.approx(2.0, abs=0.15)
     assert "densitometry" not in linear["settings"] and not linear["notes"]

@@ -12,6 +12,14 @@ Model
     Fitted by least squares (c, r, A, b₀, b₁; σ known) on three parallel profiles a pixel apart,
     averaged, reaching the guessed width + 4σ + 1 mm to each side of the projected centreline point.
     Width = 2r divided by the point's magnification (SID / source distance): mm at the vessel.
+
+What the model is fitted to
+    Linear counts (LIN, simulated frames): −log I, the absorbance. A frame whose grey level is itself
+    a logarithm of the intensity — a LOG run as stored, or one processed for display (DISP, a
+    vendor's term), whose processing runs on the log image — is read as it is (``grey_is_log_intensity``:
+    −grey, affine in the absorbance; the model's free amplitude and background take the unknown scale
+    and offset). −log of such a grey level would bend the profile and narrow every width (on
+    display-processed angiograms of the QCA tubes by 0.3–0.7 mm, bench/RESULTS.md §79).
 """
 
 from __future__ import annotations
@@ -46,14 +54,22 @@ def fit_profile(x_mm: np.ndarray, absorbance: np.ndarray, psf_sigma_mm: float, g
     return float(radius)
 
 
-def frame_profiles(points_mm, tangents, frame, view, guess_widths_mm, psf_sigma_mm, max_foreshortening):
+def profile_values(frame: np.ndarray, grey_is_log_intensity: bool = False) -> np.ndarray:
+    """What the lumen model is fitted to (module docstring): −log I of linear counts, −grey of a frame whose
+    grey level is a logarithm of the intensity."""
+    image = np.asarray(frame, np.float64)
+    return -image if grey_is_log_intensity else absorbance(image)
+
+
+def frame_profiles(points_mm, tangents, frame, view, guess_widths_mm, psf_sigma_mm, max_foreshortening,
+                   grey_is_log_intensity=False):
     """(index, offsets in detector mm, mean absorbance profile, magnification, guessed width in detector mm,
     foreshortening) of each measurable point: the window reaches the guessed width + 4σ + 1 mm to each
-    side of the projected centreline point."""
+    side of the projected centreline point. ``grey_is_log_intensity``: see ``profile_values``."""
     image = np.asarray(frame, np.float64)
     if image.shape != tuple(view.detector_shape):
         raise ValueError(f"frame shape {image.shape} differs from the view's detector {tuple(view.detector_shape)}")
-    absorbances = absorbance(image)
+    absorbances = profile_values(image, grey_is_log_intensity)
     projected = project_centreline(points_mm, tangents, view)
     row, col, mag, fore = projected.row, projected.col, projected.magnification, projected.foreshortening
     (tr, tc), (nr, nc) = projected.tangent_rc, projected.normal_rc
@@ -72,20 +88,22 @@ def frame_profiles(points_mm, tangents, frame, view, guess_widths_mm, psf_sigma_
 
 
 def frame_widths(points_mm: np.ndarray, tangents: np.ndarray, frame: np.ndarray, view: CArmView,
-                 guess_widths_mm: np.ndarray, psf_sigma_mm: float = DEFAULT_PSF_SIGMA_MM, max_foreshortening: float = 0.7) -> np.ndarray:
+                 guess_widths_mm: np.ndarray, psf_sigma_mm: float = DEFAULT_PSF_SIGMA_MM, max_foreshortening: float = 0.7,
+                 grey_is_log_intensity: bool = False) -> np.ndarray:
     """Width (mm at each point's depth) of the vessel in one view's frame, perpendicular to its projection.
 
     ``frame``: the view's intensity image (vessels dark, as recorded). ``guess_widths_mm``: a first
     width per point (e.g. the mask's), which sets the fitting window; NaN guesses give NaN.
     ``psf_sigma_mm``: the detector blur (Gaussian σ at the detector; ``estimate_psf_sigma_mm``
     when unknown). NaN where the tangent is foreshortened by more than ``max_foreshortening``, the
-    window leaves the frame, or the fit fails.
+    window leaves the frame, or the fit fails. ``grey_is_log_intensity``: the frame's grey level is a logarithm
+    of the intensity (LOG as stored, processed for display; module docstring).
     """
     if not psf_sigma_mm >= 0:
         raise ValueError(f"psf_sigma_mm must not be negative, got {psf_sigma_mm}")
     widths = np.full(len(np.asarray(points_mm)), np.nan)
     for i, x, profile, mag, guess, _ in frame_profiles(points_mm, tangents, frame, view, guess_widths_mm, psf_sigma_mm,
-                                                       max_foreshortening):
+                                                       max_foreshortening, grey_is_log_intensity):
         radius = fit_profile(x, profile, psf_sigma_mm, guess / 2)
         if radius is not None:
             widths[i] = 2.0 * radius / mag
@@ -97,14 +115,15 @@ MIN_BLUR_PROFILES = 10
 
 
 def estimate_psf_sigma_mm(points_mm: np.ndarray, tangents: np.ndarray, frame: np.ndarray, view: CArmView,
-                          guess_widths_mm: np.ndarray, max_foreshortening: float = 0.7) -> Optional[float]:
+                          guess_widths_mm: np.ndarray, max_foreshortening: float = 0.7,
+                          grey_is_log_intensity: bool = False) -> Optional[float]:
     """The detector blur (Gaussian σ, mm at the detector) as the median of free fits of σ along the
     vessels (the model above with σ a sixth parameter); None with fewer than ``MIN_BLUR_PROFILES``
     successful fits. Thick vessels tell it best: their two edges are the blur's own profile."""
     sigmas = []
     # The window is sized for a blur up to _SIGMA_WINDOW_MM, as σ is not known yet.
     for _, x, a, _, guess, _ in frame_profiles(points_mm, tangents, frame, view, guess_widths_mm, _SIGMA_WINDOW_MM,
-                                               max_foreshortening):
+                                               max_foreshortening, grey_is_log_intensity):
         fitted = fit_lumen(x, a, guess / 2, None)
         if fitted is None:
             continue

@@ -270,8 +270,9 @@ def analyse_volume(volume: np.ndarray, grid: VolumeGrid, level: float = 0.5, vie
     ``frames`` (with ``masks``): the views' intensity images; the widths are then also fitted to
     their profiles (``frame_widths.py``, detector blur ``psf_sigma_mm``; None: estimated per view
     from the frames, the default where too few profiles allow it), starting from the masks'.
-    ``densitometry`` False: the frames were processed for display, their widths are fitted but no lumen area
-    is read from their absorbance (``evidence.unreadable_intensity``).
+    ``densitometry`` False: the frames were processed for display (or are LOG as stored), their widths are fitted
+    on the grey level as a logarithm of the intensity and no lumen area is read from their absorbance
+    (``evidence.unreadable_intensity``, ``frame_widths.profile_values``).
     ``centreline_on_masks``: the centreline is re-placed on the masks' midlines (``mask_centreline.py``)
     for the lengths, positions, angles, foreshortening and views, while the 3D sections and the 2D
     widths stay on the volume's own centreline (through the lumen, lesions too); None: where masks of
@@ -475,19 +476,23 @@ def _lesions_missed_in_3d(p: BranchProfile, values: np.ndarray, min_stenosis_pct
 def _fit_frame_widths(profiles: List[BranchProfile], frames: Sequence[np.ndarray], views: Sequence[CArmView],
                       psf_sigma_mm: Optional[float], densitometry: bool = True) -> Dict[str, Any]:
     """Each profile's widths fitted to the frames; the blur used per view (estimated when None). ``densitometry``
-    False (frames processed for display: their grey levels are no absorbance) leaves the lumen areas unread."""
+    False (frames processed for display: their grey levels are no absorbance) leaves the lumen areas unread and
+    fits the widths on the grey level as a logarithm of the intensity (``frame_widths.profile_values``)."""
+    log_grey = not densitometry
     sigmas, estimated = [], []
     for n, (frame, view) in enumerate(zip(frames, views)):
         sigma = psf_sigma_mm
         if sigma is None:
             sigma = estimate_psf_sigma_mm(np.concatenate([p.width_branch.points_mm for p in profiles]),
                                           np.concatenate([p.width_branch.tangents() for p in profiles]), frame, view,
-                                          np.concatenate([p.view_widths_mm[n] for p in profiles]))
+                                          np.concatenate([p.view_widths_mm[n] for p in profiles]),
+                                          grey_is_log_intensity=log_grey)
         estimated.append(psf_sigma_mm is None and sigma is not None)
         sigmas.append(float(DEFAULT_PSF_SIGMA_MM if sigma is None else sigma))
     per_profile = []
     for p in profiles:
-        fitted = np.stack([frame_widths(p.width_branch.points_mm, p.width_branch.tangents(), f, v, w, sigma)
+        fitted = np.stack([frame_widths(p.width_branch.points_mm, p.width_branch.tangents(), f, v, w, sigma,
+                                        grey_is_log_intensity=log_grey)
                            for f, v, w, sigma in zip(frames, views, p.view_widths_mm, sigmas)])
         p.frame_view_widths_mm = fitted
         if densitometry:
