@@ -810,7 +810,7 @@ class SDFCARLogic(ScriptedLoadableModuleLogic):
         from SDFCARLib import mrml
         from SDFCARLib.masks import angiogram_mask, mask_settings_for_intensity
 
-        # a frame processed for display (its DICOM file says DISP or a vendor's term) is segmented without the edge rule
+        # a frame processed for display (its DICOM file says DISP or a vendor's term): the edge rule does not trim it
         tags = self.frameIntensityTags(frameNode, index)
         settings = mask_settings_for_intensity(tags.relationship if tags is not None else None)
         mask, parameters = angiogram_mask(self.frameArray(frameNode, index), pixelSpacingMm, magnification, settings)
