@@ -161,3 +161,25 @@ def test_a_run_processed_for_display_is_segmented_without_the_edge_trim(tmp_path
     assert err.count("processed for display, DRM") == 2
     assert [a["edge_fraction"] for a in json.loads((result / "report.json").read_text())["inputs"]["auto_masks"]] == \
         [DISPLAY_EDGE_FRACTION] * 2
+
+
+def test_an_image_said_to_be_processed_for_display_is_segmented_without_the_edge_trim(tmp_path, capsys):
+    """`segment --image … --image-intensity DISP` (a viewer's export): the display rule, recorded; a --dicom run's
+    relationship comes from its tags, so the option is refused there."""
+    from SDFCARLib.display_processing import display_processed
+    from SDFCARLib.io import write_image_nrrd
+    from SDFCARLib.masks import DISPLAY_EDGE_FRACTION, AngioMaskSettings
+
+    frame = simulate_angiogram(_vessel_line_integral(), 0.3, 7, AngiogramSettings(ribs=1))[0]
+    image = write_image_nrrd(tmp_path / "export.nrrd", display_processed(frame, 0.39))
+    geometry = ["--pixel-spacing", "0.39", "0.39", "--magnification", "1.3"]
+    for given, share in ((["--image-intensity", "DISP"], DISPLAY_EDGE_FRACTION), ([], AngioMaskSettings().edge_fraction)):
+        out = tmp_path / f"mask{len(given)}.png"
+        assert main(["segment", "--image", str(image), *geometry, *given, "--out", str(out)]) == 0
+        report = json.loads(out.with_suffix(".json").read_text())
+        assert report["parameters"]["edge_fraction"] == share
+        assert ("processed for display" in capsys.readouterr().err) == bool(given)
+    assert report["source"].get("pixel_intensity_relationship") is None
+    xa = write_xa(tmp_path / "run.dcm", display_processed(frame, 0.39)[None], bits_stored=8)
+    assert main(["segment", "--dicom", str(xa), "--image-intensity", "DISP", "--out", str(tmp_path / "x.png")]) == 2
+    assert "remove --image-intensity" in capsys.readouterr().err

@@ -19,6 +19,9 @@ def cmd_segment(args: argparse.Namespace) -> int:
     spacing, magnification = args.pixel_spacing, args.magnification
     if bool(args.dicom) == bool(args.image):
         raise ValueError("give one input: --dicom RUN.dcm (with --frame N) or --image FRAME.png")
+    if args.dicom and getattr(args, "image_intensity", None):
+        raise ValueError("--image-intensity says how an --image was made; a --dicom run's Pixel Intensity Relationship "
+                         "is read from its tags: remove --image-intensity")
     segmentation_paths(args.out)  # a wrong --out fails before the work
     if args.dicom:
         from ..dicom import DicomInputError, choose_frame, load_xa, view_from_dicom
@@ -45,7 +48,9 @@ def cmd_segment(args: argparse.Namespace) -> int:
 
         frame = read_image(args.image, what="frame")
         source = {"image": absolute_path(args.image)}
-        relationship = None  # an image file does not say how its grey levels were made
+        relationship = args.image_intensity  # an image file does not say how its grey levels were made
+        if relationship:
+            source["pixel_intensity_relationship"] = f"{relationship} (--image-intensity)"
     settings = mask_settings_for_intensity(relationship, AngioMaskSettings(
         **({"method": args.method} if args.method else {}),
         **({"vessel_radius_mm": tuple(args.vessel_radius_mm)} if args.vessel_radius_mm else {})))

@@ -159,6 +159,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--vessel-radius-mm", type=float, nargs=2, metavar=("MIN", "MAX"), default=None,
                    help="vessel radii to detect, mm at the isocenter (default 0.5 2.5)")
     p.add_argument("--method", choices=("sato", "frangi", "meijering"), default=None, help="ridge filter (default sato)")
+    p.add_argument("--image-intensity", choices=("LIN", "LOG", "DISP"), default=None,
+                   help="with --image: how its grey levels were made, as DICOM's Pixel Intensity Relationship would say "
+                        "(DISP: processed for display, as a viewer's export or a screen capture is; then the mask's edge "
+                        "rule does not trim it); default: not known, the usual rule. A --dicom run says it itself")
     p.add_argument("--out", required=True, help="mask PNG to write (NAME.png; the other files are named after it)")
     p.add_argument("--overwrite", action="store_true", help="replace existing files")
     p.set_defaults(func=cmd_segment)
