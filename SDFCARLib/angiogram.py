@@ -44,7 +44,7 @@ from scipy import ndimage
 
 from .phantoms import beer_lambert_counts
 
-__all__ = ["AngiogramSettings", "simulate_angiogram"]
+__all__ = ["AngiogramSettings", "pixel_spacing_pair", "simulate_angiogram"]
 
 # μ of phantoms.beer_lambert_counts (its default): one vessel attenuation across SDFCARLib.
 _DEFAULT_MU = float(inspect.signature(beer_lambert_counts).parameters["mu_per_mm"].default)
@@ -89,7 +89,8 @@ class AngiogramSettings:
             raise ValueError(f"collimator_transmission must be in [0, 1), got {self.collimator_transmission}")
 
 
-def _pixel_spacing(pixel_spacing_mm: Union[float, Sequence[float]]) -> Tuple[float, float]:
+def pixel_spacing_pair(pixel_spacing_mm: Union[float, Sequence[float]]) -> Tuple[float, float]:
+    """A detector pixel spacing given as one value or (row, col), as (row, col) mm; ValueError unless positive."""
     spacing = np.broadcast_to(np.asarray(pixel_spacing_mm, dtype=float), (2,))
     if not np.all(np.isfinite(spacing)) or np.any(spacing <= 0):
         raise ValueError(f"pixel_spacing_mm must be positive (row, col) mm, got {pixel_spacing_mm}")
@@ -165,7 +166,7 @@ def simulate_angiogram(
         raise ValueError(f"line_integral_mm must be one view's 2-D image, got shape {line_integral.shape}")
     if not np.all(np.isfinite(line_integral)) or line_integral.min() < 0:
         raise ValueError("line_integral_mm must be finite and non-negative (mm of vessel along each ray)")
-    spacing = _pixel_spacing(pixel_spacing_mm)
+    spacing = pixel_spacing_pair(pixel_spacing_mm)
     rng = seed if isinstance(seed, np.random.Generator) else np.random.default_rng(seed)
     shape = line_integral.shape
     background = _background(shape, spacing, s, rng)

@@ -31,6 +31,8 @@ from typing import Any, Sequence, Tuple, Union
 import numpy as np
 from scipy import ndimage
 
+from .angiogram import pixel_spacing_pair
+
 __all__ = ["DISPLAY_INTENSITY", "DisplaySettings", "display_processed", "processed_log_intensity"]
 
 #: the Pixel Intensity Relationship (0028,1040) such a frame carries
@@ -70,13 +72,6 @@ def _sigma_px(sigma_mm: float, spacing_mm: Sequence[float]) -> Tuple[float, floa
     return float(sigma_mm / spacing_mm[0]), float(sigma_mm / spacing_mm[1])
 
 
-def _spacing(pixel_spacing_mm: Union[float, Sequence[float]]) -> Tuple[float, float]:
-    spacing = np.broadcast_to(np.asarray(pixel_spacing_mm, float), (2,))
-    if not np.all(spacing > 0):
-        raise ValueError(f"pixel_spacing_mm must be positive, got {pixel_spacing_mm}")
-    return float(spacing[0]), float(spacing[1])
-
-
 def processed_log_intensity(frame: Any, pixel_spacing_mm: Union[float, Sequence[float]],
                             settings: DisplaySettings = DisplaySettings()) -> np.ndarray:
     """Steps 1–3 of the module docstring: the frame's log-intensity after range compression and edge
@@ -85,7 +80,7 @@ def processed_log_intensity(frame: Any, pixel_spacing_mm: Union[float, Sequence[
     image = np.asarray(frame, np.float64)
     if image.ndim != 2:
         raise ValueError(f"frame must be one 2-D image, got shape {image.shape}")
-    spacing = _spacing(pixel_spacing_mm)
+    spacing = pixel_spacing_pair(pixel_spacing_mm)
     log_intensity = np.log(np.maximum(image, 1.0))
     if settings.range_compression > 0:
         large = ndimage.gaussian_filter(log_intensity, _sigma_px(settings.range_scale_mm, spacing), mode="nearest")

@@ -388,8 +388,11 @@ DISPLAY_EDGE_FRACTION = 0.02
 def frame_processed_for_display(relationship: Optional[str]) -> bool:
     """Whether a frame of this Pixel Intensity Relationship (0028,1040) was processed for display: any value but
     LIN and LOG (DISP, vendors' terms such as GE's DRM); None (not known, e.g. an array or a PNG) is not."""
+    from .dicom.intensity import LOG_INTENSITY
+    from .evidence import LINEAR_INTENSITY
+
     value = str(relationship).strip().upper() if relationship is not None else ""
-    return value not in ("", "LIN", "LOG")
+    return value not in ("", LINEAR_INTENSITY, LOG_INTENSITY)
 
 
 def mask_settings_for_intensity(relationship: Optional[str],

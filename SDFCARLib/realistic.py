@@ -97,7 +97,7 @@ def realistic_input(label: np.ndarray, geometry: Geometry, seed: int,
         if options.display:  # no draw from rng: the scene and its noise are the linear protocol's
             frame = display_processed(frame, view.pixel_spacing_mm)
         try:
-            # as the product segments a frame of that relationship (the edge rule off on display frames)
+            # as the product segments a frame of that relationship (on display frames the edge rule does not trim)
             settings = mask_settings_for_intensity(DISPLAY_INTENSITY if options.display else None,
                                                    AngioMaskSettings(edge_fraction=options.mask_edge_fraction,
                                                                      edge_taper_radius_mm=options.mask_edge_taper_radius_mm,
