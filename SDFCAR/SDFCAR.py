@@ -995,9 +995,10 @@ class SDFCARLogic(ScriptedLoadableModuleLogic):
         from SDFCARLib.dicom.intensity import intensity_tags_of_file
 
         database = getattr(slicer, "dicomDatabase", None)
-        uid, _ = mrml.dicom_frame_reference(slicer.mrmlScene, frameNode, index)
+        uid, frame = mrml.dicom_frame_reference(slicer.mrmlScene, frameNode, index)
         path = database.fileForInstance(uid) if uid and database else None
-        return intensity_tags_of_file(path) if path else None
+        # the frame matters to an enhanced object: its TO_LINEAR LUT may be given per frame
+        return intensity_tags_of_file(path, frame if frame is not None else 0) if path else None
 
     @staticmethod
     def jobFrames(frames, frameNodes, frameIndices):

@@ -128,3 +128,149 @@ def test_load_xa_mirrors_a_lin_run_whose_values_fall_with_intensity(tmp_path):
     run = dicom.load_xa(path)
     assert run.frames_relationship == "LIN" and "mirrored" in run.linearised_note
     np.testing.assert_allclose(run.frames[0], np.round(counts), atol=1e-3)
+
+
+# --- Enhanced XA: the TO_LINEAR Pixel Intensity Relationship LUT (0028,9422) -------------------------------------
+def _exact_to_linear_lut(counts, sign, entries=4096):
+    """The TO_LINEAR LUT that undoes ``_log_stored(counts, sign)`` exactly: stored value → intensity (16 bits)."""
+    log = np.log(counts)
+    v = np.arange(entries, dtype=np.float64)
+    scaled = v if sign > 0 else 4095.0 - v
+    intensity = np.exp(log.min() + (scaled - 500.0) / 3000.0 * (log.max() - log.min()))
+    return np.round(intensity / intensity.max() * 65535.0).astype(np.uint16)
+
+
+def _lut_item(table, first=0, function="TO_LINEAR", as_ow=False):
+    from pydicom.dataset import Dataset
+
+    item = Dataset()
+    item.LUTDescriptor = [len(table) % 65536, first, 16]
+    if as_ow:
+        item.add_new("LUTData", "OW", np.asarray(table, "<u2").tobytes())
+    else:
+        item.add_new("LUTData", "US", [int(t) for t in table])
+    item.LUTFunction = function
+    return item
+
+
+def _enhanced(tmp_path, name, stored, relationship, sign=None, luts=(), per_frame_luts=None, processing=None,
+              photometric="MONOCHROME2", bits=BITS):
+    """An Enhanced XA file of ``stored`` (n, rows, cols) values with its pixel-data properties in the shared
+    functional groups, the given LUT items there (or per frame: ``per_frame_luts``, one list per frame)."""
+    import pydicom
+    from pydicom.dataset import Dataset
+    from pydicom.sequence import Sequence
+
+    from dicom_fixtures import make_enhanced
+
+    stored = np.asarray(stored)
+    handed = (2 ** bits - 1 - stored) if photometric == "MONOCHROME1" else stored  # write_xa stores top − frames
+    classic = write_xa(tmp_path / f"{name}-classic.dcm", handed.astype(np.uint16), VIEW, bits_stored=bits,
+                       photometric=photometric)
+    path = make_enhanced(classic, tmp_path / f"{name}.dcm")
+    ds = pydicom.dcmread(str(path))
+    for keyword in ("PixelIntensityRelationship", "PixelIntensityRelationshipSign"):
+        if keyword in ds:
+            del ds[keyword]
+    shared = ds.SharedFunctionalGroupsSequence[0]
+    properties = shared.FramePixelDataPropertiesSequence[0]
+    properties.PixelIntensityRelationship = relationship
+    if sign is not None:
+        properties.PixelIntensityRelationshipSign = sign
+    if processing is not None:
+        properties.ImageProcessingApplied = processing
+    if luts:
+        shared.PixelIntensityRelationshipLUTSequence = Sequence(list(luts))
+    for item, frame_luts in zip(ds.PerFrameFunctionalGroupsSequence, per_frame_luts or ()):
+        item.PixelIntensityRelationshipLUTSequence = Sequence(list(frame_luts))
+    ds.save_as(str(path), enforce_file_format=True)
+    return path
+
+
+def test_an_enhanced_log_run_is_read_through_its_to_linear_lut_proportional_to_the_intensity(tmp_path):
+    counts, mask = _tube_frame()
+    for sign, as_ow in ((+1, False), (-1, True)):  # the LUT falls with the stored values where they fall with intensity
+        stored = _log_stored(counts, sign)
+        # a TO_LOG item first: only the TO_LINEAR one is read
+        path = _enhanced(tmp_path, f"log{sign}", np.stack([stored, stored]), "LOG", sign,
+                         luts=[_lut_item(np.arange(4096), function="TO_LOG"),
+                               _lut_item(_exact_to_linear_lut(counts, sign), as_ow=as_ow)])
+        run = dicom.load_xa(path)
+        assert run.enhanced and run.pixel_intensity_relationship == "LOG" and run.frames_relationship == "LIN"
+        assert "TO_LINEAR" in run.linearised_note and "(0028,9422)" in run.linearised_note
+        # proportional to the X-ray intensity (the assumed 8-e-fold span is not: its slope differs)
+        ratio = run.frames[1] / counts
+        assert ratio.std() / ratio.mean() < 2e-3
+        fallback = linear_from_log(stored, sign > 0, BITS) / counts
+        assert fallback.std() / fallback.mean() > 0.05
+        linear = view_evidence(counts.astype(np.float32), mask, VIEW)
+        read = view_evidence(run.frames[0], mask, VIEW)
+        assert read.attenuation_per_mm == pytest.approx(linear.attenuation_per_mm, rel=0.01)  # the slope is known now
+        inside = mask & (linear.line_integral_mm > 0.5)
+        np.testing.assert_allclose(read.line_integral_mm[inside], linear.line_integral_mm[inside], rtol=0.02, atol=0.02)
+
+
+def test_a_sqrt_encoded_run_with_a_to_linear_lut_and_a_monochrome1_one_give_the_intensity(tmp_path):
+    counts, _ = _tube_frame()
+    # 8-bit square-root encoding (PS3.17 FFF.2.4.2.4.2), its LUT 256 entries from stored value 0
+    stored = np.round(np.sqrt(counts / counts.max()) * 255.0).astype(np.uint16)
+    lut = np.round((np.arange(256) / 255.0) ** 2 * 65535.0).astype(np.uint16)
+    run = dicom.load_xa(_enhanced(tmp_path, "sqrt", stored[None], "SQRT", luts=[_lut_item(lut)], bits=8))
+    assert run.frames_relationship == "LIN" and "SQRT" in run.linearised_note
+    np.testing.assert_allclose(run.frames[0], lut[stored], rtol=0, atol=0)
+    np.testing.assert_allclose(run.frames[0] / 65535.0, counts / counts.max(), rtol=0.02, atol=2e-4)
+    # MONOCHROME1: load_xa mirrors the stored values; the LUT is still applied to the stored ones
+    log = _log_stored(counts, -1)
+    mono1 = dicom.load_xa(_enhanced(tmp_path, "mono1", log[None], "LOG", -1,
+                                    luts=[_lut_item(_exact_to_linear_lut(counts, -1))], photometric="MONOCHROME1"))
+    assert mono1.inverted and mono1.frames_relationship == "LIN"
+    ratio = mono1.frames[0] / counts
+    assert ratio.std() / ratio.mean() < 2e-3
+    # the header alone (as the Slicer module reads it) gives the same frames from the mirrored values Slicer hands over
+    tags = intensity_tags_of_file(tmp_path / "mono1.dcm", frame=0)
+    assert tags.to_linear is not None and tags.usable_lut() is tags.to_linear
+    frames, relationship, note = linearised(4095.0 - log.astype(np.float32), tags, inverted=True)
+    assert relationship == "LIN" and "TO_LINEAR" in note
+    np.testing.assert_allclose(frames, mono1.frames[0])
+
+
+def test_each_frame_is_read_through_its_own_lut(tmp_path):
+    counts, _ = _tube_frame()
+    stored = _log_stored(counts, +1)
+    exact = _exact_to_linear_lut(counts, +1)
+    half = (exact // 2).astype(np.uint16)
+    run = dicom.load_xa(_enhanced(tmp_path, "per-frame", np.stack([stored, stored]), "LOG", 1,
+                                  per_frame_luts=[[_lut_item(exact)], [_lut_item(half)]]))
+    assert run.frames_relationship == "LIN"
+    np.testing.assert_allclose(run.frames[0], exact[stored])
+    np.testing.assert_allclose(run.frames[1], half[stored])
+
+
+def test_a_lut_is_not_used_on_filtered_display_frames_or_where_it_is_not_monotonic(tmp_path):
+    counts, _ = _tube_frame()
+    stored = np.round(np.sqrt(counts / counts.max()) * 255.0).astype(np.uint16)
+    lut = np.round((np.arange(256) / 255.0) ** 2 * 65535.0).astype(np.uint16)
+    # DISP with an edge enhancement: the LUT cannot undo it — the frames stay DISP, said so
+    filtered = dicom.load_xa(_enhanced(tmp_path, "disp-hp", stored[None], "DISP", luts=[_lut_item(lut)],
+                                       processing="HIGH_PASS_FILTER", bits=8))
+    assert filtered.frames_relationship == "DISP" and "not used" in filtered.linearised_note
+    assert "HIGH_PASS_FILTER" in filtered.linearised_note
+    np.testing.assert_array_equal(filtered.frames[0], stored.astype(np.float32))
+    assert unreadable_intensity(filtered.frames_relationship) is not None
+    # DISP without spatial processing (a grey-level map only): read through it
+    plain = dicom.load_xa(_enhanced(tmp_path, "disp-none", stored[None], "DISP", luts=[_lut_item(lut)],
+                                    processing="NONE", bits=8))
+    assert plain.frames_relationship == "LIN"
+    np.testing.assert_allclose(plain.frames[0], lut[stored])
+    # a LUT that goes up and down maps nothing: a LOG run falls back on the assumed span, and says why
+    log = _log_stored(counts, +1)
+    zigzag = np.tile(np.array([0, 65535], np.uint16), 2048)
+    run = dicom.load_xa(_enhanced(tmp_path, "zigzag", log[None], "LOG", 1, luts=[_lut_item(zigzag)]))
+    assert run.frames_relationship == "LIN" and "not monotonic" in run.linearised_note
+    np.testing.assert_allclose(run.frames[0], linear_from_log(log, True, BITS), rtol=1e-5)
+    # values below the LUT's first mapped value take its first entry, above its last the last
+    from SDFCARLib.dicom.intensity import IntensityLUT
+
+    clamp = IntensityLUT(10, np.array([1.0, 2.0, 3.0]), 16)
+    assert clamp(np.array([0, 10, 11, 12, 50])).tolist() == [1.0, 1.0, 2.0, 3.0, 3.0]
+    assert clamp.direction == 1 and IntensityLUT(0, np.array([3.0, 3.0]), 16).direction == 0

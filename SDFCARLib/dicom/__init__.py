@@ -8,7 +8,8 @@ works for all of them.
     ``check_decodable``, the SOP classes, ``tag_label`` and ``DicomInputError``.
 ``intensity``
     The grey levels against the X-ray intensity (0028,1040 and its Sign): ``IntensityTags``,
-    ``intensity_tags_of_file`` (header only) and ``linearised`` (LOG frames on a linear scale).
+    ``intensity_tags_of_file`` (header only) and ``linearised`` (LOG frames, or frames with an enhanced
+    object's TO_LINEAR LUT, on a linear scale).
 ``frames``
     Frame times, end diastole (ECG tags and waveforms), ``contrast_scores`` and ``choose_frame``.
 ``geometry``

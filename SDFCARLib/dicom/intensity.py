@@ -19,12 +19,20 @@ Conventions
     off the same frame (``evidence.estimate_attenuation_per_mm``), the motion search by each view's
     total, the densitometry by its own fit of the frame. The offset is a constant absorbance, which
     the background subtraction removes.
+    Enhanced XA/XRF objects may say it exactly: a Pixel Intensity Relationship LUT (0028,9422) item whose
+    LUT Function (0028,9474) is ``TO_LINEAR`` maps the stored values onto a scale linear in the X-ray
+    intensity (required where the relationship is LOG; PS3.3 C.7.6.16.2.13, PS3.17 FFF.2.3.1.3.4). Where
+    one is present it is used instead of the assumed span, for LOG and for other pointwise encodings
+    (e.g. SQRT). A DISP frame is read through it only where Image Processing Applied (0028,9446) says no
+    spatial filter was applied: a LUT undoes a grey-level mapping, not an edge enhancement. The LUT's
+    output is taken as proportional to the intensity, rising or falling as its slope and the stored
+    values' direction say; a LUT that is not monotonic is not used (and said so).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any, Optional, Tuple
+from typing import Any, List, Optional, Tuple
 
 import numpy as np
 
@@ -36,6 +44,77 @@ LOG_SPAN_E_FOLDS = 8.0
 #: floor of 1 that −log I applies (``lumen_profile.absorbance``)
 LINEAR_PEAK_COUNTS = 65535.0
 LOG_INTENSITY = "LOG"
+DISPLAY_INTENSITY = "DISP"
+#: LUT Function (0028,9474) of the Pixel Intensity Relationship LUT that gives values linear in the intensity
+TO_LINEAR = "TO_LINEAR"
+#: Image Processing Applied (0028,9446) terms after which a DISP frame's grey levels are still a pointwise map of
+#: the intensity (frame averaging is temporal and linear); anything else (HIGH_PASS_FILTER, …) filtered the frame
+POINTWISE_PROCESSING = frozenset({"NONE", "FRAME_AVERAGING"})
+
+
+@dataclass(frozen=True)
+class IntensityLUT:
+    """A TO_LINEAR Pixel Intensity Relationship LUT: stored value v maps to ``values[v − first_mapped]``
+    (clamped to the first and last entry, as every DICOM LUT)."""
+
+    first_mapped: int
+    values: np.ndarray  # float64, one entry per stored value from first_mapped on
+    bits: int  # bits per entry (LUT Descriptor's third value)
+
+    def __call__(self, stored: np.ndarray) -> np.ndarray:
+        index = np.clip(np.rint(np.asarray(stored, np.float64)).astype(np.int64) - self.first_mapped, 0,
+                        self.values.size - 1)
+        return self.values[index]
+
+    @property
+    def direction(self) -> int:
+        """+1 where the LUT rises with the stored value, −1 where it falls, 0 where it is neither (not monotonic or flat)."""
+        step = np.diff(self.values)
+        if self.values.size < 2 or not np.any(step):
+            return 0
+        return 1 if np.all(step >= 0) else -1 if np.all(step <= 0) else 0
+
+
+def lut_from_item(item: Any) -> IntensityLUT:
+    """An ``IntensityLUT`` from a LUT item's LUT Descriptor (0028,3002) and LUT Data (0028,3006): number of entries
+    (0 means 65536), first stored value mapped, bits per entry; the data one entry per 16-bit word (US or OW)."""
+    descriptor = [int(v) for v in item.LUTDescriptor]
+    entries, first, bits = descriptor[0] or 65536, descriptor[1], descriptor[2]
+    data = item.LUTData
+    if isinstance(data, (bytes, bytearray)):
+        data = np.frombuffer(bytes(data), dtype="<u2")  # OW in an explicit or implicit little-endian object
+    values = np.asarray(data, np.float64).ravel()[:entries]
+    if values.size == 0:
+        raise ValueError("the LUT has no data")
+    return IntensityLUT(first, values, bits)
+
+
+def _lut_items(ds: Any, frame: int) -> List[Any]:
+    """The items of the Pixel Intensity Relationship LUT Sequence (0028,9422) of ``frame``: a functional group, so
+    the sequence sits directly in the per-frame or shared group item (or, in a non-enhanced object, at the top)."""
+    keyword = "PixelIntensityRelationshipLUTSequence"
+    if ds.get(keyword):
+        return list(ds[keyword].value)
+    for groups, index in ((ds.get("PerFrameFunctionalGroupsSequence"), frame), (ds.get("SharedFunctionalGroupsSequence"), 0)):
+        if groups and index < len(groups) and groups[index].get(keyword):
+            return list(groups[index][keyword].value)
+    return []
+
+
+def to_linear_lut(ds: Any, frame: int = 0) -> Tuple[Optional[IntensityLUT], Optional[str]]:
+    """(the frame's TO_LINEAR LUT or None, why a present one cannot be used or None)."""
+    for item in _lut_items(ds, frame):
+        if str(item.get("LUTFunction", "")).strip().upper() != TO_LINEAR:
+            continue
+        try:
+            lut = lut_from_item(item)
+        except Exception as exc:  # a damaged item: the frames are read as without it
+            return None, f"its TO_LINEAR Pixel Intensity Relationship LUT (0028,9422) cannot be read ({exc})"
+        if lut.direction == 0:
+            return None, ("its TO_LINEAR Pixel Intensity Relationship LUT (0028,9422) is not monotonic, so it cannot map "
+                          "the stored values onto the intensity: it was not used")
+        return lut, None
+    return None, None
 
 
 @dataclass(frozen=True)
@@ -46,6 +125,18 @@ class IntensityTags:
     sign: Optional[int]  # (0028,1041): +1, −1; None when absent or not ±1
     photometric: str  # MONOCHROME1 / MONOCHROME2
     bits_stored: int
+    to_linear: Optional[IntensityLUT] = None  # an enhanced object's TO_LINEAR LUT (0028,9422) of the frame
+    image_processing: Tuple[str, ...] = ()  # Image Processing Applied (0028,9446), upper case; () when absent
+    lut_problem: Optional[str] = None  # why a TO_LINEAR LUT present could not be used
+
+    def usable_lut(self) -> Optional[IntensityLUT]:
+        """The TO_LINEAR LUT where the frames are read through it (module docstring), else None."""
+        if self.to_linear is None or self.relationship == LINEAR_INTENSITY:
+            return None
+        if self.relationship == DISPLAY_INTENSITY and not (self.image_processing and
+                                                           set(self.image_processing) <= POINTWISE_PROCESSING):
+            return None
+        return self.to_linear
 
     def larger_means_more_intensity(self, inverted: bool) -> Tuple[bool, str]:
         """Whether larger values of the frame as handed over mean more X-ray intensity, and from what:
@@ -59,28 +150,33 @@ class IntensityTags:
         return (stored > 0) != bool(inverted), source
 
 
-def intensity_tags(ds: Any) -> IntensityTags:
-    """``IntensityTags`` of a pydicom dataset (top level or an enhanced object's functional groups)."""
+def intensity_tags(ds: Any, frame: int = 0) -> IntensityTags:
+    """``IntensityTags`` of a pydicom dataset's ``frame`` (top level or an enhanced object's functional groups)."""
     from .read import lookup
 
-    relationship, _ = lookup(ds, "PixelIntensityRelationship")
-    sign, _ = lookup(ds, "PixelIntensityRelationshipSign")
+    relationship, _ = lookup(ds, "PixelIntensityRelationship", frame)
+    sign, _ = lookup(ds, "PixelIntensityRelationshipSign", frame)
+    processing, _ = lookup(ds, "ImageProcessingApplied", frame)
+    processing = () if processing is None else tuple(
+        str(v).strip().upper() for v in ([processing] if isinstance(processing, str) else processing))
+    lut, problem = to_linear_lut(ds, frame)
     try:
         sign = int(sign) if sign is not None and int(sign) in (-1, 1) else None
     except (TypeError, ValueError):
         sign = None
     bits = ds.get("BitsStored", ds.get("BitsAllocated", 16))
     return IntensityTags(None if relationship is None else str(relationship).strip().upper() or None, sign,
-                         str(ds.get("PhotometricInterpretation", "MONOCHROME2")).strip().upper(), int(bits or 16))
+                         str(ds.get("PhotometricInterpretation", "MONOCHROME2")).strip().upper(), int(bits or 16),
+                         lut, processing, problem)
 
 
-def intensity_tags_of_file(path: Any) -> Optional[IntensityTags]:
-    """``IntensityTags`` read from a DICOM file's header alone (no pixel data decoded); None when the file
-    cannot be read as DICOM."""
+def intensity_tags_of_file(path: Any, frame: int = 0) -> Optional[IntensityTags]:
+    """``IntensityTags`` of a frame read from a DICOM file's header alone (no pixel data decoded); None when the
+    file cannot be read as DICOM. A negative ``frame`` (Slicer's "the current one") reads frame 0."""
     import pydicom
 
     try:
-        return intensity_tags(pydicom.dcmread(str(path), stop_before_pixels=True))
+        return intensity_tags(pydicom.dcmread(str(path), stop_before_pixels=True), max(int(frame), 0))
     except Exception:  # not DICOM, unreadable: nothing is known of its grey levels
         return None
 
@@ -103,11 +199,32 @@ def rising_from_falling(values: np.ndarray, bits_stored: int) -> np.ndarray:
     return (top - v).astype(np.float32)
 
 
+def linear_from_lut(values: np.ndarray, tags: IntensityTags, lut: IntensityLUT, inverted: bool
+                    ) -> Tuple[np.ndarray, str]:
+    """(frames on the LUT's linear scale, float32, larger = more intensity; the note saying so). ``values`` as
+    handed over: mirrored for MONOCHROME1 where ``inverted`` (undone here: the LUT maps the stored values)."""
+    stored = (2.0 ** tags.bits_stored - 1.0) - np.asarray(values, np.float64) if inverted else values
+    stored_rises, source = tags.larger_means_more_intensity(False)
+    linear = lut(stored)
+    rises = (lut.direction > 0) == stored_rises
+    if not rises:  # a LUT falling where the stored values rise (or the reverse): linear, but upside down
+        linear = rising_from_falling(linear, lut.bits)
+    note = (f"its Pixel Intensity Relationship (0028,1040) is {tags.relationship or 'not given'}: the frames were read "
+            f"through its TO_LINEAR Pixel Intensity Relationship LUT (0028,9422) ({lut.values.size} entries from stored "
+            f"value {lut.first_mapped}, {lut.bits} bits; {source}), so their path lengths are read")
+    return np.asarray(linear, np.float32), note
+
+
 def linearised(values: np.ndarray, tags: Optional[IntensityTags], inverted: bool = False
                ) -> Tuple[np.ndarray, Optional[str], Optional[str]]:
-    """(frames, the relationship of the frames returned, a note or None): LOG frames on a linear scale
-    (then ``LIN``), LIN frames whose explicit Sign says their values fall with intensity mirrored (module
-    docstring); any other frames unchanged with their own relationship (None when not known)."""
+    """(frames, the relationship of the frames returned, a note or None): frames through a usable TO_LINEAR LUT
+    and LOG frames on a linear scale (then ``LIN``), LIN frames whose explicit Sign says their values fall with
+    intensity mirrored (module docstring); any other frames unchanged with their own relationship (None when not
+    known), a present LUT that could not be used said in the note."""
+    lut = tags.usable_lut() if tags is not None else None
+    if lut is not None:
+        frames, note = linear_from_lut(values, tags, lut, inverted)
+        return frames, LINEAR_INTENSITY, note
     if tags is not None and tags.relationship == LINEAR_INTENSITY and tags.sign is not None:
         larger, source = tags.larger_means_more_intensity(inverted)
         if larger:
@@ -116,9 +233,17 @@ def linearised(values: np.ndarray, tags: Optional[IntensityTags], inverted: bool
                 f"({source}{', after the reader mirrored MONOCHROME1' if inverted else ''}): the frames were mirrored "
                 "onto their stored range, so that larger means more intensity")
         return rising_from_falling(values, tags.bits_stored), LINEAR_INTENSITY, note
+    unused = None
+    if tags is not None and tags.relationship != LINEAR_INTENSITY:
+        unused = tags.lut_problem or (
+            "its TO_LINEAR Pixel Intensity Relationship LUT (0028,9422) was not used: Image Processing Applied "
+            f"(0028,9446) is {'/'.join(tags.image_processing) or 'not given'}, and a LUT does not undo a spatial "
+            "filter" if tags.to_linear is not None else None)
     if tags is None or tags.relationship != LOG_INTENSITY:
-        return values, None if tags is None else tags.relationship, None
+        return values, None if tags is None else tags.relationship, unused
     larger, source = tags.larger_means_more_intensity(inverted)
     note = (f"its Pixel Intensity Relationship (0028,1040) is LOG: the frames were brought to a linear scale "
             f"({source}; the slope is not recorded and each view's is fitted away), so their path lengths are read")
+    if unused:
+        note = f"{unused}; {note}"
     return linear_from_log(values, larger, tags.bits_stored), LINEAR_INTENSITY, note

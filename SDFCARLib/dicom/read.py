@@ -100,7 +100,8 @@ class XARun:
     photometric: str
     bits_stored: int
     inverted: bool  # MONOCHROME1 was inverted
-    linearised_note: Optional[str] = None  # set where LOG frames were linearised, or falling LIN ones mirrored (``intensity``)
+    linearised_note: Optional[str] = None  # how the frames were brought to a linear scale, or why not (``intensity``)
+    read_relationship: Optional[str] = None  # the relationship of ``frames`` (``intensity.linearised``)
 
     @property
     def sop_class_name(self) -> str:
@@ -132,8 +133,9 @@ class XARun:
 
     @property
     def frames_relationship(self) -> Optional[str]:
-        """The relationship of ``frames`` as read: LIN where LOG frames were linearised (or LIN ones mirrored), else the tag's."""
-        return LINEAR_INTENSITY if self.linearised_note else self.pixel_intensity_relationship
+        """The relationship of ``frames`` as read: LIN where they were brought to a linear scale (a TO_LINEAR LUT, LOG
+        frames) or LIN ones mirrored, else the tag's."""
+        return self.read_relationship
 
     def lookup(self, keyword: str, frame: int = 0) -> Tuple[Any, Optional[str]]:
         """(value, where) of a non-empty attribute: top level, else the per-frame then shared
@@ -276,6 +278,18 @@ def load_xa(path: PathLike) -> XARun:
         lo, hi = (-(2 ** (bits - 1)), 2 ** (bits - 1) - 1) if signed else (0, 2**bits - 1)
         values = np.float32((lo * slope + intercept) + (hi * slope + intercept)) - values
         run.inverted = True
-    # LOG frames on a linear scale, so that −log I is absorbance wherever the frames are read
-    run.frames, _, run.linearised_note = linearised(values, intensity_tags(ds), run.inverted)
+    # LOG frames (or through a TO_LINEAR LUT) on a linear scale, so that −log I is absorbance wherever they are read
+    tags = intensity_tags(ds)
+    if tags.to_linear is None and tags.lut_problem is None:
+        run.frames, run.read_relationship, run.linearised_note = linearised(values, tags, run.inverted)
+        return run
+    # an enhanced object's LUT is a functional group: each frame is read through its own
+    read = [linearised(values[f], intensity_tags(ds, f), run.inverted) for f in range(n)]
+    run.frames = np.stack([np.asarray(frame, np.float32) for frame, _, _ in read])
+    relationships = {relationship for _, relationship, _ in read}
+    notes = list(dict.fromkeys(note for _, _, note in read if note))
+    if len(relationships) > 1:
+        raise DicomInputError(f"{path}: its frames' Pixel Intensity Relationship LUTs (0028,9422) read some frames on "
+                              f"a linear scale and not others ({'; '.join(notes)}); export the run again, or one frame")
+    run.read_relationship, run.linearised_note = relationships.pop(), "; ".join(notes) or None
     return run
