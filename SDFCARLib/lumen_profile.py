@@ -22,6 +22,9 @@ from scipy import ndimage, optimize
 _QUADRATURE = np.linspace(-4.0, 4.0, 41)  # Gaussian nodes, in units of σ
 _WEIGHTS = np.exp(-0.5 * _QUADRATURE ** 2) / np.exp(-0.5 * _QUADRATURE ** 2).sum()
 DEFAULT_PSF_SIGMA_MM = 0.3  # a flat-panel detector's blur, about 1.5–2 pixels (the simulated angiograms' too)
+#: the 3D-QCA's default blur: DEFAULT_PSF_SIGMA_MM on frames that keep the intensity, estimated on frames processed
+#: for display, whose sharpening is no detector blur (``analysis.pipeline.psf_for_frames``)
+PSF_BY_FRAMES = "by frames"
 SIGMA_RANGE_MM = (0.01, 2.0)  # bounds of a free blur fit
 
 

@@ -214,3 +214,42 @@ def test_the_frame_diameters_reach_the_slicer_profile_table(tmp_path, tube_frame
     plain_scene = new_scene()
     plain = add_analysis_nodes(plain_scene, tmp_path / "no-frames")["series"][0].GetTableNode().GetTable()
     assert plain.GetColumnByName("diameter_frames_mm") is None
+
+
+def test_on_display_processed_frames_the_blur_is_estimated_unless_given(tmp_path, tube_frames):
+    """A DISP run's sharpening is no detector blur: by default analyse estimates the blur of such frames (report.json
+    says they were processed for display) and keeps 0.3 mm on frames that hold the intensity."""
+    import json
+
+    from SDFCARLib.analysis.pipeline import psf_for_frames
+    from SDFCARLib.cli import main
+    from SDFCARLib.display_processing import display_processed
+    from SDFCARLib.io import write_image_nrrd, write_json
+    from SDFCARLib.lumen_profile import DEFAULT_PSF_SIGMA_MM, PSF_BY_FRAMES
+
+    realistic, _, _ = tube_frames
+    folder, _, frames = _tube_result_folder(tmp_path, realistic)
+    assert main(["analyse", str(folder), "--frames", *frames, "--view-step-deg", "20"]) == 0
+    linear = json.loads((folder / "analysis" / "analysis.json").read_text())["settings"]
+    assert linear["psf_sigma_estimated"] == [False, False] and linear["psf_sigma_mm"] == [DEFAULT_PSF_SIGMA_MM] * 2
+    shown = [str(write_image_nrrd(tmp_path / f"shown{n}.nrrd", display_processed(f, v.pixel_spacing_mm)))
+             for n, (f, v) in enumerate(zip(realistic.frames, VIEWS), start=1)]
+    report = json.loads((folder / "report.json").read_text())
+    write_json(folder / "report.json", {**report, "frame_intensity": ["DISP", "DISP"]})
+    diameters = {}
+    for name, extra in (("default", []), ("given", ["--psf-sigma-mm", "0.3"])):
+        assert main(["analyse", str(folder), "--frames", *shown, "--view-step-deg", "20", "--out",
+                     str(tmp_path / name)] + extra) == 0
+        data = json.loads((tmp_path / name / "analysis.json").read_text())
+        diameters[name] = data["branches"][0]["diameter_frames"]["mean_mm"]
+        if name == "default":  # estimated: sharper than the detector's 0.3 mm
+            assert data["settings"]["psf_sigma_estimated"] == [True, True]
+            assert all(0.05 < s < 0.25 for s in data["settings"]["psf_sigma_mm"])
+        else:
+            assert data["settings"]["psf_sigma_estimated"] == [False, False]
+    # the sharpened edges narrow the 2 mm tube less read with the estimated blur
+    assert abs(diameters["default"] - 2.0) < abs(diameters["given"] - 2.0)
+    assert psf_for_frames(PSF_BY_FRAMES, True) == DEFAULT_PSF_SIGMA_MM and psf_for_frames(PSF_BY_FRAMES, False) is None
+    assert psf_for_frames(0.4, False) == 0.4 and psf_for_frames(None, True) is None
+    with pytest.raises(ValueError, match="psf_sigma_mm"):
+        psf_for_frames("fast", True)

@@ -38,7 +38,7 @@ import json
 import sys
 import time
 from pathlib import Path
-from typing import Dict, List, Optional
+from typing import Dict, List, Optional, Union
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -55,6 +55,7 @@ from SDFCARLib.angiogram import AngiogramSettings  # noqa: E402
 from SDFCARLib.geometry import Geometry, VolumeGrid, standard_geometry  # noqa: E402
 from SDFCARLib.phantoms import lad_tree, rca_tree  # noqa: E402
 from SDFCARLib.settings import parse_setting_overrides  # noqa: E402
+from SDFCARLib.lumen_profile import PSF_BY_FRAMES  # noqa: E402
 
 VIEW_SETS = ("lao30-rao30", "lao30-rao30-cra30")  # --views: the acquisitions (standard_geometry's names)
 VIEWS = list(standard_geometry(VIEW_SETS[0]).views)  # filled in place by --views, so score's default follows
@@ -126,7 +127,7 @@ def score(phantom, volume, grid, level, masks, ostium, view_step_deg, frames=Non
     if ANALYSE_WITHOUT_FRAMES:  # as analyse does where the user gives masks only
         frames = None
     r = analyse_volume(volume, grid, level=level, views=views, masks=masks, ostium_mm=ostium, view_step_deg=view_step_deg,
-                       frames=frames, psf_sigma_mm=AngiogramSettings().psf_sigma_mm, centreline_on_masks=centreline_on_masks,
+                       frames=frames, psf_sigma_mm=PSF_SIGMA_MM[0], centreline_on_masks=centreline_on_masks,
                        search_masks=SEARCH_MASKS, densitometry=not DISPLAY_FRAMES)
     elapsed = time.perf_counter() - t0
     tp, td, tw, tnames, tarc = _truth_samples(phantom)
@@ -377,6 +378,9 @@ SEARCH_MASKS = True  # analyse_volume's search_masks (--no-masks-search: off, th
 # --display: the segmented masks' angiograms processed for display (``display_processing.py``) before they are
 # segmented and read, and analysed as ``analyse`` reads a DISP run (edges only, no densitometry)
 DISPLAY_FRAMES = False
+#: the detector blur the analysis assumes (--psf-sigma-mm): analyse's default (the simulation's own 0.3 mm on linear
+#: frames, estimated on display ones); None estimates it from any frames
+PSF_SIGMA_MM: List[Union[float, None, str]] = [PSF_BY_FRAMES]
 
 RECON_TUBES = [  # the recon suite's ten tubes: name, stenosed_tube's parameters
     ("50%/10mm/3mm/con", dict(stenosis_pct=50, lesion_length_mm=10, diameter_mm=3.0, eccentric=False)),
@@ -588,6 +592,10 @@ def main(argv=None) -> int:
     ap.add_argument("--end-probe-radii", type=float, default=None, metavar="RADII",
                     help="the analysis's END_PROBE_RADII (0: off): a free end's extension reads the lumen across a "
                          "disk of this many vessel radii about its line (RESULTS §63c)")
+    ap.add_argument("--psf-sigma-mm", default=None, metavar="MM|auto",
+                    help="the detector blur the analysis's frame widths assume (default: analyse's — the "
+                         f"simulation's {AngiogramSettings().psf_sigma_mm} mm on linear frames, estimated on --display "
+                         "ones); auto: estimated from any frames, as analyse --psf-sigma-mm auto")
     ap.add_argument("--view-step-deg", type=float, default=2.0)
     ap.add_argument("--views", choices=VIEW_SETS, default=VIEW_SETS[0],
                     help="the acquisitions: two views, or a third at AP cranial 30 (masks, frames, motion and the "
@@ -623,6 +631,12 @@ def main(argv=None) -> int:
     ANALYSE_WITHOUT_FRAMES, SEARCH_MASKS, DISPLAY_FRAMES = args.no_frames, not args.no_masks_search, args.display
     if DISPLAY_FRAMES:
         print("# frames processed for display (DISP): masks segmented on them, edges only", flush=True)
+    if args.psf_sigma_mm is not None:
+        try:
+            PSF_SIGMA_MM[0] = None if args.psf_sigma_mm.lower() == "auto" else float(args.psf_sigma_mm)
+        except ValueError:
+            ap.error(f"--psf-sigma-mm {args.psf_sigma_mm!r}: give a blur in mm (0 or more) or auto")
+        print(f"# psf_sigma_mm {PSF_SIGMA_MM[0] if PSF_SIGMA_MM[0] is not None else 'auto'}", flush=True)
     if args.end_probe_radii is not None:
         from SDFCARLib.analysis import centreline
 

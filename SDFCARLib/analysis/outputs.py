@@ -32,7 +32,7 @@ from ..evidence import unreadable_intensity
 from ..geometry import Geometry
 from ..io import InputError, read_image, read_label, read_mask, read_volume, write_json
 from ..outputs import staged_directory
-from .pipeline import (FOUND_ON_FRAMES, FOUND_ON_MASKS, GRADED_ON_3D, QCAResult, SegmentError, analyse_volume,
+from .pipeline import (FOUND_ON_FRAMES, FOUND_ON_MASKS, GRADED_ON_3D, PSF_BY_FRAMES, QCAResult, SegmentError, analyse_volume,
                        lesion_grade, summary, unseen_on)
 
 PathLike = Union[str, Path]
@@ -233,11 +233,11 @@ def _masks_for(report: Dict[str, Any], geometry: Optional[Geometry], masks: Opti
 
 
 def _frames_for(geometry: Optional[Geometry], view_masks, frames: Optional[Sequence[PathLike]],
-                psf_sigma_mm: Optional[float]):
+                psf_sigma_mm: Union[float, None, str]):
     if not frames:
         return None
-    if psf_sigma_mm is not None and not psf_sigma_mm >= 0:
-        raise InputError(f"--psf-sigma-mm must be a blur in mm at the detector (0 or more, default 0.3) or 'auto', "
+    if psf_sigma_mm != PSF_BY_FRAMES and psf_sigma_mm is not None and not psf_sigma_mm >= 0:
+        raise InputError(f"--psf-sigma-mm must be a blur in mm at the detector (0 or more; default 0.3, estimated on frames processed for display) or 'auto', "
                          f"got {psf_sigma_mm}")
     if geometry is None or view_masks is None:
         raise InputError("--frames needs the views' geometry and masks (report.json's or --masks): the masks' widths "
@@ -308,14 +308,15 @@ def analyse_result_dir(result_dir: PathLike, out_dir: Optional[PathLike] = None,
                        masks: Optional[Sequence[PathLike]] = None, ostium_mm: Optional[Sequence[float]] = None,
                        view_step_deg: float = 2.0, min_stenosis_pct: float = 20.0,
                        min_component_share: Optional[float] = None, frames: Optional[Sequence[PathLike]] = None,
-                       psf_sigma_mm: Optional[float] = 0.3, centreline_on_masks: Optional[bool] = None,
+                       psf_sigma_mm: Union[float, None, str] = PSF_BY_FRAMES, centreline_on_masks: Optional[bool] = None,
                        segment_mm: Optional[Sequence[Sequence[float]]] = None) -> Dict[str, Path]:
     """Analyse a reconstruction's result folder and write the QCA files (module docstring); return their paths.
 
     ``frames``: the views' intensity images (vessels dark), one per view: the widths are then also
     fitted to their profiles (``frame_widths.py``; needs the masks, which give the first guess) and the
     lumen area read from their absorbance (``frame_density.py``);
-    ``psf_sigma_mm`` None estimates the detector blur from the frames; ``centreline_on_masks``: see
+    ``psf_sigma_mm`` None estimates the detector blur from the frames (``pipeline.PSF_BY_FRAMES``, the default:
+    0.3 mm, estimated where report.json says the frames were processed for display); ``centreline_on_masks``: see
     ``pipeline.analyse_volume`` (None: on where the masks of two views or more are found);
     ``segment_mm``: two points (LPS mm) marking the target segment (``pipeline.segment_between``)."""
     result_dir = Path(result_dir)

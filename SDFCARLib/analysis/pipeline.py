@@ -99,12 +99,13 @@ Target segment of the best-view map
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any, Callable, Dict, List, Optional, Sequence
+from typing import Any, Callable, Dict, List, Optional, Sequence, Union
 
 import numpy as np
 from scipy.spatial import cKDTree
 
 from ..geometry import CArmView, VolumeGrid
+from ..lumen_profile import PSF_BY_FRAMES
 from .centreline import CentrelineBranch, CentrelineTree, bifurcation_angles, extract_centrelines
 from .diameter import (CrossSections, branch_cross_sections, ellipse_diameter, junction_zones, mask_diameters,
                        views_to_use)
@@ -259,7 +260,7 @@ def analyse_volume(volume: np.ndarray, grid: VolumeGrid, level: float = 0.5, vie
                    target: Optional[Dict[str, Any]] = None, best_view: bool = True,
                    min_component_share: float = MIN_COMPONENT_SHARE,
                    bridges: Sequence[Dict[str, Any]] = (), frames: Optional[Sequence[np.ndarray]] = None,
-                   psf_sigma_mm: Optional[float] = DEFAULT_PSF_SIGMA_MM,
+                   psf_sigma_mm: Union[float, None, str] = PSF_BY_FRAMES,
                    centreline_on_masks: Optional[bool] = None,
                    segment_mm: Optional[Sequence[Sequence[float]]] = None, search_masks: bool = True,
                    centre_on_sections: bool = True, densitometry: bool = True) -> QCAResult:
@@ -269,7 +270,9 @@ def analyse_volume(volume: np.ndarray, grid: VolumeGrid, level: float = 0.5, vie
     ``bridges``: the gaps reconnection filled (report.json ``reconnection.bridges``), LPS mm.
     ``frames`` (with ``masks``): the views' intensity images; the widths are then also fitted to
     their profiles (``frame_widths.py``, detector blur ``psf_sigma_mm``; None: estimated per view
-    from the frames, the default where too few profiles allow it), starting from the masks'.
+    from the frames, the default where too few profiles allow it; ``PSF_BY_FRAMES``: ``DEFAULT_PSF_SIGMA_MM``
+    on frames that keep the intensity, estimated on frames processed for display, ``densitometry`` False, whose
+    sharpening is no detector blur — bench/RESULTS.md §80b), starting from the masks'.
     ``densitometry`` False: the frames were processed for display (or are LOG as stored), their widths are fitted
     on the grey level as a logarithm of the intensity and no lumen area is read from their absorbance
     (``evidence.unreadable_intensity``, ``frame_widths.profile_values``).
@@ -350,7 +353,7 @@ def analyse_volume(volume: np.ndarray, grid: VolumeGrid, level: float = 0.5, vie
     fore = {b.branch_id: [foreshortening(b.points_mm, v) for v in views] for b in tree.branches if len(b.points_mm) > 1}
     blur: Dict[str, Any] = {}
     if frames is not None and profiles:  # before the target: the worst lesion is the worst graded one
-        blur = _fit_frame_widths(profiles, frames, views, psf_sigma_mm, densitometry)
+        blur = _fit_frame_widths(profiles, frames, views, psf_for_frames(psf_sigma_mm, densitometry), densitometry)
         for prof in profiles:
             frames_lesions(prof, min_stenosis_pct, fragments, bridges)
     elif search_masks:
@@ -471,6 +474,16 @@ def _lesions_missed_in_3d(p: BranchProfile, values: np.ndarray, min_stenosis_pct
         added.append(lesion)
         known.append(lesion)
     return added
+
+
+def psf_for_frames(psf_sigma_mm: Union[float, None, str], densitometry: bool) -> Optional[float]:
+    """The detector blur the frame widths assume: a given one (None: estimated), or for ``PSF_BY_FRAMES`` the
+    default on frames that keep the intensity and an estimate on frames processed for display."""
+    if isinstance(psf_sigma_mm, str):
+        if psf_sigma_mm != PSF_BY_FRAMES:
+            raise ValueError(f"psf_sigma_mm must be a blur in mm, None (estimated) or {PSF_BY_FRAMES!r}, got {psf_sigma_mm!r}")
+        return DEFAULT_PSF_SIGMA_MM if densitometry else None
+    return psf_sigma_mm
 
 
 def _fit_frame_widths(profiles: List[BranchProfile], frames: Sequence[np.ndarray], views: Sequence[CArmView],

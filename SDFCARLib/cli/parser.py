@@ -6,20 +6,24 @@ import argparse
 import math
 import sys
 import traceback
-from typing import Optional, Sequence
+from typing import Optional, Sequence, Union
 
 from .. import __version__
 from ..cli_types import one_line as _one_line
 from ..cli_types import positive_int as _positive_int
 from ..dicom import add_dicom_arguments
 from ..geometry import VIEW_PAIRS
+from ..lumen_profile import PSF_BY_FRAMES
 from ..settings import DEFAULT_MODE, MASK_THRESHOLD_MM, MODES, PAPER_DETECTOR_SPACING_MM, setting_help
 from .common import EXIT_BAD_INPUT, EXIT_CANCELLED, EXIT_FAILURE
 from .data import cmd_evaluate, cmd_geometry_template, cmd_segment, cmd_simulate
 from .reconstruct import cmd_analyse, cmd_demo, cmd_geometry, cmd_reconstruct
 
-def _blur_sigma(text: str) -> Optional[float]:
-    """argparse type of --psf-sigma-mm: 'auto' (None: estimated from the frames) or a blur ≥ 0 in mm."""
+def _blur_sigma(text: str) -> Union[float, None, str]:
+    """argparse type of --psf-sigma-mm: 'auto' (None: estimated from the frames) or a blur ≥ 0 in mm (the default,
+    ``PSF_BY_FRAMES``, passes through)."""
+    if text == PSF_BY_FRAMES:
+        return text
     if text.strip().lower() == "auto":
         return None
     try:
@@ -109,9 +113,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--frames", nargs="+", metavar="IMAGE",
                    help="the views' frames (PNG, TIFF or NRRD as recorded, vessels dark), one per view: the 2D widths are "
                         "also fitted to their intensity profiles, sharper than a segmented mask's border")
-    p.add_argument("--psf-sigma-mm", type=_blur_sigma, default=0.3, metavar="MM|auto",
-                   help="detector blur assumed by the --frames fit: Gaussian σ in mm at the detector (default 0.3), "
-                        "or 'auto' to estimate it from the frames (analysis.json settings say what was used)")
+    p.add_argument("--psf-sigma-mm", type=_blur_sigma, default=PSF_BY_FRAMES, metavar="MM|auto",
+                   help="detector blur assumed by the --frames fit: Gaussian σ in mm at the detector, or 'auto' to "
+                        "estimate it from the frames (default: 0.3, and estimated where report.json says the frames "
+                        "were processed for display, whose sharpening is no detector blur; analysis.json settings say "
+                        "what was used)")
     p.add_argument("--centreline", choices=("auto", "masks", "volume"), default="auto",
                    help="masks: the centreline re-placed on the masks' midlines for lengths, positions, angles and "
                         "foreshortening (the 3D sections and widths stay on the volume's); volume: the volume's own; "
