@@ -808,12 +808,21 @@ class SDFCARLogic(ScriptedLoadableModuleLogic):
         ``segment``); returns (segmentation, parameters). Pixel spacing (mm) and magnification
         (SID/SOD) set the physical vessel scales; without them typical values are assumed and reported."""
         from SDFCARLib import mrml
+        from SDFCARLib.evidence import assumed_relationship
         from SDFCARLib.masks import angiogram_mask, mask_settings_for_intensity
 
-        # a frame processed for display (its DICOM file says DISP or a vendor's term): the edge rule does not trim it
+        # a frame processed for display (its DICOM file says DISP or a vendor's term, or it is an 8-bit image nothing
+        # is known of): the edge rule does not trim it
         tags = self.frameIntensityTags(frameNode, index)
-        settings = mask_settings_for_intensity(tags.relationship if tags is not None else None)
-        mask, parameters = angiogram_mask(self.frameArray(frameNode, index), pixelSpacingMm, magnification, settings)
+        frame = self.frameArray(frameNode, index)
+        relationship, note = assumed_relationship(frame, tags.relationship if tags is not None else None,
+                                                  frameNode.GetName())
+        if note:
+            logging.warning(f"SDFCAR: {note}")
+        settings = mask_settings_for_intensity(relationship)
+        mask, parameters = angiogram_mask(frame, pixelSpacingMm, magnification, settings)
+        if note:
+            parameters["pixel_intensity_relationship"] = f"{relationship} (assumed: 8-bit grey levels)"
         with mrml.scene_transaction(slicer.mrmlScene):
             segmentation = self.maskSegmentation(frameNode, maskNode)
             mrml.set_segment_mask(segmentation, mask, frameNode, "Vessels")
@@ -987,12 +996,25 @@ class SDFCARLogic(ScriptedLoadableModuleLogic):
         safe = re.sub(r"[^A-Za-z0-9_.-]+", "_", p.outputName).strip("._") or "result"
         return base / f"{safe}-{time.strftime('%Y%m%d-%H%M%S')}"
 
+    #: a frame node's attribute that says how its grey levels were made where no DICOM file does (LIN or DISP),
+    #: set from the Python console: frameNode.SetAttribute("SDFCAR.PixelIntensityRelationship", "LIN")
+    INTENSITY_ATTRIBUTE = "SDFCAR.PixelIntensityRelationship"
+
     @staticmethod
     def frameIntensityTags(frameNode, index=-1):
-        """What the header of the DICOM file a frame was loaded from says of its grey levels
-        (SDFCARLib.dicom.intensity.IntensityTags), or None where it was not loaded from the DICOM database."""
+        """What the user said of a frame's grey levels (``INTENSITY_ATTRIBUTE``), else what the header of the DICOM
+        file it was loaded from says (SDFCARLib.dicom.intensity.IntensityTags), or None where neither is known."""
         from SDFCARLib import mrml
-        from SDFCARLib.dicom.intensity import intensity_tags_of_file
+        from SDFCARLib.dicom.intensity import IntensityTags, intensity_tags_of_file
+
+        said = frameNode.GetAttribute(SDFCARLogic.INTENSITY_ATTRIBUTE) if frameNode is not None else None
+        if said:
+            value = said.strip().upper()
+            if value not in ("LIN", "DISP"):
+                raise ValueError(f"{frameNode.GetName()}: its attribute {SDFCARLogic.INTENSITY_ATTRIBUTE} is {said!r}; "
+                                 "set it to LIN (linear detector intensities) or DISP (processed for display), or "
+                                 "remove it to use the DICOM file's tags")
+            return IntensityTags(value, None, "MONOCHROME2", 16)
 
         database = getattr(slicer, "dicomDatabase", None)
         uid, frame = mrml.dicom_frame_reference(slicer.mrmlScene, frameNode, index)

@@ -32,11 +32,9 @@ import numpy as np
 from scipy import ndimage
 
 from .angiogram import pixel_spacing_pair
+from .evidence import DISPLAY_INTENSITY
 
 __all__ = ["DISPLAY_INTENSITY", "DisplaySettings", "display_processed", "processed_log_intensity"]
-
-#: the Pixel Intensity Relationship (0028,1040) such a frame carries
-DISPLAY_INTENSITY = "DISP"
 
 
 @dataclass(frozen=True)

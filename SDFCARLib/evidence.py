@@ -33,7 +33,7 @@ Units: detector mm for the frame's lengths (pixel spacing), mm of vessel for L̂
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any, Dict, Optional, Sequence
+from typing import Any, Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 from scipy import ndimage
@@ -71,6 +71,8 @@ class ViewEvidence:
 #: display — windowed, contrast-managed, edge-enhanced — so −log of its grey level is no absorbance and no
 #: path length can be read from it.
 LINEAR_INTENSITY = "LIN"
+#: … and of frames processed for display (windowed, contrast-managed, edge-enhanced)
+DISPLAY_INTENSITY = "DISP"
 
 
 def unreadable_intensity(relationship: Optional[str]) -> Optional[str]:
@@ -89,6 +91,58 @@ def unreadable_intensity(relationship: Optional[str]) -> Optional[str]:
         why += (" (read the run with SDFCARLib.dicom.load_xa, or pass the stored frame through "
                 "SDFCARLib.dicom.intensity.linearised: either brings LOG frames to a linear scale)")
     return why
+
+
+#: the brightest grey level of an 8-bit frame. Raw detector frames are 10–16 bit; a frame of 8-bit values whose
+#: relationship nobody gave was, as good as always, windowed for display (the GE runs at hand are DISP/DRM at 8 bits;
+#: a viewer's PNG or JPEG export is 8 bits), and −log of such grey levels reads path lengths half as thick as the
+#: masks (bench/RESULTS.md §76a)
+EIGHT_BIT_MAX = 255
+
+
+def is_eight_bit_frame(frame: np.ndarray) -> bool:
+    """Whether a frame holds 8-bit grey levels (uint8, or whole numbers 0–255), more than two of them."""
+    a = np.asarray(frame)
+    if a.size == 0 or a.dtype.kind not in "uif" or is_binary_image(a):
+        return False
+    if a.dtype == np.uint8:
+        return True
+    if a.min() < 0 or a.max() > EIGHT_BIT_MAX:
+        return False
+    return a.dtype.kind != "f" or bool(np.array_equal(a, np.round(a)))
+
+
+def assumed_relationship(frame: Optional[np.ndarray], relationship: Optional[str], what: str = "the frame"
+                         ) -> Tuple[Optional[str], Optional[str]]:
+    """(the relationship a frame is read with, a note where it was assumed): a known one as it is; an 8-bit frame
+    whose relationship is not known is taken as processed for display (DISP; ``EIGHT_BIT_MAX``), other frames of
+    unknown relationship are read as before (as linear)."""
+    if relationship is not None and str(relationship).strip():
+        return relationship, None
+    if frame is None or not is_eight_bit_frame(frame):
+        return relationship, None
+    return DISPLAY_INTENSITY, (
+        f"{what}: the frame holds 8-bit grey levels and nothing says how they were made (it was not read from a "
+        "DICOM run): it is taken as processed for display (DISP) — no path lengths are read off it and its mask's "
+        "edge is not trimmed — because raw detector frames are 10–16 bit. If it does hold linear intensities, say so: "
+        "reconstruct(…, frame_intensity=['LIN', …]), segment --image-intensity LIN, or in Slicer "
+        "frameNode.SetAttribute('SDFCAR.PixelIntensityRelationship', 'LIN')")
+
+
+def assumed_frame_intensity(frames: Optional[Sequence[Optional[np.ndarray]]],
+                            frame_intensity: Optional[Sequence[Optional[str]]]
+                            ) -> Tuple[Optional[List[Optional[str]]], List[str]]:
+    """(per view the relationship the frames are read with, the notes where one was assumed:
+    ``assumed_relationship``); ``frame_intensity`` unchanged where nothing was assumed (or the counts disagree,
+    which the fit refuses)."""
+    if frames is None or (frame_intensity is not None and len(frame_intensity) != len(frames)):
+        return (None if frame_intensity is None else list(frame_intensity)), []
+    given = list(frame_intensity) if frame_intensity is not None else [None] * len(frames)
+    read = [assumed_relationship(f, r, f"view {n}") for n, (f, r) in enumerate(zip(frames, given), start=1)]
+    notes = [note for _, note in read if note]
+    if not notes:
+        return (None if frame_intensity is None else given), []
+    return [r for r, _ in read], notes
 
 
 def is_binary_image(image: np.ndarray) -> bool:

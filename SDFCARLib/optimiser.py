@@ -54,7 +54,8 @@ from .hull import support_mask
 from .losses import (DistanceSettings, GeometricLoss, ViewTarget, excess_path_loss, frame_target, make_target,
                      occupancy_loss, partial_occupancy_loss)
 from .consistency import consistency_warnings, view_consistency
-from .evidence import EvidenceError, EvidenceSettings, is_binary_image, unreadable_intensity, view_evidence
+from .evidence import (EvidenceError, EvidenceSettings, assumed_frame_intensity, is_binary_image, unreadable_intensity,
+                       view_evidence)
 from .mask_checks import mask_warnings, support_masks
 from .masks import MaskError, binarise_mask
 from .connectivity import ReconnectSettings, field_values, reconnect_fragments
@@ -994,18 +995,27 @@ def reconstruct(
     ``frames``: the X-ray frames the masks were drawn or segmented on, one per view (optional);
     with ``frame_evidence`` the occupancy is fitted to the path lengths read off them (``evidence.py``).
     ``frame_intensity``: per view, the frame's DICOM Pixel Intensity Relationship (0028,1040), None where not
-    known; path lengths are read only off LIN frames (``evidence.unreadable_intensity``).
+    known; path lengths are read only off LIN frames (``evidence.unreadable_intensity``). A frame of 8-bit grey
+    levels whose relationship is not known is taken as DISP, with a warning (``evidence.assumed_relationship``).
 
     ``snapshot(step, occupancy)`` — for benchmarks of time to accuracy — receives the occupancy
     volume every ``snapshot_every`` steps (its time is excluded from the optimisation timings).
     """
     settings = settings or make_settings()
+    # an 8-bit frame nobody said anything of was processed for display (evidence.assumed_relationship)
+    frame_intensity, assumed = assumed_frame_intensity(frames, frame_intensity)
+    for message in assumed:
+        _report(progress, phase="warning", message=message, step=0, total=settings.optimisation.total_steps,
+                elapsed_s=0.0, eta_s=None, device=str(settings.run.device))
     fitted = fit_field(geometry, targets, settings, target_kind, frames, progress, cancel, frame_intensity=frame_intensity,
                        progress_interval_s=progress_interval_s, snapshot=snapshot, snapshot_every=snapshot_every)
     calibrations, evidence = fitted.calibrations, fitted.evidence
     result = fitted.finished(progress=progress, cancel=cancel)
     if frame_intensity is not None:  # for `analyse`: whether its frames' absorbance can be read (densitometry)
         result.report["frame_intensity"] = list(frame_intensity)
+    if assumed:
+        result.report["frame_intensity_assumed"] = assumed
+        result.report["warnings"] = assumed + result.report["warnings"]
     if settings.optimisation.ensemble_fits > 1:
         result.report["ensemble_seeds"] = [settings.run.seed + k for k in range(settings.optimisation.ensemble_fits)]
     if calibrations:

@@ -173,13 +173,21 @@ def test_an_image_said_to_be_processed_for_display_is_segmented_without_the_edge
     frame = simulate_angiogram(_vessel_line_integral(), 0.3, 7, AngiogramSettings(ribs=1))[0]
     image = write_image_nrrd(tmp_path / "export.nrrd", display_processed(frame, 0.39))
     geometry = ["--pixel-spacing", "0.39", "0.39", "--magnification", "1.3"]
-    for given, share in ((["--image-intensity", "DISP"], DISPLAY_EDGE_FRACTION), ([], AngioMaskSettings().edge_fraction)):
-        out = tmp_path / f"mask{len(given)}.png"
-        assert main(["segment", "--image", str(image), *geometry, *given, "--out", str(out)]) == 0
+    # an 8-bit image said nothing of is taken as processed for display (raw detector frames are 10–16 bit), and says so
+    counts = write_image_nrrd(tmp_path / "counts.nrrd", frame.astype(np.uint16))
+    for n, (path, given, share, recorded) in enumerate((
+            (image, ["--image-intensity", "DISP"], DISPLAY_EDGE_FRACTION, "DISP (--image-intensity)"),
+            (image, [], DISPLAY_EDGE_FRACTION, "DISP (assumed: an 8-bit image)"),
+            (image, ["--image-intensity", "LIN"], AngioMaskSettings().edge_fraction, "LIN (--image-intensity)"),
+            (counts, [], AngioMaskSettings().edge_fraction, None))):
+        out = tmp_path / f"mask{n}.png"
+        assert main(["segment", "--image", str(path), *geometry, *given, "--out", str(out)]) == 0
         report = json.loads(out.with_suffix(".json").read_text())
         assert report["parameters"]["edge_fraction"] == share
-        assert ("processed for display" in capsys.readouterr().err) == bool(given)
-    assert report["source"].get("pixel_intensity_relationship") is None
+        assert report["source"].get("pixel_intensity_relationship") == recorded
+        err = capsys.readouterr().err
+        assert ("processed for display" in err) == (share == DISPLAY_EDGE_FRACTION)
+        assert ("8-bit grey levels" in err) == (recorded is not None and "assumed" in recorded)
     xa = write_xa(tmp_path / "run.dcm", display_processed(frame, 0.39)[None], bits_stored=8)
     assert main(["segment", "--dicom", str(xa), "--image-intensity", "DISP", "--out", str(tmp_path / "x.png")]) == 2
     assert "remove --image-intensity" in capsys.readouterr().err

@@ -452,3 +452,38 @@ def test_display_processed_frames_place_the_views_but_are_not_fitted(angiogram_c
     assert fitted.mask_targets is not None and fitted.evidence["used"] is True
     with pytest.raises(ReconstructionError, match="1 pixel intensity relationship\\(s\\) for 2 views"):
         read_frame_evidence(frames, masks, geometry, settings, "mask", ["LIN"])
+
+
+def test_an_eight_bit_frame_nothing_is_known_of_is_taken_as_processed_for_display():
+    from SDFCARLib.evidence import DISPLAY_INTENSITY, assumed_frame_intensity, is_eight_bit_frame
+
+    ramp = (np.arange(256 * 4).reshape(32, 32) % 256).astype(np.uint8)
+    assert is_eight_bit_frame(ramp) and is_eight_bit_frame(ramp.astype(np.float32))  # as a PNG export reads
+    counts = ramp.astype(np.uint16) * 16 + 40  # 12-bit detector counts
+    for not_eight_bit in (counts, ramp / 255.0, ramp.astype(np.float32) + 0.5, ramp.astype(np.int16) - 10,
+                          (ramp > 100).astype(np.uint8), np.zeros((0, 0), np.uint8)):
+        assert not is_eight_bit_frame(not_eight_bit)  # counts, scaled to [0, 1], fractions, negatives, masks
+    read, notes = assumed_frame_intensity([ramp, counts], None)
+    assert read == [DISPLAY_INTENSITY, None] and len(notes) == 1
+    assert notes[0].startswith("view 1:") and "8-bit" in notes[0] and "frame_intensity=['LIN'" in notes[0]
+    assert assumed_frame_intensity([ramp, counts], ["LIN", None]) == (["LIN", None], [])  # said: kept as said
+    assert assumed_frame_intensity([counts, counts], None) == (None, [])  # nothing assumed: as before
+    assert assumed_frame_intensity(None, ["LIN", "DISP"]) == (["LIN", "DISP"], [])
+    assert assumed_frame_intensity([ramp], ["LIN", None]) == (["LIN", None], [])  # the fit refuses the counts
+
+
+def test_a_reconstruction_from_eight_bit_frames_fits_the_masks_and_says_why(angiogram_case):
+    """Frames handed over as 8-bit images (a viewer's export) with no relationship: their path lengths are not
+    fitted, and the report and the warnings say they were taken as processed for display."""
+    geometry, _, frames, masks = angiogram_case
+    shown = []
+    for frame in frames:  # a linear window to 8 bits: still 8-bit grey levels, as a display export is
+        lo, hi = np.percentile(frame, [0.5, 99.5])
+        shown.append(np.round(np.clip((frame - lo) / (hi - lo), 0, 1) * 255).astype(np.uint8))
+    result = reconstruct(geometry, masks, make_settings("fast", steps=5), "mask", frames=shown)
+    assert result.report["frame_intensity"] == ["DISP", "DISP"]
+    assert len(result.report["frame_intensity_assumed"]) == 2
+    assert all(note in result.report["warnings"] for note in result.report["frame_intensity_assumed"])
+    assert result.report["frame_evidence"]["used"] is False
+    said = reconstruct(geometry, masks, make_settings("fast", steps=5), "mask", frames=shown, frame_intensity=["LIN", "LIN"])
+    assert "frame_intensity_assumed" not in said.report and said.report["frame_evidence"]["used"] is True

@@ -122,6 +122,21 @@ def test_read_geometry_without_the_dicom_module(sdfcar, monkeypatch):
         sdfcar.SDFCARLogic().readGeometryFromDicom(node)
 
 
+class _FrameNode(str):
+    """A frame volume node of these tests: its name, and the attributes a user set on it."""
+
+    def __new__(cls, name, attributes=None):
+        node = super().__new__(cls, name)
+        node.attributes = dict(attributes or {})
+        return node
+
+    def GetAttribute(self, key):
+        return self.attributes.get(key)
+
+    def GetName(self):
+        return str(self)
+
+
 def test_the_frames_pixel_intensity_relationship_goes_with_the_job(sdfcar, monkeypatch, tmp_path):
     """A frame loaded from the DICOM database carries its file's (0028,1040) to the job, which reads path lengths
     only off LIN frames; a LOG frame goes on a linear scale, whichever way its values run; a frame from elsewhere
@@ -140,20 +155,26 @@ def test_the_frames_pixel_intensity_relationship_goes_with_the_job(sdfcar, monke
         photometric = "MONOCHROME1" if uid == "1.2.3.4" else "MONOCHROME2"
         files[uid] = str(write_xa(tmp_path / f"{uid}.dcm", stored[None], bits_stored=12, photometric=photometric,
                                   extra=extra))
-    references = {"disp": "1.2.3.1", "lin": "1.2.3.2", "png": None, "log": "1.2.3.3", "log-mono1": "1.2.3.4"}
+    references = {"disp": "1.2.3.1", "lin": "1.2.3.2", "png": None, "log": "1.2.3.3", "log-mono1": "1.2.3.4",
+                  "png-said-lin": None, "disp-said-lin": "1.2.3.1"}
     monkeypatch.setattr(mrml, "dicom_frame_reference", lambda scene, node, index: (references[node], None), raising=False)
     monkeypatch.setattr(sys.modules["slicer"], "dicomDatabase", types.SimpleNamespace(fileForInstance=files.get),
                         raising=False)
+    said = {"SDFCAR.PixelIntensityRelationship": "lin"}  # what the user set from the console: it wins over the file
+    nodes = [_FrameNode(name, said if "said" in name else None) for name in references]
     # the arrays as Slicer's DICOM reader (GDCM) gives them: larger = brighter, MONOCHROME1 mirrored
-    arrays = [stored.astype(np.float32)] * 5
-    frames, relationships, notes = sdfcar.SDFCARLogic.jobFrames(arrays, list(references), [-1] * 5)
-    assert relationships == ["DISP", "LIN", None, "LIN", "LIN"]
-    assert notes[:3] == [None, None, None] and all("LOG" in note for note in notes[3:])  # for the job's report.json
-    for kept in frames[:3]:
+    arrays = [stored.astype(np.float32)] * len(nodes)
+    frames, relationships, notes = sdfcar.SDFCARLogic.jobFrames(arrays, nodes, [-1] * len(nodes))
+    assert relationships == ["DISP", "LIN", None, "LIN", "LIN", "LIN", "LIN"]
+    assert notes[:3] == [None, None, None] and all("LOG" in note for note in notes[3:5])  # for the job's report.json
+    assert notes[5:] == [None, None]
+    for kept in frames[:3] + frames[5:]:
         np.testing.assert_array_equal(kept, stored)
     linear = linear_from_log(stored, True, 12)
     np.testing.assert_allclose(frames[3], linear, rtol=1e-6)
     np.testing.assert_allclose(frames[4], linear, rtol=1e-6)  # sign −1 of the stored values, mirrored by the reader
+    with pytest.raises(ValueError, match="SDFCAR.PixelIntensityRelationship.*LIN.*DISP"):
+        sdfcar.SDFCARLogic.jobFrames(arrays[:1], [_FrameNode("png", {"SDFCAR.PixelIntensityRelationship": "raw"})], [-1])
 
 
 def test_the_vesselness_mask_of_a_frame_processed_for_display_does_not_trim_its_edges(sdfcar, monkeypatch, tmp_path):
@@ -179,12 +200,17 @@ def test_the_vesselness_mask_of_a_frame_processed_for_display_does_not_trim_its_
                         lambda frame, spacing, magnification, settings=None: used.append(settings) or (np.zeros((8, 8), bool), {}))
     monkeypatch.setattr(mrml, "scene_transaction", lambda scene: contextlib.nullcontext())
     monkeypatch.setattr(mrml, "set_segment_mask", lambda *args: None)
+    references.update({"png8": None, "png8-said-lin": None})
     logic = sdfcar.SDFCARLogic()
-    monkeypatch.setattr(logic, "frameArray", lambda node, index: np.zeros((8, 8)))
+    eight_bit = np.arange(64, dtype=np.uint8).reshape(8, 8) * 4  # a viewer's 8-bit export
+    monkeypatch.setattr(logic, "frameArray", lambda node, index: eight_bit if "png8" in node else np.zeros((8, 8)))
     monkeypatch.setattr(logic, "maskSegmentation", lambda node, mask: types.SimpleNamespace(SetAttribute=lambda *a: None))
-    for node in ("drm", "lin", "png"):
-        logic.vesselnessMask(node, -1)
+    for name in ("drm", "lin", "png", "png8", "png8-said-lin"):
+        said = {"SDFCAR.PixelIntensityRelationship": "LIN"} if "said" in name else None
+        logic.vesselnessMask(_FrameNode(name, said), -1)
+    # an 8-bit frame nothing is known of is taken as processed for display, unless the user said it is linear
     assert [s.edge_fraction for s in used] == [DISPLAY_EDGE_FRACTION, AngioMaskSettings().edge_fraction,
+                                               AngioMaskSettings().edge_fraction, DISPLAY_EDGE_FRACTION,
                                                AngioMaskSettings().edge_fraction]
 
 

@@ -67,6 +67,9 @@ def main() -> int:
                              '(the masks segmented otherwise; realistic protocols only)')
     parser.add_argument("--finish-only", action="store_true",
                         help="fit each case once and finish it once per variant (variants of FINISH_ONLY_KEYS only)")
+    parser.add_argument("--frame-intensity", default=None, metavar="LIN|DISP|none",
+                        help="every view's frames handed over with this Pixel Intensity Relationship instead of the "
+                             "protocol's (none: not known, as arrays from Python or a PNG in Slicer)")
     parser.add_argument("variants", nargs="*", help="JSON objects of setting overrides")
     args = parser.parse_args()
     if args.masks and args.protocol not in REALISTIC_PROTOCOLS:
@@ -83,11 +86,15 @@ def main() -> int:
                          f"fits of their own; give only {', '.join(FINISH_ONLY_KEYS)}")
     print(f"# {platform.processor() or platform.machine()}, {os.cpu_count()} cores, torch {torch.__version__}, "
           f"{args.threads} thread(s); {args.suite} cases {args.case}, {args.protocol}, "
-          f"{'grid80' if args.grid80 else 'paper grid'}{'; masks ' + json.dumps(args.masks) if args.masks else ''}", flush=True)
+          f"{'grid80' if args.grid80 else 'paper grid'}{'; masks ' + json.dumps(args.masks) if args.masks else ''}"
+          f"{'; frame intensity ' + args.frame_intensity if args.frame_intensity else ''}", flush=True)
     scores: dict = {json.dumps(v): [] for v in variants}
     for index in args.case:
         spec = build_cases(config)[index]
         case = prepare_case(spec, args.protocol, grid, realistic_overrides=args.masks)
+        if args.frame_intensity is not None and case.frames is not None:
+            case.frame_intensity = (None if args.frame_intensity.lower() == "none"
+                                    else [args.frame_intensity.upper()] * len(case.frames))
         fitted = (fit_field(case.geometry, case.targets, make_settings("fast", seed=spec.seed), case.target_kind,
                             frames=case.frames, frame_intensity=case.frame_intensity) if args.finish_only else None)
         for number, variant in enumerate(variants):

@@ -51,6 +51,13 @@ def cmd_segment(args: argparse.Namespace) -> int:
         relationship = args.image_intensity  # an image file does not say how its grey levels were made
         if relationship:
             source["pixel_intensity_relationship"] = f"{relationship} (--image-intensity)"
+        else:
+            from ..evidence import assumed_relationship
+
+            relationship, note = assumed_relationship(frame, None, str(args.image))
+            if note:
+                source["pixel_intensity_relationship"] = f"{relationship} (assumed: an 8-bit image)"
+                print(f"note: {note}", file=sys.stderr)
     settings = mask_settings_for_intensity(relationship, AngioMaskSettings(
         **({"method": args.method} if args.method else {}),
         **({"vessel_radius_mm": tuple(args.vessel_radius_mm)} if args.vessel_radius_mm else {})))

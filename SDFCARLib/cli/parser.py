@@ -168,7 +168,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--image-intensity", choices=("LIN", "LOG", "DISP"), default=None,
                    help="with --image: how its grey levels were made, as DICOM's Pixel Intensity Relationship would say "
                         "(DISP: processed for display, as a viewer's export or a screen capture is; then the mask's edge "
-                        "rule does not trim it); default: not known, the usual rule. A --dicom run says it itself")
+                        "rule does not trim it); default: not known — an image of 8-bit grey levels is taken as DISP "
+                        "(raw detector frames are 10–16 bit; a note says so), any other gets the usual rule. A --dicom "
+                        "run says it itself")
     p.add_argument("--out", required=True, help="mask PNG to write (NAME.png; the other files are named after it)")
     p.add_argument("--overwrite", action="store_true", help="replace existing files")
     p.set_defaults(func=cmd_segment)

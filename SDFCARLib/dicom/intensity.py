@@ -36,7 +36,7 @@ from typing import Any, List, Optional, Tuple
 
 import numpy as np
 
-from ..evidence import LINEAR_INTENSITY
+from ..evidence import DISPLAY_INTENSITY, LINEAR_INTENSITY
 
 #: e-folds of X-ray intensity the full stored range of a LOG frame is taken to span (the slope is not recorded)
 LOG_SPAN_E_FOLDS = 8.0
@@ -44,7 +44,6 @@ LOG_SPAN_E_FOLDS = 8.0
 #: floor of 1 that −log I applies (``lumen_profile.absorbance``)
 LINEAR_PEAK_COUNTS = 65535.0
 LOG_INTENSITY = "LOG"
-DISPLAY_INTENSITY = "DISP"
 #: LUT Function (0028,9474) of the Pixel Intensity Relationship LUT that gives values linear in the intensity
 TO_LINEAR = "TO_LINEAR"
 #: Image Processing Applied (0028,9446) terms after which a DISP frame's grey levels are still a pointwise map of
