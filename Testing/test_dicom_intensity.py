@@ -274,3 +274,30 @@ def test_a_lut_is_not_used_on_filtered_display_frames_or_where_it_is_not_monoton
     clamp = IntensityLUT(10, np.array([1.0, 2.0, 3.0]), 16)
     assert clamp(np.array([0, 10, 11, 12, 50])).tolist() == [1.0, 1.0, 2.0, 3.0, 3.0]
     assert clamp.direction == 1 and IntensityLUT(0, np.array([3.0, 3.0]), 16).direction == 0
+
+
+def test_a_classic_log_run_is_read_through_its_modality_lut_back_to_linear(tmp_path):
+    """In a classic XA object of LOG (or DISP) frames the Modality LUT is not a display step: it maps the stored
+    values back to linear (PS3.3 C.8.7.1.1.2). load_xa reads a LOG run through it, never applies it forward, and
+    leaves a DISP run (no word on its spatial processing) as it is."""
+    from pydicom.sequence import Sequence
+
+    counts, _ = _tube_frame()
+    stored = _log_stored(counts, +1)
+    modality = _lut_item(_exact_to_linear_lut(counts, +1))
+    del modality.LUTFunction
+    modality.ModalityLUTType = "US"  # unspecified
+    run = dicom.load_xa(write_xa(tmp_path / "log-mlut.dcm", stored, VIEW, bits_stored=BITS, extra={
+        "PixelIntensityRelationship": "LOG", "PixelIntensityRelationshipSign": 1, "ModalityLUTSequence": Sequence([modality])}))
+    assert run.frames_relationship == "LIN" and "Modality LUT (0028,3000)" in run.linearised_note
+    ratio = run.frames[0] / counts
+    assert ratio.std() / ratio.mean() < 2e-3
+    shown = np.round(np.sqrt(counts / counts.max()) * 255.0).astype(np.uint16)
+    disp = dicom.load_xa(write_xa(tmp_path / "disp-mlut.dcm", shown, VIEW, bits_stored=8, extra={
+        "PixelIntensityRelationship": "DISP", "ModalityLUTSequence": Sequence([modality])}))
+    assert disp.frames_relationship == "DISP" and "Modality LUT (0028,3000) was not used" in disp.linearised_note
+    np.testing.assert_array_equal(disp.frames[0], shown.astype(np.float32))
+    linear = dicom.load_xa(write_xa(tmp_path / "lin-mlut.dcm", counts.round().astype(np.uint16), VIEW, bits_stored=BITS,
+                                    extra={"ModalityLUTSequence": Sequence([modality])}))
+    assert linear.frames_relationship == "LIN" and linear.linearised_note is None  # LIN: nothing to bring back
+    np.testing.assert_array_equal(linear.frames[0], counts.round().astype(np.float32))

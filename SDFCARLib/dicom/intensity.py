@@ -21,7 +21,9 @@ Conventions
     the background subtraction removes.
     Enhanced XA/XRF objects may say it exactly: a Pixel Intensity Relationship LUT (0028,9422) item whose
     LUT Function (0028,9474) is ``TO_LINEAR`` maps the stored values onto a scale linear in the X-ray
-    intensity (required where the relationship is LOG; PS3.3 C.7.6.16.2.13, PS3.17 FFF.2.3.1.3.4). Where
+    intensity (required where the relationship is LOG; PS3.3 C.7.6.16.2.13, PS3.17 FFF.2.3.1.3.4); a classic
+    XA/XRF object's Modality LUT does the same for LOG and DISP frames (required for LOG; not a display
+    step there, PS3.3 C.8.7.1.1.2, PS3.4 N.2.1.2 — and so never applied forward by ``load_xa``). Where
     one is present it is used instead of the assumed span, for LOG and for other pointwise encodings
     (e.g. SQRT). A DISP frame is read through it only where Image Processing Applied (0028,9446) says no
     spatial filter was applied: a LUT undoes a grey-level mapping, not an edge enhancement. The LUT's
@@ -31,7 +33,7 @@ Conventions
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any, List, Optional, Tuple
 
 import numpy as np
@@ -49,6 +51,10 @@ TO_LINEAR = "TO_LINEAR"
 #: Image Processing Applied (0028,9446) terms after which a DISP frame's grey levels are still a pointwise map of
 #: the intensity (frame averaging is temporal and linear); anything else (HIGH_PASS_FILTER, …) filtered the frame
 POINTWISE_PROCESSING = frozenset({"NONE", "FRAME_AVERAGING"})
+RELATIONSHIP_LUT = "TO_LINEAR Pixel Intensity Relationship LUT (0028,9422)"
+#: where a classic XA/XRF object holds its LUT back to linear: for LOG and DISP frames the Modality LUT is not
+#: applied before display but maps the stored values back to a linear relationship (PS3.3 C.8.7.1.1.2, PS3.4 N.2.1.2)
+MODALITY_LUT = "Modality LUT (0028,3000)"
 
 
 @dataclass(frozen=True)
@@ -59,6 +65,7 @@ class IntensityLUT:
     first_mapped: int
     values: np.ndarray  # float64, one entry per stored value from first_mapped on
     bits: int  # bits per entry (LUT Descriptor's third value)
+    source: str = RELATIONSHIP_LUT  # which attribute held it
 
     def __call__(self, stored: np.ndarray) -> np.ndarray:
         index = np.clip(np.rint(np.asarray(stored, np.float64)).astype(np.int64) - self.first_mapped, 0,
@@ -100,19 +107,29 @@ def _lut_items(ds: Any, frame: int) -> List[Any]:
     return []
 
 
-def to_linear_lut(ds: Any, frame: int = 0) -> Tuple[Optional[IntensityLUT], Optional[str]]:
-    """(the frame's TO_LINEAR LUT or None, why a present one cannot be used or None)."""
-    for item in _lut_items(ds, frame):
-        if str(item.get("LUTFunction", "")).strip().upper() != TO_LINEAR:
-            continue
+def _to_linear_items(ds: Any, frame: int, relationship: Optional[str]) -> List[Tuple[Any, str]]:
+    """(item, what it is) of each LUT that maps the frame's stored values onto a linear scale: an enhanced object's
+    TO_LINEAR items, else a classic object's Modality LUT where its relationship is LOG or DISP."""
+    items = [(item, RELATIONSHIP_LUT) for item in _lut_items(ds, frame)
+             if str(item.get("LUTFunction", "")).strip().upper() == TO_LINEAR]
+    if not items and relationship in (LOG_INTENSITY, DISPLAY_INTENSITY) and ds.get("ModalityLUTSequence"):
+        items = [(ds.ModalityLUTSequence[0], MODALITY_LUT)]
+    return items
+
+
+def to_linear_lut(ds: Any, frame: int = 0, relationship: Optional[str] = None
+                  ) -> Tuple[Optional[IntensityLUT], Optional[str]]:
+    """(the frame's LUT back to linear or None, why a present one cannot be used or None); ``relationship``: the
+    frame's (0028,1040), upper case (a classic object's Modality LUT counts for LOG and DISP only)."""
+    for item, what in _to_linear_items(ds, frame, relationship):
         try:
             lut = lut_from_item(item)
         except Exception as exc:  # a damaged item: the frames are read as without it
-            return None, f"its TO_LINEAR Pixel Intensity Relationship LUT (0028,9422) cannot be read ({exc})"
+            return None, f"its {what} cannot be read ({exc})"
         if lut.direction == 0:
-            return None, ("its TO_LINEAR Pixel Intensity Relationship LUT (0028,9422) is not monotonic, so it cannot map "
-                          "the stored values onto the intensity: it was not used")
-        return lut, None
+            return None, (f"its {what} is not monotonic, so it cannot map the stored values onto the intensity: it "
+                          "was not used")
+        return replace(lut, source=what), None
     return None, None
 
 
@@ -158,13 +175,14 @@ def intensity_tags(ds: Any, frame: int = 0) -> IntensityTags:
     processing, _ = lookup(ds, "ImageProcessingApplied", frame)
     processing = () if processing is None else tuple(
         str(v).strip().upper() for v in ([processing] if isinstance(processing, str) else processing))
-    lut, problem = to_linear_lut(ds, frame)
+    relationship = None if relationship is None else str(relationship).strip().upper() or None
+    lut, problem = to_linear_lut(ds, frame, relationship)
     try:
         sign = int(sign) if sign is not None and int(sign) in (-1, 1) else None
     except (TypeError, ValueError):
         sign = None
     bits = ds.get("BitsStored", ds.get("BitsAllocated", 16))
-    return IntensityTags(None if relationship is None else str(relationship).strip().upper() or None, sign,
+    return IntensityTags(relationship, sign,
                          str(ds.get("PhotometricInterpretation", "MONOCHROME2")).strip().upper(), int(bits or 16),
                          lut, processing, problem)
 
@@ -209,7 +227,7 @@ def linear_from_lut(values: np.ndarray, tags: IntensityTags, lut: IntensityLUT, 
     if not rises:  # a LUT falling where the stored values rise (or the reverse): linear, but upside down
         linear = rising_from_falling(linear, lut.bits)
     note = (f"its Pixel Intensity Relationship (0028,1040) is {tags.relationship or 'not given'}: the frames were read "
-            f"through its TO_LINEAR Pixel Intensity Relationship LUT (0028,9422) ({lut.values.size} entries from stored "
+            f"through its {lut.source}, which maps them back to linear ({lut.values.size} entries from stored "
             f"value {lut.first_mapped}, {lut.bits} bits; {source}), so their path lengths are read")
     return np.asarray(linear, np.float32), note
 
@@ -235,9 +253,9 @@ def linearised(values: np.ndarray, tags: Optional[IntensityTags], inverted: bool
     unused = None
     if tags is not None and tags.relationship != LINEAR_INTENSITY:
         unused = tags.lut_problem or (
-            "its TO_LINEAR Pixel Intensity Relationship LUT (0028,9422) was not used: Image Processing Applied "
-            f"(0028,9446) is {'/'.join(tags.image_processing) or 'not given'}, and a LUT does not undo a spatial "
-            "filter" if tags.to_linear is not None else None)
+            f"its {tags.to_linear.source} was not used: Image Processing Applied (0028,9446) is "
+            f"{'/'.join(tags.image_processing) or 'not given'}, and a LUT does not undo a spatial filter"
+            if tags.to_linear is not None else None)
     if tags is None or tags.relationship != LOG_INTENSITY:
         return values, None if tags is None else tags.relationship, unused
     larger, source = tags.larger_means_more_intensity(inverted)
