@@ -232,3 +232,29 @@ def test_real_scene_still_finds_its_files_after_the_move_into_place(tmp_path, ti
     vertices_lps, _ = read_surface_vtk(files["surface"])
     model_ras = vtk_to_numpy(model.GetPolyData().GetPoints().GetData())
     np.testing.assert_allclose(model_ras, vertices_lps * np.array([-1.0, -1.0, 1.0]), atol=1e-4)
+
+
+def test_analyse_finds_the_masks_report_json_names_inside_the_result_folder(tmp_path):
+    """reconstruct --auto-masks names its masks relative to the result folder (auto_maskN.png): analyse finds them
+    there, wherever it is run from."""
+    import numpy as np
+
+    from SDFCARLib.analysis.outputs import _masks_for
+    from SDFCARLib.geometry import Geometry, VolumeGrid, standard_geometry
+    from SDFCARLib.io import write_mask_png
+
+    views = standard_geometry("lao30-rao30").views
+    geometry = Geometry(VolumeGrid((8, 8, 8), (1.0, 1.0, 1.0)), views)
+    folder = tmp_path / "result"
+    folder.mkdir()
+    masks = []
+    for n, view in enumerate(views, start=1):
+        mask = np.zeros(view.detector_shape, bool)
+        mask[10 * n:10 * n + 5, 20:40] = True
+        write_mask_png(folder / f"auto_mask{n}.png", mask)
+        masks.append(mask)
+    report = {"target_kind": "mask", "inputs": {"targets": ["auto_mask1.png", "auto_mask2.png"]}}
+    found, note = _masks_for(report, geometry, None, folder)
+    assert note is None and all(np.array_equal(f, m) for f, m in zip(found, masks))
+    _, missing = _masks_for(report, geometry, None, tmp_path)  # not the folder that holds them
+    assert "not found" in missing

@@ -217,12 +217,14 @@ def _read_result_volume(result_dir: Path, report: Dict[str, Any]):
                      "`python -m SDFCARLib reconstruct --out …` wrote")
 
 
-def _masks_for(report: Dict[str, Any], geometry: Optional[Geometry], masks: Optional[Sequence[PathLike]]):
+def _masks_for(report: Dict[str, Any], geometry: Optional[Geometry], masks: Optional[Sequence[PathLike]],
+               result_dir: Path = Path(".")):
     if geometry is None:
         return None, "no geometry in report.json: mask diameters need the views"
     paths = list(masks) if masks else []
     if not paths and report.get("target_kind") == "mask":
-        paths = [p for p in ((report.get("inputs") or {}).get("targets") or []) if p]
+        # a relative name is the result folder's own file (reconstruct --auto-masks writes auto_maskN.png there)
+        paths = [result_dir / p for p in ((report.get("inputs") or {}).get("targets") or []) if p]
         if not all(Path(p).is_file() for p in paths):
             return None, "the masks named in report.json were not found; pass --masks to measure 2D diameters"
     if not paths:
@@ -332,7 +334,7 @@ def analyse_result_dir(result_dir: PathLike, out_dir: Optional[PathLike] = None,
             raise InputError(f"{report_path} is not valid JSON ({exc.msg}); restore it or re-run reconstruct") from exc
     volume, grid, level, source = _read_result_volume(result_dir, report)
     geometry = Geometry.from_dict(report["geometry"]) if isinstance(report.get("geometry"), dict) else None
-    view_masks, mask_note = _masks_for(report, geometry, masks)
+    view_masks, mask_note = _masks_for(report, geometry, masks, result_dir)
     view_frames = _frames_for(geometry, view_masks, frames, psf_sigma_mm)
     # the frames the reconstruction was given, as their DICOM runs said (report.json "frame_intensity")
     processed = [(n, why) for n, why in enumerate(map(unreadable_intensity, report.get("frame_intensity") or ()), start=1)
