@@ -107,6 +107,11 @@ def _lut_items(ds: Any, frame: int) -> List[Any]:
     return []
 
 
+def luts_per_frame(ds: Any) -> bool:
+    """Whether an enhanced object gives Pixel Intensity Relationship LUTs frame by frame (per-frame functional groups)."""
+    return any(item.get("PixelIntensityRelationshipLUTSequence") for item in (ds.get("PerFrameFunctionalGroupsSequence") or ()))
+
+
 def _to_linear_items(ds: Any, frame: int, relationship: Optional[str]) -> List[Tuple[Any, str]]:
     """(item, what it is) of each LUT that maps the frame's stored values onto a linear scale: an enhanced object's
     TO_LINEAR items, else a classic object's Modality LUT where its relationship is LOG or DISP."""

@@ -22,7 +22,7 @@ from typing import Any, Dict, List, Optional, Tuple, Union
 
 import numpy as np
 
-from .intensity import LINEAR_INTENSITY, intensity_tags, linearised
+from .intensity import intensity_tags, linearised, luts_per_frame
 
 PathLike = Union[str, Path]
 
@@ -279,11 +279,10 @@ def load_xa(path: PathLike) -> XARun:
         values = np.float32((lo * slope + intercept) + (hi * slope + intercept)) - values
         run.inverted = True
     # LOG frames (or through a TO_LINEAR LUT) on a linear scale, so that −log I is absorbance wherever they are read
-    tags = intensity_tags(ds)
-    if tags.to_linear is None and tags.lut_problem is None:
-        run.frames, run.read_relationship, run.linearised_note = linearised(values, tags, run.inverted)
+    if not luts_per_frame(ds):  # one LUT (shared, or a classic object's) or none: the whole run at once
+        run.frames, run.read_relationship, run.linearised_note = linearised(values, intensity_tags(ds), run.inverted)
         return run
-    # an enhanced object's LUT is a functional group: each frame is read through its own
+    # LUTs in the per-frame functional groups: each frame is read through its own
     read = [linearised(values[f], intensity_tags(ds, f), run.inverted) for f in range(n)]
     run.frames = np.stack([np.asarray(frame, np.float32) for frame, _, _ in read])
     relationships = {relationship for _, relationship, _ in read}
