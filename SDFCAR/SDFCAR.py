@@ -57,6 +57,17 @@ REQUIREMENTS = {
     "nrrd": "pynrrd",  # the worker writes its results as NRRD
     "imageio": "imageio",  # the sample case's masks are PNG files
 }
+#: The grey-level choices of each view's frame, in its combo box's order: (what is said on the frame node, label);
+#: SDFCARLib.mrml.say_frame_intensity stores it (Testing/test_module_static.py checks the values against the library's).
+FRAME_INTENSITY_CHOICES = (("", "As the DICOM file says"), ("LIN", "Linear (raw detector intensities)"),
+                           ("DISP", "Processed for display"))
+FRAME_INTENSITY_TOOLTIP = (
+    "How the frame's grey levels were made. As the DICOM file says: its Pixel Intensity Relationship (0028,1040); a "
+    "frame with no DICOM file and 8-bit grey levels (a viewer's export, a screenshot) is taken as processed for display. "
+    "Linear: the detector's intensities (LIN), from which the reconstruction also reads the vessels' path lengths. "
+    "Processed for display: windowed, log-scaled, contrast- or edge-enhanced (DISP); only its mask is fitted. "
+    "Kept on the frame node and saved with the scene.")
+
 #: What each action needs, so a user who only loads the sample case is not asked for torch.
 SAMPLE_REQUIREMENTS = ["nrrd", "imageio"]
 VESSELNESS_REQUIREMENTS = ["skimage"]
@@ -245,6 +256,11 @@ class AdditionalViewRow:
         self.frameIndexSpinBox.specialValueText = "shown"
         self.frameIndexSpinBox.toolTip = "For a cine run: the frame (0-based) to reconstruct from; 'shown' takes the frame on display"
         form.addRow("Frame index:", self.frameIndexSpinBox)
+        self.intensityComboBox = qt.QComboBox()
+        for _, label in FRAME_INTENSITY_CHOICES:
+            self.intensityComboBox.addItem(label)
+        self.intensityComboBox.toolTip = FRAME_INTENSITY_TOOLTIP
+        form.addRow("Grey levels:", self.intensityComboBox)
         self.maskSelector = self._nodeSelector(["vtkMRMLSegmentationNode", "vtkMRMLLabelMapVolumeNode"],
                                                f"The vessels of frame {n}: a segmentation on the frame or a labelmap")
         self.editMaskButton = qt.QPushButton("Edit")
@@ -302,6 +318,7 @@ class AdditionalViewRow:
             hasFrame = view.frame is not None
             self.editMaskButton.enabled = hasFrame
             self.vesselnessButton.enabled = hasFrame
+            showFrameIntensity(self.intensityComboBox, view.frame)
         finally:
             self.updating = False
 
@@ -318,6 +335,7 @@ class SDFCARWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
         self._analysisJob = None
         self._analysisContext = None
         self._viewRows = []
+        self._updatingFrameIntensity = False  # True while the grey-level boxes show the frames' attributes
         self._resultPanelKey = None
         # Progress comes from the worker processes; polling keeps the GUI responsive.
         self._timer = qt.QTimer()
@@ -344,6 +362,12 @@ class SDFCARWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
         self.ui.editMask2Button.connect("clicked(bool)", lambda: self.onEditMask(2))
         self.ui.vesselness1Button.connect("clicked(bool)", lambda: self.onVesselness(1))
         self.ui.vesselness2Button.connect("clicked(bool)", lambda: self.onVesselness(2))
+        for n in (1, 2):
+            comboBox = getattr(self.ui, f"frame{n}IntensityComboBox")
+            for _, label in FRAME_INTENSITY_CHOICES:  # before connecting: the first item is no user's choice
+                comboBox.addItem(label)
+            comboBox.toolTip = FRAME_INTENSITY_TOOLTIP
+            comboBox.connect("currentIndexChanged(int)", lambda index, n=n: self.onFrameIntensityChanged(n, index))
         self.ui.addViewButton.connect("clicked(bool)", self.onAddView)
         self.ui.readGeometryButton.connect("clicked(bool)", self.onReadGeometry)
         self.ui.showCArmButton.connect("clicked(bool)", self.onShowCArm)
@@ -399,6 +423,11 @@ class SDFCARWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
             hasFrame = bool(p and getattr(p, f"frame{n}"))
             getattr(self.ui, f"editMask{n}Button").enabled = hasFrame
             getattr(self.ui, f"vesselness{n}Button").enabled = hasFrame
+            self._updatingFrameIntensity = True
+            try:
+                showFrameIntensity(getattr(self.ui, f"frame{n}IntensityComboBox"), getattr(p, f"frame{n}") if p else None)
+            finally:
+                self._updatingFrameIntensity = False
         self._updateResultPanel()
         if self._job is not None:
             self.ui.applyButton.enabled = True  # it is the Cancel button now
@@ -430,6 +459,8 @@ class SDFCARWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
         row.frameSelector.connect("currentNodeChanged(vtkMRMLNode*)", lambda node: self.onViewValueChanged(row, "frame", node))
         row.maskSelector.connect("currentNodeChanged(vtkMRMLNode*)", lambda node: self.onViewValueChanged(row, "mask", node))
         row.frameIndexSpinBox.connect("valueChanged(int)", lambda value: self.onViewValueChanged(row, "frameIndex", value))
+        row.intensityComboBox.connect("currentIndexChanged(int)",
+                                      lambda index: None if row.updating else self.onFrameIntensityChanged(n, index))
         for field, spinBox in row.spinBoxes.items():
             spinBox.connect("valueChanged(double)", lambda value, field=field: self.onViewValueChanged(row, field, value))
         row.editMaskButton.connect("clicked(bool)", lambda: self.onEditMask(n))
@@ -441,6 +472,19 @@ class SDFCARWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
             return
         with slicer.util.tryWithErrorDisplay(f"Could not set the {field} of view {row.n}."):
             self.logic.setViewValue(self._parameterNode, row.n, field, value)
+
+    def onFrameIntensityChanged(self, n, index):
+        """The user chose how frame ``n``'s grey levels were made: said on the frame node, which the reconstruction
+        and Vesselness read (SDFCARLogic.frameIntensityTags)."""
+        if self._updatingFrameIntensity or self._parameterNode is None or not 0 <= index < len(FRAME_INTENSITY_CHOICES):
+            return
+        frame = self.logic.viewValue(self._parameterNode, n, "frame")
+        if frame is None:
+            return
+        value, label = FRAME_INTENSITY_CHOICES[index]
+        with slicer.util.tryWithErrorDisplay(f"Could not set how the grey levels of frame {n} were made."):
+            self.logic.setFrameIntensity(frame, value)
+            self.ui.statusLabel.text = f"Frame {n} ({frame.GetName()}): grey levels read {label[0].lower() + label[1:]}."
 
     def onAddView(self):
         with slicer.util.tryWithErrorDisplay("Could not add a view."):
@@ -608,6 +652,23 @@ class SDFCARWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
         with slicer.util.tryWithErrorDisplay("Could not show the suggested view.", waitCursor=True):
             best = self.logic.showSuggestedView(self._parameterNode.result)
             self.ui.statusLabel.text = f"3D view: the suggested C-arm view {best.get('label', '')} (as the detector sees it)."
+
+
+def showFrameIntensity(comboBox, frameNode):
+    """Show what was said of a frame's grey levels in its view's box (enabled only with a frame). A value that
+    is not a choice (set from the console) shows as the file's tags and says why in the tooltip; the run refuses it."""
+    index, problem = 0, ""
+    if frameNode is not None:
+        from SDFCARLib import mrml
+
+        try:
+            said = mrml.frame_intensity_said(frameNode) or ""
+            index = [value for value, _ in FRAME_INTENSITY_CHOICES].index(said)
+        except ValueError as exc:
+            problem = f"\n\n{exc}"
+    comboBox.currentIndex = index
+    comboBox.enabled = frameNode is not None
+    comboBox.toolTip = FRAME_INTENSITY_TOOLTIP + problem
 
 
 def parameterWidgets(ui):
@@ -996,25 +1057,25 @@ class SDFCARLogic(ScriptedLoadableModuleLogic):
         safe = re.sub(r"[^A-Za-z0-9_.-]+", "_", p.outputName).strip("._") or "result"
         return base / f"{safe}-{time.strftime('%Y%m%d-%H%M%S')}"
 
-    #: a frame node's attribute that says how its grey levels were made where no DICOM file does (LIN or DISP),
-    #: set from the Python console: frameNode.SetAttribute("SDFCAR.PixelIntensityRelationship", "LIN")
-    INTENSITY_ATTRIBUTE = "SDFCAR.PixelIntensityRelationship"
+    @staticmethod
+    def setFrameIntensity(frameNode, relationship):
+        """Say how a frame's grey levels were made ("LIN", "DISP"; "" or None: as its DICOM file says). The view's
+        "Grey levels" box does this; from the console too."""
+        from SDFCARLib import mrml
+
+        mrml.say_frame_intensity(frameNode, relationship)
 
     @staticmethod
     def frameIntensityTags(frameNode, index=-1):
-        """What the user said of a frame's grey levels (``INTENSITY_ATTRIBUTE``), else what the header of the DICOM
-        file it was loaded from says (SDFCARLib.dicom.intensity.IntensityTags), or None where neither is known."""
+        """What the user said of a frame's grey levels (the "Grey levels" box: SDFCARLib.mrml.frame_intensity_said),
+        else what the header of the DICOM file it was loaded from says (SDFCARLib.dicom.intensity.IntensityTags), or
+        None where neither is known."""
         from SDFCARLib import mrml
         from SDFCARLib.dicom.intensity import IntensityTags, intensity_tags_of_file
 
-        said = frameNode.GetAttribute(SDFCARLogic.INTENSITY_ATTRIBUTE) if frameNode is not None else None
+        said = mrml.frame_intensity_said(frameNode)
         if said:
-            value = said.strip().upper()
-            if value not in ("LIN", "DISP"):
-                raise ValueError(f"{frameNode.GetName()}: its attribute {SDFCARLogic.INTENSITY_ATTRIBUTE} is {said!r}; "
-                                 "set it to LIN (linear detector intensities) or DISP (processed for display), or "
-                                 "remove it to use the DICOM file's tags")
-            return IntensityTags(value, None, "MONOCHROME2", 16)
+            return IntensityTags(said, None, "MONOCHROME2", 16)
 
         database = getattr(slicer, "dicomDatabase", None)
         uid, frame = mrml.dicom_frame_reference(slicer.mrmlScene, frameNode, index)

@@ -130,9 +130,10 @@ class Layout:
 
 
 class ComboBox(Widget):
-    """QComboBox as the connectors see it: currentIndexChanged fires when the index changes."""
+    """QComboBox as the connectors and the module see it: currentIndexChanged fires when the index changes, set by
+    the user or by code (Qt emits it for setCurrentIndex and for the first addItem alike)."""
 
-    def __init__(self, name, parameter=None):
+    def __init__(self, name="", parameter=None):
         super().__init__(name, parameter)
         self.items = []
         self._index = -1
@@ -147,6 +148,7 @@ class ComboBox(Widget):
         if index != self._index:
             self._index = index
             self.currentIndexChanged.emit(index)
+            self.emit("currentIndexChanged(int)", index)
 
     def clear(self):
         self.items = []
@@ -247,6 +249,9 @@ class FakeNode:
 
     def SetAttribute(self, name, value):
         self._attributes[name] = value
+
+    def RemoveAttribute(self, name):
+        self._attributes.pop(name, None)
 
 
 SCENE = {}  # node ID -> FakeNode
@@ -541,7 +546,8 @@ def install(monkeypatch, real_mrml=False):
     for name, module in {"slicer": slicer, "slicer.util": util, "slicer.parameterNodeWrapper": slicer.parameterNodeWrapper,
                          "slicer.ScriptedLoadableModule": slicer.ScriptedLoadableModule,
                          "qt": _module("qt", QTimer=Timer, QWidget=Widget, QGroupBox=Widget, QPushButton=Widget,
-                                       QSpinBox=Widget, QDoubleSpinBox=Widget, QLabel=Widget, QFormLayout=Layout,
+                                       QSpinBox=Widget, QDoubleSpinBox=Widget, QLabel=Widget, QComboBox=ComboBox,
+                                       QFormLayout=Layout,
                                        QHBoxLayout=Layout)}.items():
         monkeypatch.setitem(sys.modules, name, module)
     monkeypatch.delitem(sys.modules, "slicer.packaging", raising=False)

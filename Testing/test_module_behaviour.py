@@ -417,6 +417,48 @@ def test_apply_sends_every_view_to_the_job(sdfcar, monkeypatch):
     assert geometry.views[2].detector_shape == (20, 30) and context["analyse"] is True
 
 
+def test_the_grey_levels_box_says_what_each_frame_is_and_the_run_reads_it(sdfcar, monkeypatch):
+    """Each view's "Grey levels" box writes what the user chose on the frame node (the run and Vesselness read it
+    there, before the DICOM file's tags), shows what a frame node already carries without writing it back, follows
+    the frame chosen, and shows a value that is no choice as the file's with the reason (the run refuses it)."""
+    from SDFCARLib import mrml
+
+    monkeypatch.setattr(mrml, "dicom_frame_reference", lambda scene, node, index: (None, None), raising=False)
+    attribute = mrml.FRAME_INTENSITY_ATTRIBUTE
+    widget = _widget(sdfcar)
+    widget.initializeParameterNode()
+    p = _three_views(sdfcar, widget)
+    widget._checkCanApply()
+    box1, box2, row = widget.ui.frame1IntensityComboBox, widget.ui.frame2IntensityComboBox, widget._viewRows[0]
+    labels = [label for _, label in sdfcar.FRAME_INTENSITY_CHOICES]
+    assert box1.items == box2.items == row.intensityComboBox.items == labels
+    assert (box1.currentIndex, box1.enabled) == (0, True) and p.frame1.GetAttribute(attribute) is None
+    assert not row.intensityComboBox.enabled  # view 3 has no frame yet
+    box1.currentIndex = 1  # the user: linear
+    assert p.frame1.GetAttribute(attribute) == "LIN" and "Frame 1" in widget.ui.statusLabel.text
+    assert sdfcar.SDFCARLogic.frameIntensityTags(p.frame1).relationship == "LIN"
+    box1.currentIndex = 0  # as the file says: nothing said any more
+    assert p.frame1.GetAttribute(attribute) is None and sdfcar.SDFCARLogic.frameIntensityTags(p.frame1) is None
+    p.frame2.SetAttribute(attribute, "disp")  # from the console
+    widget._checkCanApply()
+    assert box2.currentIndex == 2 and p.frame2.GetAttribute(attribute) == "disp"  # shown, not written back
+    p.frame2.SetAttribute(attribute, "raw")
+    widget._checkCanApply()
+    assert box2.currentIndex == 0 and "'raw'" in box2.toolTip and p.frame2.GetAttribute(attribute) == "raw"
+    with pytest.raises(ValueError, match="'raw'.*LIN or DISP"):
+        sdfcar.SDFCARLogic.frameIntensityTags(p.frame2)
+    frame3, other = _node("vtkMRMLScalarVolumeNode", "frame 3"), _node("vtkMRMLScalarVolumeNode", "frame 3b")
+    row.frameSelector.setCurrentNode(frame3)
+    widget._checkCanApply()
+    assert row.intensityComboBox.enabled
+    row.intensityComboBox.currentIndex = 2
+    assert frame3.GetAttribute(attribute) == "DISP"
+    row.frameSelector.setCurrentNode(other)  # the box shows the frame now chosen; the first keeps its own
+    widget._checkCanApply()
+    assert row.intensityComboBox.currentIndex == 0 and other.GetAttribute(attribute) is None
+    assert frame3.GetAttribute(attribute) == "DISP"
+
+
 def test_console_reconstruct_views_checks_the_counts(sdfcar, monkeypatch):
     from SDFCARLib.geometry import standard_geometry
 

@@ -414,6 +414,8 @@ VERIFIED_MODULE_NAMES = {
     "slicer.util.tryWithErrorDisplay": "util.py",
     "qt.QTimer": "Qt", "qt.QGroupBox": "Qt", "qt.QFormLayout": "Qt", "qt.QHBoxLayout": "Qt",
     "qt.QSpinBox": "Qt", "qt.QDoubleSpinBox": "Qt", "qt.QPushButton": "Qt",
+    "qt.QComboBox": "Qt; built from Python with addItem, currentIndex and currentIndexChanged(int) in "
+                    "Modules/Scripted/ScreenCapture/ScreenCapture.py at every tag",
     "vtk.vtkCommand": "VTK", "vtk.vtkCommand.ModifiedEvent": "VTK",
 }
 # VTK/MRML methods (capitalised) called on nodes, loggers and cameras: the header that declares each.
@@ -441,15 +443,17 @@ VERIFIED_WIDGET_METHODS = {
     "addAttribute": "qMRMLNodeComboBox (Q_INVOKABLE)", "threeDWidget": "qSlicerLayoutManager",
     "threeDView": "qMRMLThreeDWidget", "resetFocalPoint": "qMRMLThreeDView", "cameraNode": "qMRMLThreeDView (Q_INVOKABLE)",
     "logic": "qSlicerAbstractCoreModule",
+    "addItem": "QComboBox (ScreenCapture.py at every tag)",
 }
 # Properties set on widgets the module builds in Python (Qt properties, or qMRMLNodeComboBox's Q_PROPERTYs).
 VERIFIED_WIDGET_PROPERTIES = {
     "specialValueText", "toolTip", "decimals", "singleStep", "suffix", "value", "enabled", "maximum", "text",
     "nodeTypes", "showChildNodeTypes", "noneEnabled", "addEnabled", "removeEnabled", "renameEnabled",
+    "currentIndex",  # QComboBox (DICOM.py, DICOMScalarVolumePlugin.py set it at every tag)
 }
 VERIFIED_SIGNALS = {"clicked(bool)", "currentNodeChanged(vtkMRMLNode*)", "valueChanged(int)", "valueChanged(double)",
-                    "startupCompleted()"}
-_WIDGET_ROOTS = {"row", "selector", "spinBox", "form", "maskRow", "container", "layoutManager", "view", "plots"}
+                    "startupCompleted()", "currentIndexChanged(int)"}
+_WIDGET_ROOTS = {"row", "selector", "spinBox", "comboBox", "form", "maskRow", "container", "layoutManager", "view", "plots"}
 
 
 def _chain(node):
@@ -480,7 +484,8 @@ def _module_uses():
                 mrml_methods.add(method)
             root = receiver.split(".")[0]
             if (receiver.startswith(("self.ui.", "self._timer")) or root in _WIDGET_ROOTS
-                    or receiver in ("self.frameSelector", "self.maskSelector", "self.frameIndexSpinBox", "self.layout")
+                    or receiver in ("self.frameSelector", "self.maskSelector", "self.frameIndexSpinBox", "self.intensityComboBox",
+                                    "self.layout")
                     or receiver.startswith(("layoutManager.", "plots."))):
                 if method[:1].islower() and method not in ("items", "append", "pop", "setValues"):
                     widget_methods.add(method)
@@ -491,8 +496,8 @@ def _module_uses():
                 if isinstance(target, ast.Attribute):
                     receiver = _chain(target.value) or ""
                     if (receiver.split(".")[0] in _WIDGET_ROOTS or receiver.startswith("self.ui.")
-                            or receiver in ("self.frameIndexSpinBox", "self.editMaskButton", "self.vesselnessButton",
-                                            "self.removeButton")):
+                            or receiver in ("self.frameIndexSpinBox", "self.intensityComboBox", "self.editMaskButton",
+                                            "self.vesselnessButton", "self.removeButton")):
                         properties.add(target.attr)
     return names, mrml_methods, widget_methods, properties, signals
 
@@ -524,3 +529,17 @@ def test_the_results_section_is_wired():
     assert ui_widgets()["additionalViewsWidget"][0] == "QWidget"
     layouts = [l.get("class") for l in ui_widgets()["additionalViewsWidget"][2].findall("layout")]
     assert layouts == ["QVBoxLayout"], "the rows of views 3+ go into this widget's layout"
+
+
+def test_the_grey_level_choices_are_the_librarys():
+    """The "Grey levels" boxes offer nothing said and exactly the values SDFCARLib.mrml.say_frame_intensity takes,
+    and the .ui holds a box for views 1 and 2 (views 3, 4, … build theirs from the same list)."""
+    from SDFCARLib.mrml.inputs import FRAME_INTENSITY_VALUES
+
+    (choices,) = [ast.literal_eval(node.value) for node in ast.parse(source(SCRIPT)).body
+                  if isinstance(node, ast.Assign) and getattr(node.targets[0], "id", None) == "FRAME_INTENSITY_CHOICES"]
+    assert tuple(value for value, _ in choices) == ("",) + FRAME_INTENSITY_VALUES
+    assert len({label for _, label in choices}) == len(choices)
+    widgets = ui_widgets()
+    assert all(widgets[f"frame{n}IntensityComboBox"][0] == "QComboBox" for n in (1, 2))
+    assert 'form.addRow("Grey levels:", self.intensityComboBox)' in source(SCRIPT)

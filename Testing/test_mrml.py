@@ -570,3 +570,26 @@ def test_mask_from_a_segmentation_on_one_slice_of_a_multi_frame_volume(scene):
     assert not mrml.mask_from_segmentation_node(seg, run, slice_index=0).any()
     with pytest.raises(mrml.MRMLBridgeError, match="3 slices"):
         mrml.mask_from_segmentation_node(seg, run)
+
+
+def test_what_a_user_says_of_a_frames_grey_levels_is_kept_on_the_node_and_saved_with_the_scene(scene, tmp_path):
+    """The Slicer module's "Grey levels" box: LIN or DISP (any case) on the frame node, nothing said removes it;
+    anything else is refused before the node changes; the scene file keeps it."""
+    frame = mrml.add_frame_volume_node(scene, np.zeros((4, 6), np.float32), "frame 1")
+    assert mrml.frame_intensity_said(frame) is None and mrml.frame_intensity_said(None) is None
+    mrml.say_frame_intensity(frame, "disp")
+    assert frame.GetAttribute(mrml.FRAME_INTENSITY_ATTRIBUTE) == "DISP" and mrml.frame_intensity_said(frame) == "DISP"
+    with pytest.raises(ValueError, match="frame 1.*'LOG'.*say LIN or DISP"):
+        mrml.say_frame_intensity(frame, "LOG")
+    assert mrml.frame_intensity_said(frame) == "DISP"  # unchanged by the refused value
+    mrml.say_frame_intensity(frame, "lin")
+    loaded = mrml.load_scene(mrml.new_scene(), mrml.save_scene(scene, tmp_path / "scene.mrml"))
+    (again,) = [n for n in mrml.nodes_by_class(loaded, "vtkMRMLScalarVolumeNode") if n.GetName() == "frame 1"]
+    assert mrml.frame_intensity_said(again) == "LIN"
+    mrml.say_frame_intensity(frame, "")
+    assert frame.GetAttribute(mrml.FRAME_INTENSITY_ATTRIBUTE) is None and mrml.frame_intensity_said(frame) is None
+    frame.SetAttribute(mrml.FRAME_INTENSITY_ATTRIBUTE, "raw")  # set by hand from the console: a typo is not ignored
+    with pytest.raises(ValueError, match="'raw'"):
+        mrml.frame_intensity_said(frame)
+    with pytest.raises(mrml.MRMLBridgeError, match="choose the view's frame"):
+        mrml.say_frame_intensity(None, "LIN")

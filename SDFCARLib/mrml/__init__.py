@@ -21,10 +21,10 @@ from __future__ import annotations
 from ..outputs import RESULT_FILES
 from .carm import (VIEW_COLORS, CArmNodes, add_carm_geometry_to_scene, beam_polydata,
                    detector_image_polydata)
-from .inputs import (add_frame_volume_node, add_mask_segmentation_node, dicom_frame_reference,
-                     dicom_instance_uid, frame_from_sequence, frame_from_volume_node,
-                     mask_from_segmentation_node, mask_from_volume_node, sequence_frame_node,
-                     sequence_of_proxy_node, set_segment_mask)
+from .inputs import (FRAME_INTENSITY_ATTRIBUTE, FRAME_INTENSITY_VALUES, add_frame_volume_node,
+                     add_mask_segmentation_node, dicom_frame_reference, dicom_instance_uid, frame_from_sequence,
+                     frame_from_volume_node, frame_intensity_said, mask_from_segmentation_node, mask_from_volume_node,
+                     say_frame_intensity, sequence_frame_node, sequence_of_proxy_node, set_segment_mask)
 from .parameter_views import (FIRST_STORED_VIEW, MAX_VIEWS, VIEW_FIELDS, VIEW_NODE_FIELDS, VIEW_VALUE_FIELDS,
                               ViewParameters, add_view, get_view, get_view_value, remove_view, set_view_count,
                               set_view_value, view_count)
@@ -47,6 +47,7 @@ __all__ = [
     "add_segmentation_node", "add_volume_node", "segment_contains_lps", "segmentation_mask_lps",
     "result_folder_of", "segmentation_surface", "write_result_scene",
     # inputs
+    "FRAME_INTENSITY_ATTRIBUTE", "FRAME_INTENSITY_VALUES", "frame_intensity_said", "say_frame_intensity",
     "add_frame_volume_node", "add_mask_segmentation_node", "dicom_frame_reference", "dicom_instance_uid",
     "frame_from_sequence", "frame_from_volume_node", "mask_from_segmentation_node", "mask_from_volume_node",
     "sequence_frame_node", "sequence_of_proxy_node", "set_segment_mask",

@@ -13,6 +13,11 @@ Masks
 DICOM references
     ``dicom_frame_reference`` names the file and frame a shown frame came from (the SOP instance UID
     the DICOM module stores on the node), for reading the C-arm geometry from its header.
+
+Grey levels
+    What a frame's grey levels are (DICOM's Pixel Intensity Relationship) decides whether path lengths
+    can be read off it. Where no DICOM file says, or to overrule it, the user says it on the frame node
+    (``FRAME_INTENSITY_ATTRIBUTE``, saved with the scene): ``frame_intensity_said``, ``say_frame_intensity``.
 """
 
 from __future__ import annotations
@@ -21,6 +26,7 @@ from typing import Any, List, Optional, Sequence, Tuple
 
 import numpy as np
 
+from ..evidence import DISPLAY_INTENSITY, LINEAR_INTENSITY
 from ..masks import MaskError, binarise_mask
 from .results import _segment_ids, _segment_mask_at_ras
 from .scene import (MRMLBridgeError, _image_data, _numpy_matrix, _slicer, _vtk_matrix, nodes_by_class, prepare_scene,
@@ -241,3 +247,43 @@ def dicom_frame_reference(scene, node, index: int = -1) -> Tuple[Optional[str], 
     uid = dicom_instance_uid(data_node)
     uids = {dicom_instance_uid(sequence.GetNthDataNode(i)) for i in range(sequence.GetNumberOfDataNodes())}
     return uid, (item if len(uids) == 1 else 0)
+
+
+#: the frame node's attribute that says how its grey levels were made (``FRAME_INTENSITY_VALUES``); it wins over
+#: the DICOM file's tags, and over the rule that takes 8-bit frames nothing is known of as processed for display
+FRAME_INTENSITY_ATTRIBUTE = "SDFCAR.PixelIntensityRelationship"
+#: what a user may say: linear in the detector's intensity (path lengths are read off it) or processed for display
+FRAME_INTENSITY_VALUES = (LINEAR_INTENSITY, DISPLAY_INTENSITY)
+
+
+def _intensity_value_problem(node, value) -> str:
+    return (f"{node.GetName()}: its grey levels were said to be {value!r} ({FRAME_INTENSITY_ATTRIBUTE}); say "
+            f"{' or '.join(FRAME_INTENSITY_VALUES)} (linear detector intensities, or processed for display), or "
+            "nothing to use the DICOM file's tags")
+
+
+def frame_intensity_said(node) -> Optional[str]:
+    """What the user said of a frame node's grey levels: one of ``FRAME_INTENSITY_VALUES``, or None where
+    nothing was said. Any other value is refused (ValueError naming the fix): a typo must not silently
+    fall back to the file's tags."""
+    said = node.GetAttribute(FRAME_INTENSITY_ATTRIBUTE) if node is not None else None
+    if not said:
+        return None
+    value = said.strip().upper()
+    if value not in FRAME_INTENSITY_VALUES:
+        raise ValueError(_intensity_value_problem(node, said))
+    return value
+
+
+def say_frame_intensity(node, relationship: Optional[str]) -> None:
+    """Say what a frame node's grey levels are (one of ``FRAME_INTENSITY_VALUES``, any case), or nothing (None or
+    ""): the DICOM file's tags decide again. A value of another kind is refused before the node is changed."""
+    if node is None:
+        raise MRMLBridgeError("no frame node: choose the view's frame first")
+    value = (relationship or "").strip().upper()
+    if not value:
+        node.RemoveAttribute(FRAME_INTENSITY_ATTRIBUTE)
+        return
+    if value not in FRAME_INTENSITY_VALUES:
+        raise ValueError(_intensity_value_problem(node, relationship))
+    node.SetAttribute(FRAME_INTENSITY_ATTRIBUTE, value)
