@@ -1090,8 +1090,10 @@ class SDFCARLogic(ScriptedLoadableModuleLogic):
         from (None where it was not loaded from the DICOM database), and per view how the frame was read where it
         was changed (None elsewhere; the job's report.json keeps them). Path lengths are read only off LIN frames: a
         LOG frame is brought to a linear scale here, a LIN frame whose values fall with intensity mirrored
-        (SDFCARLib.dicom.intensity). Slicer's DICOM readers (GDCM) hand
-        over the rescaled values with MONOCHROME1 already mirrored, as SDFCARLib's own reader does."""
+        (SDFCARLib.dicom.intensity). Slicer's DICOM readers (the image sequence plugin's GDCM ImageIO, Slicer
+        5.4 to main) hand over the stored values rescaled by a slope/intercept only, with MONOCHROME1 mirrored, as
+        SDFCARLib's own reader does; never through a Modality LUT (0028,3000), which GDCM does not apply, so a
+        classic LOG run's LUT is applied here once (Testing/test_dicom_intensity.py)."""
         from SDFCARLib.dicom.intensity import linearised
 
         arrays, relationships, notes = [], [], []

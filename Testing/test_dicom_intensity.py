@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pydicom
 import pytest
 from scipy import ndimage
 
@@ -301,3 +302,30 @@ def test_a_classic_log_run_is_read_through_its_modality_lut_back_to_linear(tmp_p
                                     extra={"ModalityLUTSequence": Sequence([modality])}))
     assert linear.frames_relationship == "LIN" and linear.linearised_note is None  # LIN: nothing to bring back
     np.testing.assert_array_equal(linear.frames[0], counts.round().astype(np.float32))
+
+
+def test_a_classic_log_run_as_slicer_loads_it_is_read_through_its_modality_lut_once(tmp_path):
+    """Slicer's DICOM module hands over a classic XA run's stored values untouched by its Modality LUT (GDCM warns
+    "Modality LUT (0028,3000) are not handled"; ITK's GDCMImageIO applies only a rescale slope/intercept) and, for
+    MONOCHROME1, mirrored onto the stored bits (mask − value). The module's path (the file's tags of that frame,
+    then ``linearised``) then gives what load_xa gives: the LUT applied once, the frame ∝ the intensity."""
+    from pydicom.sequence import Sequence
+
+    counts, _ = _tube_frame()
+    stored = _log_stored(counts, +1)
+    modality = _lut_item(_exact_to_linear_lut(counts, +1))
+    del modality.LUTFunction
+    modality.ModalityLUTType = "US"
+    for photometric in ("MONOCHROME2", "MONOCHROME1"):
+        path = write_xa(tmp_path / f"log-mlut-{photometric}.dcm", stored, VIEW, bits_stored=BITS, photometric=photometric,
+                        extra={"PixelIntensityRelationship": "LOG", "PixelIntensityRelationshipSign": 1,
+                               "ModalityLUTSequence": Sequence([modality])})
+        mirrored = photometric == "MONOCHROME1"
+        in_file = pydicom.dcmread(path).pixel_array.astype(np.float64)  # write_xa stores 2^bits − 1 − the array there
+        as_slicer_gives = ((2 ** BITS - 1) - in_file if mirrored else in_file).astype(np.float32)
+        frame, relationship, note = linearised(as_slicer_gives, intensity_tags_of_file(path, 0), inverted=mirrored)
+        assert relationship == "LIN" and "Modality LUT (0028,3000)" in note
+        np.testing.assert_allclose(frame, dicom.load_xa(path).frames[0], rtol=1e-6)
+        if not mirrored:  # the LUT was made for these stored values: the frame ∝ the intensity
+            ratio = frame / counts
+            assert ratio.std() / ratio.mean() < 2e-3
