@@ -70,6 +70,9 @@ def main() -> int:
     parser.add_argument("--frame-intensity", default=None, metavar="LIN|DISP|none",
                         help="every view's frames handed over with this Pixel Intensity Relationship instead of the "
                              "protocol's (none: not known, as arrays from Python or a PNG in Slicer)")
+    parser.add_argument("--frames-8bit", action="store_true",
+                        help="every view's frames handed over as 8-bit grey levels, linearly (0 … its largest value → "
+                             "0 … 255, rounded), as a linear frame exported to PNG; the masks are the protocol's")
     parser.add_argument("variants", nargs="*", help="JSON objects of setting overrides")
     args = parser.parse_args()
     if args.masks and args.protocol not in REALISTIC_PROTOCOLS:
@@ -87,7 +90,8 @@ def main() -> int:
     print(f"# {platform.processor() or platform.machine()}, {os.cpu_count()} cores, torch {torch.__version__}, "
           f"{args.threads} thread(s); {args.suite} cases {args.case}, {args.protocol}, "
           f"{'grid80' if args.grid80 else 'paper grid'}{'; masks ' + json.dumps(args.masks) if args.masks else ''}"
-          f"{'; frame intensity ' + args.frame_intensity if args.frame_intensity else ''}", flush=True)
+          f"{'; frame intensity ' + args.frame_intensity if args.frame_intensity else ''}"
+          f"{'; frames as 8-bit' if args.frames_8bit else ''}", flush=True)
     scores: dict = {json.dumps(v): [] for v in variants}
     for index in args.case:
         spec = build_cases(config)[index]
@@ -95,6 +99,9 @@ def main() -> int:
         if args.frame_intensity is not None and case.frames is not None:
             case.frame_intensity = (None if args.frame_intensity.lower() == "none"
                                     else [args.frame_intensity.upper()] * len(case.frames))
+        if args.frames_8bit and case.frames is not None:
+            case.frames = [np.round(np.asarray(f, np.float64) * (255.0 / float(np.max(f)))).astype(np.uint8)
+                           for f in case.frames]
         fitted = (fit_field(case.geometry, case.targets, make_settings("fast", seed=spec.seed), case.target_kind,
                             frames=case.frames, frame_intensity=case.frame_intensity) if args.finish_only else None)
         for number, variant in enumerate(variants):
