@@ -125,8 +125,8 @@ def assumed_relationship(frame: Optional[np.ndarray], relationship: Optional[str
         f"{what}: the frame holds 8-bit grey levels and nothing says how they were made (it was not read from a "
         "DICOM run): it is taken as processed for display (DISP) — no path lengths are read off it and its mask's "
         "edge is not trimmed — because raw detector frames are 10–16 bit. If it does hold linear intensities, say so: "
-        "reconstruct(…, frame_intensity=['LIN', …]), segment --image-intensity LIN, or in Slicer "
-        "frameNode.SetAttribute('SDFCAR.PixelIntensityRelationship', 'LIN')")
+        "reconstruct(…, frame_intensity=['LIN', …]), segment --image-intensity LIN, or in Slicer the view's "
+        "Grey levels box: Linear")
 
 
 def assumed_frame_intensity(frames: Optional[Sequence[Optional[np.ndarray]]],
