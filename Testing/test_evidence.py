@@ -466,6 +466,7 @@ def test_an_eight_bit_frame_nothing_is_known_of_is_taken_as_processed_for_displa
     read, notes = assumed_frame_intensity([ramp, counts], None)
     assert read == [DISPLAY_INTENSITY, None] and len(notes) == 1
     assert notes[0].startswith("view 1:") and "8-bit" in notes[0] and "frame_intensity=['LIN'" in notes[0]
+    assert "Grey levels box" in notes[0]  # the fix in Slicer, not a console attribute
     assert assumed_frame_intensity([ramp, counts], ["LIN", None]) == (["LIN", None], [])  # said: kept as said
     assert assumed_frame_intensity([counts, counts], None) == (None, [])  # nothing assumed: as before
     assert assumed_frame_intensity(None, ["LIN", "DISP"]) == (["LIN", "DISP"], [])
