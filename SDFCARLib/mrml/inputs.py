@@ -29,8 +29,8 @@ import numpy as np
 from ..evidence import DISPLAY_INTENSITY, LINEAR_INTENSITY
 from ..masks import MaskError, binarise_mask
 from .results import _segment_ids, _segment_mask_at_ras
-from .scene import (MRMLBridgeError, _image_data, _numpy_matrix, _slicer, _vtk_matrix, nodes_by_class, prepare_scene,
-                    scene_transaction)
+from .scene import (ATTRIBUTE_PREFIX, MRMLBridgeError, _image_data, _numpy_matrix, _slicer, _vtk_matrix, nodes_by_class,
+                    prepare_scene, scene_transaction)
 
 
 def frame_from_volume_node(node, slice_index: Optional[int] = None) -> np.ndarray:
@@ -251,7 +251,7 @@ def dicom_frame_reference(scene, node, index: int = -1) -> Tuple[Optional[str], 
 
 #: the frame node's attribute that says how its grey levels were made (``FRAME_INTENSITY_VALUES``); it wins over
 #: the DICOM file's tags, and over the rule that takes 8-bit frames nothing is known of as processed for display
-FRAME_INTENSITY_ATTRIBUTE = "SDFCAR.PixelIntensityRelationship"
+FRAME_INTENSITY_ATTRIBUTE = ATTRIBUTE_PREFIX + "PixelIntensityRelationship"
 #: what a user may say: linear in the detector's intensity (path lengths are read off it) or processed for display
 FRAME_INTENSITY_VALUES = (LINEAR_INTENSITY, DISPLAY_INTENSITY)
 
@@ -280,7 +280,7 @@ def say_frame_intensity(node, relationship: Optional[str]) -> None:
     ""): the DICOM file's tags decide again. A value of another kind is refused before the node is changed."""
     if node is None:
         raise MRMLBridgeError("no frame node: choose the view's frame first")
-    value = (relationship or "").strip().upper()
+    value = str(relationship or "").strip().upper()
     if not value:
         node.RemoveAttribute(FRAME_INTENSITY_ATTRIBUTE)
         return
