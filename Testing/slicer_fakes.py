@@ -547,8 +547,7 @@ def install(monkeypatch, real_mrml=False):
                          "slicer.ScriptedLoadableModule": slicer.ScriptedLoadableModule,
                          "qt": _module("qt", QTimer=Timer, QWidget=Widget, QGroupBox=Widget, QPushButton=Widget,
                                        QSpinBox=Widget, QDoubleSpinBox=Widget, QLabel=Widget, QComboBox=ComboBox,
-                                       QFormLayout=Layout,
-                                       QHBoxLayout=Layout)}.items():
+                                       QFormLayout=Layout, QHBoxLayout=Layout)}.items():
         monkeypatch.setitem(sys.modules, name, module)
     monkeypatch.delitem(sys.modules, "slicer.packaging", raising=False)
     ScriptedLoadableModuleLogic._node = None
