@@ -278,6 +278,76 @@ def test_the_averaged_fit_holds_the_mean_of_the_last_iterates(case, monkeypatch)
     assert not torch.allclose(parameters[0].detach(), iterates[-1][0])  # the table moved over those steps
 
 
+def test_saturated_voxels_skip_the_mlp_until_the_next_refresh_and_the_vessel_is_still_found(case, monkeypatch):
+    """hold_saturated_logit: the MLP runs on every support voxel until some saturate, then between two refreshes on the
+    same smaller set (the held ones keep their value); the result still finds the vessel the full fit finds."""
+    from SDFCARLib import field
+    fitted_rows = []
+    forward = field.ResidualMLP.forward
+
+    def recording_forward(self, h):
+        if torch.is_grad_enabled():  # the steps' own passes, not the refreshes or the output
+            fitted_rows.append(h.shape[0])
+        return forward(self, h)
+
+    monkeypatch.setattr(field.ResidualMLP, "forward", recording_forward)
+    common = dict(steps=60, seed=3, device="cpu", threads=1, width_exclusion_fraction=0.0)
+    full = reconstruct(case[0], _masks(case), make_settings("fast", **common))
+    support = fitted_rows[0]
+    assert fitted_rows == [support] * 60
+    fitted_rows.clear()
+    held = reconstruct(case[0], _masks(case), make_settings("fast", hold_saturated_logit=-6.0, hold_refresh_steps=5,
+                                                              **common))
+    assert len(fitted_rows) == 60 and fitted_rows[0] == support
+    blocks = [fitted_rows[k:k + 5] for k in range(0, 60, 5)]
+    assert all(len(set(block)) == 1 for block in blocks)  # the set changes at refreshes only
+    assert min(fitted_rows) < support / 2  # most of the support is empty space by the end
+    assert not np.array_equal(full.field, held.field)
+    assert full.report["held_voxels"] is None
+    record = held.report["held_voxels"]
+    assert record["below_logit"] == -6.0 and record["refresh_steps"] == 5
+    assert record["mean_fitted_share"] == [pytest.approx(sum(fitted_rows) / (60 * support), abs=1e-4)]
+    truth = case[1]
+    for result in (full, held):
+        assert (result.segmentation & truth).sum() > 0.6 * truth.sum()
+    overlap = 2 * (full.segmentation & held.segmentation).sum() / (full.segmentation.sum() + held.segmentation.sum())
+    assert overlap > 0.8
+
+
+def test_the_held_voxels_margin_fits_the_support_voxels_next_to_a_fitted_one(case):
+    """hold_margin_voxels: the fitted set is the voxels at or above the logit, dilated by the margin (26-neighbours)
+    within the support; excluded voxels are never fitted."""
+    from scipy import ndimage
+    from SDFCARLib.optimiser import _held_voxels, _normalised_points
+    settings = make_settings("fast", steps=4, seed=3, device="cpu")
+    problem = build_problem(case[0], _masks(case), settings, "mask")
+    torch.manual_seed(3)
+    model = ImplicitField(field_config(settings))
+    with torch.no_grad():  # a field that varies over the support (a new one is nearly constant)
+        model.encoding.table.copy_(torch.randn_like(model.encoding.table))
+        model.mlp.output.weight.mul_(1000.0)
+    encoded = model.prepare(_normalised_points(problem.geometry, problem.voxels, problem.device))
+    with torch.no_grad():
+        logit = model.logit_from_raw(model.raw(encoded))
+    level = float(logit.quantile(0.97))  # a few scattered voxels at or above it
+    bare = _held_voxels(problem, model, encoded, None, level)
+    assert bare.fitted.tolist() == torch.nonzero(logit >= level).squeeze(1).tolist()
+    assert len(bare.encoded) == len(bare.fitted)
+    torch.testing.assert_close(bare.raw, model.raw(encoded).detach())
+    grown = _held_voxels(problem, model, encoded, None, level, margin_voxels=1)
+    volume = np.zeros(case[0].volume.shape, bool)
+    volume.reshape(-1)[problem.voxels[bare.fitted.numpy()]] = True
+    expected = ndimage.binary_dilation(volume, np.ones((3, 3, 3), bool)).reshape(-1)[problem.voxels]
+    assert grown.fitted.tolist() == np.flatnonzero(expected).tolist()
+    assert len(grown.fitted) > len(bare.fitted)
+    allowed = torch.ones(len(problem.voxels))
+    allowed[grown.fitted[:10]] = 0.0
+    excluded = _held_voxels(problem, model, encoded, allowed, level, margin_voxels=1)
+    assert excluded.fitted.tolist() == grown.fitted[10:].tolist()
+    everything = _held_voxels(problem, model, encoded, None, float(logit.min()) - 1.0)
+    assert everything.fitted is None  # nothing held: the plain pass
+
+
 def test_an_ensemble_is_the_mean_occupancy_of_single_fits_of_its_seeds(case):
     """ensemble_fits: each fit is the one a single run with its seed (the run's, then + 1) makes, with its own
     mid-fit exclusion, and the result is made from the mean of their occupancies."""
