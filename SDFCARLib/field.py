@@ -156,12 +156,6 @@ class EncodedPoints:
     def __len__(self) -> int:
         return self.count
 
-    def points_of(self, points: torch.Tensor) -> "EncodedPoints":
-        """The encoding of these points only (indices into this set, in this order)."""
-        levels = self.operator.shape[0] // self.count
-        rows = (points.long()[:, None] * levels + torch.arange(levels, device=points.device)).reshape(-1)
-        return EncodedPoints(self.operator.rows_of(rows), len(points))
-
 
 #: on CPU the MLP runs over this many points at a time: each layer's activations then stay in the
 #: cache, which makes a step's forward and backward a quarter faster (bench/RESULTS.md §36); one

@@ -43,7 +43,6 @@ from typing import Any, Callable, Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 import scipy
-from scipy import ndimage
 import skimage
 import torch
 
@@ -168,7 +167,6 @@ class Problem:
     # per support voxel, the offset added to its logit since the revival (revive_fraction; revival.py), None: none
     logit_offset: Optional[torch.Tensor] = None
     revival: Optional[Dict[str, Any]] = None  # what was revived, for report.json
-    held: Optional[Dict[str, Any]] = None  # hold_saturated_logit: the share of the support each fit's steps fitted
     # where L_occ fits the frames' path lengths: the masks' own targets, which it fits after
     # frame_evidence_until_fraction of the steps (None: L_occ fits view_targets throughout)
     mask_targets: Optional[List[ViewTarget]] = None
@@ -451,8 +449,6 @@ def optimise(problem: Problem, model: ImplicitField, progress: Progress = None, 
     averaging_from = averaging_start(settings)
     parameters = [p for group in optimiser.param_groups for p in group["params"]]  # what Adam trains
     averaged: List[torch.Tensor] = []
-    held: Optional[HeldVoxels] = None
-    fitted_voxels = 0  # summed over the steps, with hold_saturated_logit
     t_loop = time.perf_counter()
     last_report = -math.inf
     for step in range(1, o.steps + 1):
@@ -473,16 +469,7 @@ def optimise(problem: Problem, model: ImplicitField, progress: Progress = None, 
             paused = time.perf_counter()
             _revive_unexplained(problem, model, allowed, step - 1)
             t_loop += time.perf_counter() - paused
-        if o.hold_saturated_logit is not None and (held is None or (step - 1) % o.hold_refresh_steps == 0
-                                                   or step - 1 in exclusion_steps or step - 1 == revival_step):
-            held = _held_voxels(problem, model, encoded, allowed, o.hold_saturated_logit, o.hold_margin_voxels)
-        if held is None or held.fitted is None:
-            raw = model.raw(encoded, checkpoint_points=o.checkpoint_points)
-        else:
-            raw = held.raw.index_put((held.fitted,), model.raw(held.encoded, checkpoint_points=o.checkpoint_points))
-        if held is not None:
-            fitted_voxels += len(held.encoded)
-        occupancy = model.occupancy_from_raw(raw, problem.logit_offset)
+        occupancy = model.occupancy_from_raw(model.raw(encoded, checkpoint_points=o.checkpoint_points), problem.logit_offset)
         if allowed is not None:
             occupancy = occupancy * allowed
         line_integrals = [projector.render(occupancy) for projector in problem.projectors]
@@ -520,49 +507,12 @@ def optimise(problem: Problem, model: ImplicitField, progress: Progress = None, 
             _report(progress, phase="optimise", step=done, total=o.total_steps, elapsed_s=elapsed,
                     eta_s=elapsed / step * (o.total_steps - done), device=str(device), **losses)
             last_report = now
-    if held is not None:
-        problem.held = problem.held or {"below_logit": o.hold_saturated_logit, "refresh_steps": o.hold_refresh_steps,
-                                        "mean_fitted_share": []}
-        problem.held["mean_fitted_share"].append(round(fitted_voxels / (o.steps * len(encoded)), 4))  # one per fit
     model.alpha = model.config.alpha  # the result is read at the final α whatever the ramp
     if averaged:
         with torch.no_grad():
             for p, mean in zip(parameters, averaged):
                 p.copy_(mean)
     return history, time.perf_counter() - t_loop
-
-
-@dataclasses.dataclass
-class HeldVoxels:
-    """``hold_saturated_logit``'s state between refreshes: every support voxel's raw output at the last refresh,
-    and the voxels still fitted (None: all of them) with their encoding."""
-
-    raw: torch.Tensor
-    fitted: Optional[torch.Tensor]
-    encoded: Any
-
-
-def _held_voxels(problem: Problem, model: ImplicitField, encoded, allowed: Optional[torch.Tensor],
-                 below_logit: float, margin_voxels: int = 0) -> HeldVoxels:
-    """The voxels still fitted: those whose occupancy logit is at least ``below_logit``, with the support voxels
-    within ``margin_voxels`` of them, less the excluded. The others keep their value now until the next refresh."""
-    with torch.no_grad():
-        raw = model.raw(encoded)
-        logit = model.logit_from_raw(raw)
-        if problem.logit_offset is not None:
-            logit = logit + problem.logit_offset
-        fitted = logit >= below_logit
-        if margin_voxels and not bool(fitted.all()):
-            volume = np.zeros(problem.geometry.volume.shape, dtype=bool)
-            volume.reshape(-1)[problem.voxels] = fitted.cpu().numpy()
-            volume = ndimage.binary_dilation(volume, np.ones((3, 3, 3), bool), iterations=margin_voxels)
-            fitted = torch.as_tensor(volume.reshape(-1)[problem.voxels], device=fitted.device)
-        if allowed is not None:
-            fitted &= allowed > 0
-    if bool(fitted.all()):
-        return HeldVoxels(raw, None, encoded)
-    rows = torch.nonzero(fitted).squeeze(1)
-    return HeldVoxels(raw, rows, encoded.points_of(rows))
 
 
 def ramped_alpha(alpha_start: float, alpha: float, progress: float) -> float:
@@ -772,7 +722,6 @@ def finish(problem: Problem, model: ImplicitField, history: List[Dict[str, float
         "width_agreement": width_check,
         "width_exclusion": problem.exclusion,
         "revival": problem.revival,
-        "held_voxels": problem.held,
         "reconnection": reconnection,
         "final_reconnection": final_reconnection,
         "unconfirmed_fragments": unconfirmed,

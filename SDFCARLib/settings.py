@@ -119,14 +119,6 @@ class OptimisationSettings:
     # >0: the SDF's α rises from alpha_start to alpha over this share of the steps (0: alpha throughout)
     alpha_ramp_fraction: float = 0.0
     checkpoint_points: int = 262144  # >0: the MLP in checkpointed chunks of this many points (memory)
-    # a voxel whose occupancy logit is below this is held at its value and skips the MLP until the next refresh
-    # (every hold_refresh_steps steps, and after an exclusion or a revival): most of the support is such empty space
-    # once the fit has settled, and the MLP is most of a step. Not the same fit: its σ′ is small, but Adam scales each
-    # parameter's step by its own gradient history, so the hash entries only such voxels touch stop moving
-    # (None: every voxel through the MLP at every step, the published recipe)
-    hold_saturated_logit: Optional[float] = None
-    hold_refresh_steps: int = 10
-    hold_margin_voxels: int = 0  # and the held voxels this close (26-neighbours, in voxels) to a fitted one are fitted too
 
     @property
     def total_steps(self) -> int:
@@ -410,13 +402,6 @@ class Settings:
         if not 0 < o.revive_occupancy < 0.5:
             raise ReconstructionError(f"revive_occupancy is the occupancy a revived voxel starts again at: above 0 and "
                                       f"below 0.5 (the threshold's side of empty), got {o.revive_occupancy}")
-        if o.hold_saturated_logit is not None and not o.hold_saturated_logit < 0:
-            raise ReconstructionError(f"hold_saturated_logit is an occupancy logit below which a voxel is held between "
-                                      f"refreshes: negative (e.g. -9, occupancy 1e-4), or None (off); got {o.hold_saturated_logit}")
-        if o.hold_refresh_steps < 1:
-            raise ReconstructionError(f"hold_refresh_steps must be at least 1, got {o.hold_refresh_steps}")
-        if o.hold_margin_voxels < 0:
-            raise ReconstructionError(f"hold_margin_voxels must be 0 or more voxels, got {o.hold_margin_voxels}")
         if not 0 <= o.average_last_fraction < 1:
             raise ReconstructionError(f"average_last_fraction is the share of the last steps whose parameters are averaged "
                                       f"into the result: 0 (off) up to below 1, got {o.average_last_fraction}")

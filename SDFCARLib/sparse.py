@@ -94,18 +94,6 @@ class SparseOperator:
             raise ValueError(f"operator takes {self.shape[1]} inputs, got {x.shape[0]}")
         return _Apply.apply(x.to(self.matrix.dtype), self.matrix, self.matrix_t)
 
-    def rows_of(self, rows: torch.Tensor) -> "SparseOperator":
-        """The operator made of these rows only (in this order): y[rows] = A[rows] x."""
-        rows = rows.long().to(self.matrix.device)
-        crow = self.matrix.crow_indices().long()
-        starts, counts = crow[rows], crow[rows + 1] - crow[rows]
-        total = int(counts.sum())
-        new_rows = torch.repeat_interleave(torch.arange(len(rows), device=rows.device), counts)
-        first = torch.cumsum(counts, 0) - counts  # each kept row's first entry in the new order
-        entries = torch.arange(total, device=rows.device) - first[new_rows] + starts[new_rows]
-        return SparseOperator(new_rows, self.matrix.col_indices().long()[entries], self.matrix.values()[entries],
-                              (len(rows), self.shape[1]), sorted_by_row=True)
-
     def to(self, device) -> "SparseOperator":
         self.matrix = _moved(self.matrix, device)
         self.matrix_t = _moved(self.matrix_t, device)

@@ -136,26 +136,6 @@ def test_prepared_encoding_equals_direct_encoding_values_and_gradients():
     torch.testing.assert_close(enc.table.grad, grad_direct, atol=1e-5, rtol=1e-5)
 
 
-def test_a_subset_of_prepared_points_encodes_as_those_points_do_values_and_gradients():
-    torch.manual_seed(2)
-    enc = HashEncoding(levels=5, features_per_level=2, log2_table_size=11, base_resolution=4, max_resolution=40)
-    with torch.no_grad():
-        enc.table.copy_(torch.randn_like(enc.table))
-    points = torch.rand(200, 3)
-    chosen = torch.tensor([199, 3, 3, 0, 57])
-    weights = torch.randn(len(chosen), enc.output_dim)
-    direct = enc(points[chosen])
-    (direct * weights).sum().backward()
-    grad_direct = enc.table.grad.clone()
-    enc.table.grad = None
-    subset = enc.prepare(points).points_of(chosen)
-    assert len(subset) == len(chosen)
-    encoded = enc(subset)
-    (encoded * weights).sum().backward()
-    torch.testing.assert_close(encoded, direct, atol=1e-5, rtol=1e-5)
-    torch.testing.assert_close(enc.table.grad, grad_direct, atol=1e-5, rtol=1e-5)
-
-
 def test_fading_in_levels_weighs_each_levels_features_and_no_gradient_reaches_the_faded_ones():
     torch.manual_seed(1)
     enc = HashEncoding(levels=5, features_per_level=2, log2_table_size=11, base_resolution=4, max_resolution=40)

@@ -36,21 +36,6 @@ def test_product_and_gradient_equal_the_dense_matrix(columns):
     torch.testing.assert_close(x.grad, dense.T @ g)
 
 
-def test_an_operator_of_chosen_rows_equals_those_rows_of_the_dense_matrix_forward_and_backward():
-    r, c, v, shape = _entries()
-    dense = _dense(r, c, v, shape)
-    rows = torch.tensor([5, 0, 5, shape[0] - 1, 2])  # out of order, one twice
-    operator = SparseOperator(r, c, v, shape, coalesce=True).rows_of(rows)
-    assert operator.shape == (len(rows), shape[1])
-    x = torch.rand(shape[1], 2, dtype=v.dtype, requires_grad=True)
-    y = operator(x)
-    torch.testing.assert_close(y, dense[rows] @ x.detach())
-    g = torch.rand_like(y)
-    (y * g).sum().backward()
-    torch.testing.assert_close(x.grad, dense[rows].T @ g)
-    assert SparseOperator(r, c, v, shape, coalesce=True).rows_of(torch.tensor([], dtype=torch.long)).nnz == 0
-
-
 def test_unsorted_entries_without_duplicates_give_the_same_operator():
     r, c, v, shape = _entries(nnz=30)
     keep = np.unique((r * shape[1] + c).numpy(), return_index=True)[1]  # one entry per position
