@@ -136,6 +136,7 @@ class CArmView:
         )
         sid = _finite_number(self.sid_mm, f"{where}.sid_mm")
         sod = _finite_number(self.sod_mm, f"{where}.sod_mm")
+        _require(sid > 0, f"{where}.sid_mm (source to detector) must be positive, got {sid}")
         _require(sod > 0, f"{where}.sod_mm must be positive, got {sod}")
         _require(
             sod < sid,

@@ -543,6 +543,13 @@ def json_compatible(value: Any) -> Any:
     return str(value)
 
 
+def process_umask() -> int:
+    """The process's file-mode creation mask (os.umask can only be read by setting it)."""
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
 def atomic_write(path: PathLike, write: Callable[[Path], Any]) -> Path:
     """Call ``write(temporary_path)`` and move the file into place: a failure leaves ``path`` as it was."""
     path = Path(path)
@@ -551,6 +558,8 @@ def atomic_write(path: PathLike, write: Callable[[Path], Any]) -> Path:
     os.close(handle)
     try:
         write(Path(tmp))
+        # mkstemp makes the file private (0600): give it the mode the file had, or a new file's
+        os.chmod(tmp, path.stat().st_mode & 0o7777 if path.exists() else 0o666 & ~process_umask())
         os.replace(tmp, path)
     except BaseException:
         if os.path.exists(tmp):

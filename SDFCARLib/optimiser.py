@@ -90,6 +90,10 @@ def validate_targets(targets: Sequence[np.ndarray], geometry: Geometry, kind: st
     """Check the per-view targets and return them as float32 arrays (masks as 0/1)."""
     if kind not in TARGET_KINDS:
         raise ReconstructionError(f"target kind must be one of {TARGET_KINDS}, got {kind!r}")
+    if len(geometry.views) < 2:
+        raise ReconstructionError(f"the geometry has {len(geometry.views)} view; a 3D reconstruction needs at least two views "
+                                  "of the tree from different angles: add the other view to the geometry's views and give "
+                                  "its mask")
     if len(targets) != len(geometry.views):
         raise ReconstructionError(f"{len(targets)} target image(s) for {len(geometry.views)} view(s) in the geometry; give one per view")
     out = []

@@ -34,7 +34,7 @@ from typing import Any, Dict, Iterator, List, Optional, Sequence, Tuple, Union
 import numpy as np
 
 from .geometry import VolumeGrid
-from .io import write_json, write_segmentation_nrrd, write_surface_vtk, write_volume_nrrd
+from .io import process_umask, write_json, write_segmentation_nrrd, write_surface_vtk, write_volume_nrrd
 from .qa import qa_file_name, qa_title, write_qa_png
 from .settings import MASK_THRESHOLD_MM
 
@@ -67,6 +67,17 @@ def check_destination(out_dir: PathLike, names: Sequence[str], overwrite: bool =
     out_dir = Path(out_dir)
     if out_dir.exists() and not out_dir.is_dir():
         raise OutputError(f"output path {out_dir} exists and is not a folder; choose a folder for the results")
+    # the results are staged beside the folder and the missing folders made: found now, not after minutes of work
+    existing = next(p for p in (out_dir.absolute(), *out_dir.absolute().parents) if p.exists())
+    if not existing.is_dir():
+        raise OutputError(f"output path {out_dir} lies inside {existing}, which is a file, not a folder; choose a folder "
+                          "for the results")
+    try:  # a real trial: permissions alone do not tell (root on a read-only or virtual file system)
+        os.rmdir(tempfile.mkdtemp(prefix=".sdfcar-write-check-", dir=str(existing)))
+    except OSError as exc:
+        made = "written to" if existing == out_dir.absolute() else "made there"
+        raise OutputError(f"cannot write in {existing} ({exc.strerror or exc}): the output folder {out_dir} cannot be "
+                          f"{made}; choose a folder you can write to") from None
     if overwrite or not out_dir.is_dir():
         return
     existing = [n for n in names if (out_dir / n).exists()]
@@ -74,12 +85,6 @@ def check_destination(out_dir: PathLike, names: Sequence[str], overwrite: bool =
         raise OutputError(
             f"{out_dir} already holds {', '.join(existing)}; choose another output folder or pass --overwrite "
             "(overwrite=True) to replace them")
-
-
-def _umask() -> int:
-    mask = os.umask(0)
-    os.umask(mask)
-    return mask
 
 
 @contextmanager
@@ -119,7 +124,7 @@ def _commit(staging: Path, out_dir: Path, names: Sequence[str], overwrite: bool)
     produced = sorted(p.name for p in staging.iterdir())
     if not out_dir.exists():
         # mkdtemp made the folder private (0700); give it the permissions of a normal folder.
-        os.chmod(staging, 0o777 & ~_umask())
+        os.chmod(staging, 0o777 & ~process_umask())
         os.rename(staging, out_dir)
         return
     check_destination(out_dir, produced, overwrite)  # the folder may have changed meanwhile

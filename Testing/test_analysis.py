@@ -789,3 +789,27 @@ def test_a_lesion_is_found_on_the_masks_only_where_the_3d_sections_narrow_and_it
     assert len(profile.masks_only) == int(found) and len(profile.lesions) == int(found)
     if found:
         assert profile.masks_only[0].mld_position_mm == pytest.approx(20.0, abs=0.5)
+
+
+@pytest.mark.parametrize("step_deg", [0.0, -2.0, 20.0, float("nan")])
+def test_a_view_map_step_that_is_not_above_0_and_at_most_10_degrees_is_refused(step_deg):
+    segment = np.array([[0.0, 0.0, 0.0], [0.0, 0.0, 10.0]])
+    with pytest.raises(ValueError, match="angle step must be above 0 and at most 10°"):
+        view_map(segment, 1.0, step_deg=step_deg)
+    assert view_map(segment, 1.0, step_deg=10.0).foreshortening.shape == (9, 13)  # the coarsest: 13 × 9 views
+
+
+def test_an_ostium_far_from_the_tree_is_refused_with_its_distance_and_a_near_one_is_taken():
+    from SDFCARLib.analysis.pipeline import check_ostium
+    phantom = straight_tube(16.0, 2.0)
+    grid = grid_around(phantom.tree, 0.5)
+    lumen = voxelize_exact(phantom.tree, grid) >= 0.5
+    end = phantom.tree.branches[0].points[0]
+    check_ostium(lumen, grid, end)  # at the tube's end
+    check_ostium(lumen, grid, end + np.array([0.0, 6.0, 0.0]))  # a click beside it
+    check_ostium(lumen, grid, None)
+    far = end + np.array([0.0, 0.0, -40.0])
+    with pytest.raises(ValueError, match=r"is 3\d\.\d mm from the nearest voxel of the vessel tree.*negate x and y"):
+        check_ostium(lumen, grid, far)
+    with pytest.raises(ValueError, match="three finite coordinates"):
+        check_ostium(lumen, grid, [0.0, float("nan"), 0.0])

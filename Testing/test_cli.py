@@ -103,6 +103,7 @@ BAD_GEOMETRIES = {
     "primary angle": (("views", 0, "primary_deg"), 200.0, "views[0].primary_deg = 200.0 is out of range"),
     "secondary angle": (("views", 1, "secondary_deg"), -95.0, "views[1].secondary_deg = -95.0 is out of range"),
     "sod >= sid": (("views", 0, "sod_mm"), 1000.0, "views[0].sod_mm = 1000.0 must be smaller than"),
+    "negative sid": (("views", 0, "sid_mm"), -1000.0, "views[0].sid_mm (source to detector) must be positive, got -1000.0"),
     "off the detectors": (("volume", "center_mm"), [300.0, 0.0, 0.0], "does not project onto the detector"),
     "missing field": (("views", 1, "sid_mm"), KeyError, "views[1] is missing required field(s): sid_mm"),
     "wrong type": (("views", 0, "detector_shape"), "512", "views[0].detector_shape must be a list"),
@@ -146,6 +147,20 @@ def test_existing_results_are_not_overwritten_without_the_flag(tmp_path, capsys,
                        "--out", out, "--no-progress")
     _assert_bad_input(code, err, "already holds report.json")
     assert (out / "report.json").read_text() == "{}"
+
+
+def test_grid_options_of_xa_runs_are_refused_with_a_geometry_file_and_an_unwritable_out_before_work(
+        tmp_path, capsys, geometry_file, mask_files):
+    base = ["reconstruct", "--geometry", geometry_file, "--mask1", mask_files[0], "--mask2", mask_files[1], "--no-progress"]
+    code, _, err = run(capsys, *base, "--out", tmp_path / "out", "--volume-shape", 64, 64, 64, "--volume-spacing", 1.6)
+    _assert_bad_input(code, err, "--volume-shape, --volume-spacing set the grid of a reconstruction from XA runs (--dicom); "
+                                 "with --geometry the grid is the GEOM.json's volume")
+    code, _, err = run(capsys, *base, "--out", tmp_path / "out", "--volume-spacing", 0)
+    assert code == 2 and "--volume-spacing: must be a positive number, got 0" in err
+    (tmp_path / "notes.txt").write_text("mine")
+    code, _, err = run(capsys, *base, "--out", tmp_path / "notes.txt" / "out")
+    _assert_bad_input(code, err, "which is a file, not a folder")
+    assert not (tmp_path / "out").exists()
 
 
 def test_unknown_mode_and_preset_are_refused(tmp_path, capsys, geometry_file, mask_files):

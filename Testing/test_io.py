@@ -10,6 +10,8 @@ import pytest
 from SDFCARLib.geometry import VolumeGrid
 from SDFCARLib.io import (
     InputError,
+    process_umask,
+    write_json,
     align_to_grid,
     read_image,
     read_label,
@@ -360,3 +362,14 @@ def test_surface_is_marked_lps_so_slicer_shows_it_in_ras(tmp_path):
     node = _read_with_slicer(tmp_path / "m.vtk", "vtkMRMLModelNode", "vtkMRMLModelStorageNode")
     ras = vtk_to_numpy(node.GetPolyData().GetPoints().GetData())
     np.testing.assert_allclose(ras, vertices * np.array([-1, -1, 1]))
+
+
+def test_json_files_get_the_mode_of_a_new_file_or_keep_the_one_they_had(tmp_path):
+    """write_json stages in a private temporary file: the file put in place is readable as any new file is
+    (0666 less the umask), and one replaced keeps its own mode."""
+    new = write_json(tmp_path / "report.json", {"a": 1})
+    assert new.stat().st_mode & 0o777 == 0o666 & ~process_umask()
+    new.chmod(0o640)
+    write_json(new, {"a": 2})
+    assert new.stat().st_mode & 0o777 == 0o640
+    assert new.read_text() == '{\n  "a": 2\n}\n'

@@ -89,6 +89,11 @@ def test_reconstruct_rejects_bad_input_before_working(case):
     far = _replace(_masks(case), 1, corner)
     with pytest.raises(ReconstructionError, match="do not intersect"):
         reconstruct(geometry, far, make_settings("fast", steps=5))
+    # one view alone: no depth to reconstruct
+    one_view = Geometry(geometry.volume, geometry.views[:1])
+    with pytest.raises(ReconstructionError, match="the geometry has 1 view; a 3D reconstruction needs at least two views"):
+        reconstruct(one_view, _masks(case)[:1], make_settings("fast", steps=5), progress=calls.append)
+    assert calls == []
 
 
 # --- tiny reconstructions -----------------------------------------------------------------------------------------------

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import sys
+import tempfile
 import types
 from pathlib import Path
 
@@ -132,6 +133,32 @@ def test_existing_results_are_kept_unless_overwrite(tmp_path, tiny_geometry, no_
     assert "scene.mrml" not in names and "notes.txt" in names and "report.json" in names
     with pytest.raises(OutputError, match="is not a folder"):
         write_reconstruction(result, out / "notes.txt")
+
+
+def test_an_output_folder_that_cannot_be_made_is_refused_before_any_work(tmp_path, monkeypatch):
+    """check_destination (called by reconstruct, analyse, demo … before they work): a folder inside a file, or in a
+    folder the user cannot write to, is named with the fix; nothing is made."""
+    from SDFCARLib.outputs import check_destination
+    (tmp_path / "notes.txt").write_text("mine")
+    with pytest.raises(OutputError, match=r"lies inside .*notes\.txt, which is a file, not a folder"):
+        check_destination(tmp_path / "notes.txt" / "result", ["report.json"])
+    locked = tmp_path / "locked"
+    locked.mkdir()
+    real_mkdtemp = tempfile.mkdtemp
+
+    def mkdtemp(*args, dir=None, **kwargs):
+        if Path(dir) == locked:
+            raise PermissionError(13, "Permission denied")
+        return real_mkdtemp(*args, dir=dir, **kwargs)
+
+    monkeypatch.setattr(tempfile, "mkdtemp", mkdtemp)
+    for out in (locked / "result", locked / "a" / "b"):
+        with pytest.raises(OutputError, match=r"cannot write in .*locked \(Permission denied\): the output folder .* cannot be made there"):
+            check_destination(out, ["report.json"])
+    with pytest.raises(OutputError, match=r"cannot write in .*locked \(Permission denied\): the output folder .* cannot be written to"):
+        check_destination(locked, ["report.json"])
+    check_destination(tmp_path / "new" / "deeper", ["report.json"])  # writable: fine
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["locked", "notes.txt"]  # nothing made
 
 
 @pytest.mark.parametrize("existing", [False, True])

@@ -372,7 +372,7 @@ def extract_centrelines(volume: np.ndarray, grid: VolumeGrid, level: float = 0.5
     lumen = volume >= level if volume.dtype != bool else volume
     if not lumen.any():
         raise CentrelineError(f"no voxel reaches the level {level:g}: the volume is empty; check the reconstruction "
-                              "or lower the level")
+                              "(its report.json's warnings say what went wrong)")
     grid, (lumen, volume) = crop_to(lumen, grid, [lumen, volume], margin=3)
     spacing = np.asarray(grid.spacing_mm, float)
     edt = ndimage.distance_transform_edt(lumen, sampling=spacing)

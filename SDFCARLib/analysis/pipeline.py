@@ -216,6 +216,28 @@ def _choose_target(profiles: List[BranchProfile], min_stenosis_pct: float) -> Di
             "start_mm": first, "end_mm": min(main.branch.length_mm, first + TARGET_DEFAULT_MM)}
 
 
+OSTIUM_MAX_DISTANCE_MM = 10.0  # a given ostium this far from every lumen voxel is a mistake (RAS for LPS, a typo)
+
+
+def check_ostium(lumen: np.ndarray, grid: VolumeGrid, ostium_mm: Optional[Sequence[float]]) -> None:
+    """ValueError naming the distance where a given ostium lies farther than ``OSTIUM_MAX_DISTANCE_MM`` from the
+    lumen: the tree would be ordered from whatever end lies nearest it."""
+    if ostium_mm is None:
+        return
+    point = np.asarray(ostium_mm, float)
+    if point.shape != (3,) or not np.isfinite(point).all():
+        raise ValueError(f"the ostium is one point of three finite coordinates (LPS mm), got {np.asarray(ostium_mm).tolist()}")
+    voxels = np.argwhere(lumen)
+    if not len(voxels):
+        return  # nothing to order; the empty result is reported as such
+    distance = float(np.linalg.norm(grid.index_to_world(voxels) - point, axis=1).min())
+    if distance > OSTIUM_MAX_DISTANCE_MM:
+        raise ValueError(f"the ostium given, ({', '.join(f'{v:.1f}' for v in point)}) LPS mm, is {distance:.1f} mm from "
+                         f"the nearest voxel of the vessel tree; give a point within {OSTIUM_MAX_DISTANCE_MM:g} mm of the "
+                         "tree's root end in LPS (Slicer shows RAS: negate x and y), or leave the ostium out to start "
+                         "from the thickest end")
+
+
 class SegmentError(ValueError):
     """Two marked points that mark no segment of the tree (the message says why and what to do)."""
 
@@ -290,6 +312,7 @@ def analyse_volume(volume: np.ndarray, grid: VolumeGrid, level: float = 0.5, vie
                          "frame widths need one frame and one mask per view, in the views' order")
     volume = np.asarray(volume)
     lumen = volume if volume.dtype == bool else volume >= level
+    check_ostium(lumen, grid, ostium_mm)
     fragments = find_fragments(lumen, grid, min_component_share, ostium_mm)
     pieces = volume
     if not fragments.analysed.all():

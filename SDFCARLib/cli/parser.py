@@ -10,6 +10,7 @@ from typing import Optional, Sequence, Union
 
 from .. import __version__
 from ..cli_types import one_line as _one_line
+from ..cli_types import positive_float
 from ..cli_types import positive_int as _positive_int
 from ..dicom import add_dicom_arguments
 from ..geometry import VIEW_PAIRS
@@ -102,7 +103,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = commands.add_parser("analyse", parents=[common], help="3D-QCA of a result folder: centrelines, diameters, lesions",
                             description="Centreline tree, diameter profiles (3D sections and, with the masks, two-view "
-                                        "widths), lesions (MLD, %%DS, %%AS, length), bifurcation angles, foreshortening and "
+                                        "widths), lesions (MLD, %DS, %AS, length), bifurcation angles, foreshortening and "
                                         "the best-view map of a reconstruction: analysis.json, centrelines.vtk, "
                                         "profile_branchNN.csv, diameter_profiles.png, view_map.png. Narrowings where the "
                                         "reconstruction is broken (a piece cut off, a gap beside it, a bridged gap) are "
@@ -124,7 +125,8 @@ def build_parser() -> argparse.ArgumentParser:
                         "auto (default): masks where the masks of two views or more are found")
     p.add_argument("--ostium", type=float, nargs=3, metavar=("X", "Y", "Z"),
                    help="ostium in LPS mm (default: the thickest end of the tree)")
-    p.add_argument("--view-step-deg", type=float, default=2.0, help="angle step of the best-view map (default 2)")
+    p.add_argument("--view-step-deg", type=positive_float, default=2.0,
+                   help="angle step of the best-view map, above 0 and at most 10 (default 2)")
     p.add_argument("--segment", type=float, nargs=6, metavar=("X1", "Y1", "Z1", "X2", "Y2", "Z2"),
                    help="two points in LPS mm marking the segment to measure (its 3D length, its foreshortening in "
                         "each acquired view) and to find the best view of, on one branch within 5 mm of its "

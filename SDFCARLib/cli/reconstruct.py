@@ -84,6 +84,12 @@ def _geometry_for_reconstruct(args: argparse.Namespace):
     if not args.geometry:
         raise ValueError("missing --geometry: give a GEOM.json, or the XA DICOM runs, one per view, with --dicom A B … "
                          "(or --dicom1 and --dicom2)")
+    given = [flag for flag, value in (("--volume-shape", args.volume_shape), ("--volume-spacing", args.volume_spacing),
+                                      ("--volume-center", args.volume_center)) if value is not None]
+    if given:
+        raise ValueError(f"{', '.join(given)} set the grid of a reconstruction from XA runs (--dicom); with --geometry the "
+                         "grid is the GEOM.json's volume: edit its volume entry, or add --auto-volume to place the grid on "
+                         "the masks at its voxel size")
     geometry, request = read_geometry(args.geometry)
     if request is None and args.auto_volume:
         request = AutoVolume(tuple(geometry.volume.spacing_mm))  # keep the user's voxel size

@@ -26,6 +26,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any, Dict, List, Optional, Tuple
 
+from ..cli_types import positive_float
 from ..geometry import Geometry, VolumeGrid
 from .geometry import DEFAULT_VOLUME, geometry_from_dicom_runs
 from .read import DicomInputError
@@ -87,7 +88,7 @@ def add_dicom_arguments(parser: Any) -> None:
     parser.add_argument("--volume-shape", type=int, nargs=3, default=None, metavar=("I", "J", "K"),
                         help="reconstruction grid size in voxels (default: placed on the masks' region when masks are "
                              "given, else 128 128 128)")
-    parser.add_argument("--volume-spacing", type=float, default=None, metavar="MM",
+    parser.add_argument("--volume-spacing", type=positive_float, default=None, metavar="MM",
                         help="reconstruction voxel size in mm (default 0.8)")
     parser.add_argument("--volume-center", type=float, nargs=3, default=None, metavar=("X", "Y", "Z"),
                         help="centre of the reconstruction grid, LPS mm (default: placed on the masks' region when masks are "
