@@ -42,7 +42,7 @@ from ..geometry import CArmView
 
 PRIMARY_RANGE_DEG = (-60.0, 60.0)
 SECONDARY_RANGE_DEG = (-40.0, 40.0)
-MAX_VIEW_STEP_DEG = 10.0  # the map then still has 13 × 9 views over the clinical range
+MAX_VIEW_STEP_DEG = 30.0  # the map then still has 5 × 3 views over the clinical range (quick looks; 2 is the default)
 
 
 def view_direction(primary_deg, secondary_deg) -> np.ndarray:

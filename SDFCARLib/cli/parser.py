@@ -126,7 +126,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--ostium", type=float, nargs=3, metavar=("X", "Y", "Z"),
                    help="ostium in LPS mm (default: the thickest end of the tree)")
     p.add_argument("--view-step-deg", type=positive_float, default=2.0,
-                   help="angle step of the best-view map, above 0 and at most 10 (default 2)")
+                   help="angle step of the best-view map, above 0 and at most 30 (default 2)")
     p.add_argument("--segment", type=float, nargs=6, metavar=("X1", "Y1", "Z1", "X2", "Y2", "Z2"),
                    help="two points in LPS mm marking the segment to measure (its 3D length, its foreshortening in "
                         "each acquired view) and to find the best view of, on one branch within 5 mm of its "
