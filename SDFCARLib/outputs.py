@@ -68,15 +68,15 @@ def check_destination(out_dir: PathLike, names: Sequence[str], overwrite: bool =
     if out_dir.exists() and not out_dir.is_dir():
         raise OutputError(f"output path {out_dir} exists and is not a folder; choose a folder for the results")
     # the results are staged beside the folder and the missing folders made: found now, not after minutes of work
-    existing = next(p for p in (out_dir.absolute(), *out_dir.absolute().parents) if p.exists())
-    if not existing.is_dir():
-        raise OutputError(f"output path {out_dir} lies inside {existing}, which is a file, not a folder; choose a folder "
+    nearest = next(p for p in (out_dir.absolute(), *out_dir.absolute().parents) if p.exists())
+    if not nearest.is_dir():
+        raise OutputError(f"output path {out_dir} lies inside {nearest}, which is a file, not a folder; choose a folder "
                           "for the results")
     try:  # a real trial: permissions alone do not tell (root on a read-only or virtual file system)
-        os.rmdir(tempfile.mkdtemp(prefix=".sdfcar-write-check-", dir=str(existing)))
+        os.rmdir(tempfile.mkdtemp(prefix=".sdfcar-write-check-", dir=str(nearest)))
     except OSError as exc:
-        made = "written to" if existing == out_dir.absolute() else "made there"
-        raise OutputError(f"cannot write in {existing} ({exc.strerror or exc}): the output folder {out_dir} cannot be "
+        made = "written to" if nearest == out_dir.absolute() else "made there"
+        raise OutputError(f"cannot write in {nearest} ({exc.strerror or exc}): the output folder {out_dir} cannot be "
                           f"{made}; choose a folder you can write to") from None
     if overwrite or not out_dir.is_dir():
         return
