@@ -10,9 +10,8 @@ import pytest
 from SDFCARLib.geometry import VolumeGrid
 from SDFCARLib.io import (
     InputError,
-    process_umask,
-    write_json,
     align_to_grid,
+    process_umask,
     read_image,
     read_label,
     read_line_integral,
@@ -20,6 +19,7 @@ from SDFCARLib.io import (
     read_surface_vtk,
     read_volume,
     write_image_nrrd,
+    write_json,
     write_mask_png,
     write_segmentation_nrrd,
     write_surface_vtk,
