@@ -195,6 +195,11 @@ def read_line_integral(path: PathLike, detector_shape: Optional[Sequence[int]] =
         raise InputError(f"{path}: line integrals are path lengths (mm) and cannot be negative (minimum {data.min():.3g})")
     if not data.any():
         raise InputError(f"{path}: the line-integral image is all zero; there is no vessel in this view")
+    values = np.unique(data)
+    # path lengths through a tree vary along and across every vessel; one value, at a mask's foreground level, is a mask
+    if values.size == 2 and values[1] in (1.0, 255.0, 65535.0):
+        raise InputError(f"{path} holds only the values {values[0]:g} and {values[1]:g}: a mask, not line integrals (path "
+                         "lengths in mm); give it as a mask (--mask) instead")
     return data
 
 

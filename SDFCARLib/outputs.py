@@ -36,7 +36,7 @@ import numpy as np
 from .geometry import VolumeGrid
 from .io import process_umask, write_json, write_segmentation_nrrd, write_surface_vtk, write_volume_nrrd
 from .qa import qa_file_name, qa_title, write_qa_png
-from .settings import MASK_THRESHOLD_MM
+from .settings import MASK_THRESHOLD_MM, PRESETS, make_settings
 
 PathLike = Union[str, Path]
 
@@ -213,6 +213,18 @@ def _write_scene(staging: Path, name: str, result, attributes: Dict[str, str]) -
     return {"written": True}
 
 
+def _empty_result_hint(settings) -> str:
+    """What to try after an empty result: a fit cut short names its steps against its preset's."""
+    steps, warmup = settings.optimisation.steps, settings.optimisation.warmup_steps
+    preset = settings.run.preset
+    preset_steps = make_settings(preset).optimisation.steps if preset in PRESETS else None
+    if steps <= 2 * warmup or (preset_steps and steps < preset_steps / 4):
+        fix = f"leave --steps out to run the {preset} preset's {preset_steps}, or give more" if preset_steps else \
+            "give more --steps"
+        return f"the fit ran only {steps} steps ({min(warmup, steps)} of them warming the learning rates up): {fix}"
+    return "try another seed (--seed) or check the masks (their overlays, and report.json's reprojection QA)"
+
+
 def write_reconstruction(
     result,
     out_dir: PathLike,
@@ -248,7 +260,7 @@ def write_reconstruction(
         if len(faces) == 0:
             report_warnings.append(
                 f"the segmentation is empty (no voxel reaches occupancy {level:g}): surface.vtk holds no triangles; "
-                "try more steps, another seed or check the masks")
+                + _empty_result_hint(result.settings))
         try:
             write_surface_vtk(staging / RESULT_FILES["surface"], vertices, faces)
         except ImportError as exc:  # vtk comes with Slicer or slicer-core, not with the core install

@@ -42,7 +42,7 @@ import dataclasses
 import math
 import typing
 from dataclasses import dataclass
-from typing import Any, Dict, List, Mapping, Optional, Sequence, Tuple
+from typing import Any, Dict, Iterable, List, Mapping, Optional, Sequence, Tuple
 
 
 class ReconstructionError(ValueError):
@@ -533,12 +533,13 @@ def make_settings(preset: str = DEFAULT_PRESET, **overrides: Any) -> Settings:
     return settings
 
 
-def setting_help() -> str:
-    """One line per setting key with its type and default, for ``--help``."""
+def setting_help(exclude: Iterable[str] = ()) -> str:
+    """One line per setting key with its default, for ``--help``; ``exclude``: the keys a command sets by its own flags."""
     defaults = Settings().to_dict()
+    excluded = set(exclude)
     lines = []
     for group in GROUPS:
-        keys = [k for k, (g, _) in SETTING_KEYS.items() if g == group]
+        keys = [k for k, (g, _) in SETTING_KEYS.items() if g == group and k not in excluded]
         lines.append(f"{group}: " + ", ".join(f"{k}={defaults[k]}" for k in keys))
     return "; ".join(lines)
 

@@ -341,6 +341,17 @@ def test_ctrl_c_cancels_with_status_130_and_writes_nothing(tmp_path, capsys, geo
 
 
 # --- evaluate, demo, geometry-template ----------------------------------------------------------
+def test_reconstruct_help_lists_for_set_only_the_keys_set_accepts(capsys):
+    from SDFCARLib.cli.common import SETTINGS_SET_BY_FLAGS
+    from SDFCARLib.settings import SETTING_KEYS
+
+    code, stdout, _ = run(capsys, "reconstruct", "--help")
+    assert code == 0
+    listed = " ".join(stdout.split())  # argparse wraps the help
+    assert all(f" {key}=" not in listed and f":{key}=" not in listed for key in SETTINGS_SET_BY_FLAGS)
+    assert all(f"{key}=" in listed for key in set(SETTING_KEYS) - set(SETTINGS_SET_BY_FLAGS))
+
+
 def test_evaluate_a_perfect_prediction(simulated, tmp_path, capsys):
     label = simulated / "label.nrrd"
     code, stdout, err = run(capsys, "evaluate", "--prediction", label, "--label", label, "--geometry", simulated / "geometry.json",
@@ -370,6 +381,12 @@ def test_evaluate_refuses_other_grids_and_unthresholded_volumes(simulated, tmp_p
     code, _, err = run(capsys, "evaluate", "--prediction", tmp_path / "occupancy.nrrd", "--label", simulated / "label.nrrd",
                        "--threshold", 0.5)
     assert code == 0, err
+    assert "warning" not in err
+    # a threshold no voxel reaches (occupancy lies in [0, 1]) still evaluates, but says why everything is 0
+    code, stdout, err = run(capsys, "evaluate", "--prediction", tmp_path / "occupancy.nrrd", "--label", simulated / "label.nrrd",
+                            "--threshold", 2)
+    assert code == 0, err
+    assert "warning: no voxel of" in err and "reaches --threshold 2: the prediction is empty" in err
 
 
 def test_demo_reconstructs_the_sample_case_and_compares_with_the_hull(tmp_path, capsys, monkeypatch, tiny_case):
@@ -449,6 +466,13 @@ def test_geometry_template_writes_a_valid_geometry(tmp_path, capsys):
     _assert_bad_input(code, err, "already exists")
     code, stdout, _ = run(capsys, "geometry-template", "--view-pair", "lao30-rao30")
     assert code == 0 and Geometry.from_dict(json.loads(stdout)).views[1].primary_deg == -30.0
+    # a protocol's distances are replaced where the user gives one, kept where not
+    code, stdout, err = run(capsys, "geometry-template", "--view-pair", "paper", "--sid-mm", 1200)
+    assert code == 0, err
+    assert [(v.sid_mm, v.sod_mm) for v in Geometry.from_dict(json.loads(stdout)).views] == [
+        (1200.0, sod) for _, _, _, sod in VIEW_PAIRS["paper"]]
+    code, _, err = run(capsys, "geometry-template", "--view-pair", "paper", "--sod-mm", 0)
+    assert code == 2 and "--sod-mm: must be a positive number, got 0" in err
 
 
 def test_geometry_template_takes_any_number_of_views(tmp_path, capsys):

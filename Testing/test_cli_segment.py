@@ -57,7 +57,9 @@ def test_segment_a_dicom_run(run, tmp_path, capsys):
     report = json.loads((tmp_path / "masks" / "view1.json").read_text())
     assert report["source"]["frame"]["index"] == 1
     assert report["parameters"]["magnification"] == pytest.approx(1.3)
-    assert report["parameters"]["pixel_spacing_source"] == "given"
+    assert report["parameters"]["pixel_spacing_source"] == "the DICOM tags"
+    assert report["parameters"]["magnification_source"] == "the DICOM tags' SID/SOD"
+    assert "pixel spacing the DICOM tags, magnification the DICOM tags' SID/SOD" in err.out
     # The frame written back segments the same way as a plain image with the same geometry.
     again = tmp_path / "again.png"
     assert main(["segment", "--image", str(tmp_path / "masks" / "view1_frame.png"), "--pixel-spacing", "0.39", "0.39",

@@ -297,6 +297,10 @@ def test_rotational_increments_per_frame_and_average(tmp_path):
     read, prov = dicom.view_from_dicom(per_frame, 3)
     assert (read.primary_deg, read.secondary_deg) == (-175.0, 7.0)  # 185° is -175° (LAO past 180 = RAO)
     assert "wrapped from 185° into [-180, 180]" in field(prov, "primary_deg")["source"]
+    # an angle already in range is neither moved by the modulo's rounding nor reported as wrapped
+    in_range, prov = dicom.view_from_dicom(xa(tmp_path, "e.dcm", view=CArmView(-0.8, 10.0, 1000.0, 757.0, (0.3, 0.3),
+                                                                             (40, 48))), 0)
+    assert in_range.primary_deg == -0.8 and "wrapped" not in field(prov, "primary_deg")["source"]
     average = xa(tmp_path, "b.dcm", frames=frames16(n), view=view, angle_increments_deg=([2.5], [1.0]))
     read, prov = dicom.view_from_dicom(average, 3)
     assert (read.primary_deg, read.secondary_deg) == (177.5, 13.0)

@@ -123,6 +123,9 @@ def test_line_integral_images_round_trip_and_are_checked(tmp_path):
     write_image_nrrd(tmp_path / "zero.nrrd", 0 * image)
     with pytest.raises(InputError, match="all zero"):
         read_line_integral(tmp_path / "zero.nrrd")
+    write_mask_png(tmp_path / "mask.png", image > 0)
+    with pytest.raises(InputError, match=r"only the values 0 and 255: a mask, not line integrals .* \(--mask\)"):
+        read_line_integral(tmp_path / "mask.png")
 
 
 def test_mask_png_is_uint8_0_255(tmp_path):

@@ -112,9 +112,23 @@ def test_empty_segmentation_gives_an_empty_surface_a_warning_and_null_metrics(tm
     assert "NaN" not in report_text
     report = json.loads(report_text)
     assert report["surface"]["triangles"] == 0
-    assert any("segmentation is empty" in w for w in report["warnings"])
+    empty = [w for w in report["warnings"] if "segmentation is empty" in w]
+    # one step of fast's 400: the hint names the cut-short fit, not the masks
+    assert len(empty) == 1 and "the fit ran only 1 steps (1 of them warming the learning rates up): leave --steps out " \
+                               "to run the fast preset's 400" in empty[0]
     assert report["metrics"]["prediction"]["chamfer_l2_mm"] is None  # NaN written as null
     assert report["metrics"]["prediction"]["dice"] == 0.0
+
+
+def test_an_empty_result_of_a_full_length_fit_points_at_the_seed_and_the_masks():
+    from SDFCARLib.outputs import _empty_result_hint
+    from SDFCARLib.settings import make_settings
+
+    hint = _empty_result_hint(make_settings("fast"))
+    assert "--seed" in hint and "masks" in hint and "steps" not in hint
+    unknown = make_settings("fast", steps=30)
+    unknown.run.preset = "no-such-preset"  # a settings file of another version
+    assert "give more --steps" in _empty_result_hint(unknown)
 
 
 def test_existing_results_are_kept_unless_overwrite(tmp_path, tiny_geometry, no_scene):

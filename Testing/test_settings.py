@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 import subprocess
 import sys
 
@@ -141,6 +142,10 @@ def test_help_lists_every_key_with_its_default():
     text = setting_help()
     assert all(f"{key}=" in text for key in SETTING_KEYS)
     assert "steps=5000" in text and "alpha=50.0" in text
+    # a command leaves out what it sets by its own flags, as its --set refuses them
+    text = setting_help(exclude={"steps", "seed"})
+    listed = set(re.findall(r"(\w+)=", text))
+    assert listed == set(SETTING_KEYS) - {"steps", "seed"} and "alpha=50.0" in text
 
 
 def test_metric_registry():

@@ -129,11 +129,14 @@ def print_metrics(metrics: Dict[str, Dict[str, Any]], stream=None) -> None:
     print(metrics_table(columns), file=stream or sys.stdout)
 
 
+# the settings that reconstruct/demo set by their own flags, so that --set refuses them (and its help leaves them out)
+SETTINGS_SET_BY_FLAGS = {**{key: f"use --{key}" for key in ("mode", "device", "seed", "steps", "threads", "preset")},
+                         "calibrate": "use --correct-motion"}
+
+
 def settings_from_args(args: argparse.Namespace):
     named = {"mode": args.mode, "device": args.device, "seed": args.seed, "steps": args.steps, "threads": args.threads}
-    reserved = {key: f"use --{key}" for key in named}
-    reserved["preset"] = "use --preset"
-    reserved["calibrate"] = "use --correct-motion"
+    reserved = SETTINGS_SET_BY_FLAGS
     if getattr(args, "correct_motion", False):
         named["calibrate"] = True
     return make_settings(args.preset, **{**parse_setting_overrides(args.overrides, reserved), **named})

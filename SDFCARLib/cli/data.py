@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import sys
 from pathlib import Path
@@ -12,11 +13,16 @@ import numpy as np
 from ..io import write_text_atomically
 from .common import EXIT_OK, absolute_path, load_geometry, print_metrics
 
+# geometry-template's distances for views given by their angles (a common C-arm's SID and isocentre distance)
+DEFAULT_SID_MM = 1000.0
+DEFAULT_SOD_MM = 757.0
+
 def cmd_segment(args: argparse.Namespace) -> int:
     from ..masks import (AngioMaskSettings, frame_processed_for_display, mask_settings_for_intensity, segment_angiogram,
                          segmentation_paths, write_segmentation)
 
     spacing, magnification = args.pixel_spacing, args.magnification
+    spacing_source = magnification_source = None  # None: as segment_angiogram names it (given, or its default)
     if bool(args.dicom) == bool(args.image):
         raise ValueError("give one input: --dicom RUN.dcm (with --frame N) or --image FRAME.png")
     if args.dicom and getattr(args, "image_intensity", None):
@@ -35,8 +41,10 @@ def cmd_segment(args: argparse.Namespace) -> int:
             source["pixel_intensity_relationship"] = relationship
         try:
             view, _ = view_from_dicom(run, choice.index)
-            spacing = spacing or list(view.pixel_spacing_mm)
-            magnification = magnification or view.sid_mm / view.sod_mm
+            if not spacing:
+                spacing, spacing_source = list(view.pixel_spacing_mm), "the DICOM tags"
+            if not magnification:
+                magnification, magnification_source = view.sid_mm / view.sod_mm, "the DICOM tags' SID/SOD"
             source["geometry"] = "pixel spacing and SID/SOD from the DICOM tags unless given"
         except DicomInputError as exc:
             source["geometry"] = f"not read from the tags ({exc})"
@@ -65,6 +73,10 @@ def cmd_segment(args: argparse.Namespace) -> int:
         print(f"the run's frames were processed for display (Pixel Intensity Relationship {relationship}): their edges "
               "are enhanced, so the mask's edge rule does not trim them", file=sys.stderr)
     result = segment_angiogram(frame, spacing, magnification, settings)
+    if spacing_source:
+        result.parameters["pixel_spacing_source"] = spacing_source
+    if magnification_source:
+        result.parameters["magnification_source"] = magnification_source
     paths = write_segmentation(args.out, frame, result, source, overwrite=args.overwrite)
     p = result.parameters
     print(f"mask: {p['components']} component(s), {100 * p['vessel_fraction']:.1f}% of the frame, border "
@@ -126,6 +138,10 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
         check_destination(Path(args.json).parent, [Path(args.json).name], args.overwrite)
     prediction, prediction_grid = read_label(args.prediction, grid=geometry.volume if geometry else None,
                                              threshold=args.threshold, what="prediction")
+    if args.threshold is not None and not prediction.any():
+        print(f"warning: no voxel of {args.prediction} reaches --threshold {args.threshold:g}: the prediction is empty and "
+              "every overlap metric is 0 (occupancy.nrrd holds values in [0, 1]; its segmentation's level is 0.5)",
+              file=sys.stderr)
     label, label_grid = read_label(args.label, grid=geometry.volume if geometry else prediction_grid, what="label")
     prediction = align_to_grid(prediction, prediction_grid, label_grid, what="prediction")
     metrics = ground_truth_metrics(prediction, label, label_grid, geometry.views if geometry else None)
@@ -153,10 +169,18 @@ def cmd_geometry_template(args: argparse.Namespace) -> int:
                                  detector_spacing_mm=args.detector_spacing_mm)
     if args.views:
         spacing = (args.detector_spacing_mm, args.detector_spacing_mm)
+        sid_mm = DEFAULT_SID_MM if args.sid_mm is None else args.sid_mm
+        sod_mm = DEFAULT_SOD_MM if args.sod_mm is None else args.sod_mm
         geometry = Geometry(geometry.volume, tuple(
-            CArmView(primary, secondary, args.sid_mm, args.sod_mm, spacing, tuple(args.detector_shape))
+            CArmView(primary, secondary, sid_mm, sod_mm, spacing, tuple(args.detector_shape))
             for primary, secondary in args.views))
         protocol = f"{len(args.views)} views given with --view"
+    elif args.sid_mm is not None or args.sod_mm is not None:
+        # the protocol's own distances, replaced where the user gave one
+        geometry = Geometry(geometry.volume, tuple(
+            dataclasses.replace(view, sid_mm=view.sid_mm if args.sid_mm is None else args.sid_mm,
+                                sod_mm=view.sod_mm if args.sod_mm is None else args.sod_mm)
+            for view in geometry.views))
     data = {"description": f"SDFCAR geometry template ({protocol}); replace the angles, "
                            "distances and detector with those of your acquisition (DICOM tags PositionerPrimaryAngle, "
                            "PositionerSecondaryAngle, DistanceSourceToDetector, DistanceSourceToPatient, ImagerPixelSpacing)",

@@ -16,8 +16,8 @@ from ..dicom import add_dicom_arguments
 from ..geometry import VIEW_PAIRS
 from ..lumen_profile import PSF_BY_FRAMES
 from ..settings import DEFAULT_MODE, MASK_THRESHOLD_MM, MODES, PAPER_DETECTOR_SPACING_MM, setting_help
-from .common import EXIT_BAD_INPUT, EXIT_CANCELLED, EXIT_FAILURE
-from .data import cmd_evaluate, cmd_geometry_template, cmd_segment, cmd_simulate
+from .common import EXIT_BAD_INPUT, EXIT_CANCELLED, EXIT_FAILURE, SETTINGS_SET_BY_FLAGS
+from .data import DEFAULT_SID_MM, DEFAULT_SOD_MM, cmd_evaluate, cmd_geometry_template, cmd_segment, cmd_simulate
 from .reconstruct import cmd_analyse, cmd_demo, cmd_geometry, cmd_reconstruct
 
 def _blur_sigma(text: str) -> Union[float, None, str]:
@@ -54,7 +54,8 @@ def _add_optimiser_options(p: argparse.ArgumentParser, preset_default: str = "fa
                         "is in report.json (calibrate=true)")
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                    help="any other setting, repeatable (e.g. --set support_margin_mm=1 --set memory_check=false); "
-                        "the settings with the published recipe's values: " + setting_help().replace("%", "%%"))
+                        "the settings with the published recipe's values: "
+                        + setting_help(exclude=SETTINGS_SET_BY_FLAGS).replace("%", "%%"))
     p.add_argument("--name", default=None, help="name of the result in Slicer (default: the output folder's name)")
     p.add_argument("--overwrite", action="store_true", help="replace result files the output folder already holds")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -219,8 +220,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--view", dest="views", action="append", type=float, nargs=2, metavar=("PRIMARY", "SECONDARY"),
                    help="one view by its angles in degrees (LAO +/RAO −, CRA +/CAU −); repeat for each view, e.g. "
                         "--view 30 0 --view -30 0 --view 0 30 (instead of --view-pair)")
-    p.add_argument("--sid-mm", type=float, default=1000.0, help="source-to-detector distance of the --view views")
-    p.add_argument("--sod-mm", type=float, default=757.0, help="source-to-isocenter distance of the --view views")
+    p.add_argument("--sid-mm", type=positive_float, default=None,
+                   help=f"source-to-detector distance of every view (default {DEFAULT_SID_MM:g} for --view views; a "
+                        "--view-pair's own distances otherwise)")
+    p.add_argument("--sod-mm", type=positive_float, default=None,
+                   help=f"source-to-isocenter distance of every view (default {DEFAULT_SOD_MM:g} for --view views; a "
+                        "--view-pair's own distances otherwise)")
     p.add_argument("--out", help="file to write (default: print to stdout)")
     p.add_argument("--shape", type=_positive_int, nargs=3, default=[128, 128, 128], metavar=("NI", "NJ", "NK"))
     p.add_argument("--spacing-mm", type=float, default=0.8)

@@ -120,6 +120,8 @@ def _how_to_supply(key: str, view_number: Optional[int]) -> str:
 
 # --- angles, pixel spacing and what is not modelled --------------------------------------------------
 def _wrap_angle(angle: float) -> float:
+    if -180.0 <= angle <= 180.0:
+        return angle  # the modulo below moves an in-range angle by rounding (−0.8 → −0.8000000000000114)
     wrapped = (angle + 180.0) % 360.0 - 180.0
     return 180.0 if wrapped == -180.0 and angle > 0 else wrapped
 
