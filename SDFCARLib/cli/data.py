@@ -17,6 +17,7 @@ from .common import EXIT_OK, absolute_path, load_geometry, print_metrics
 DEFAULT_SID_MM = 1000.0
 DEFAULT_SOD_MM = 757.0
 
+
 def cmd_segment(args: argparse.Namespace) -> int:
     from ..masks import (AngioMaskSettings, frame_processed_for_display, mask_settings_for_intensity, segment_angiogram,
                          segmentation_paths, write_segmentation)
