@@ -26,6 +26,9 @@ DEFAULT_PSF_SIGMA_MM = 0.3  # a flat-panel detector's blur, about 1.5–2 pixels
 #: for display, whose sharpening is no detector blur (``analysis.pipeline.psf_for_frames``)
 PSF_BY_FRAMES = "by frames"
 SIGMA_RANGE_MM = (0.01, 2.0)  # bounds of a free blur fit
+#: the largest detector blur a user may give, the free fit's bound (a clinical detector's σ is 0.2–0.5 mm; the
+#: profile's kernel grows with it)
+MAX_PSF_SIGMA_MM = SIGMA_RANGE_MM[1]
 
 
 def absorbance(frame: np.ndarray) -> np.ndarray:

@@ -791,12 +791,13 @@ def test_a_lesion_is_found_on_the_masks_only_where_the_3d_sections_narrow_and_it
         assert profile.masks_only[0].mld_position_mm == pytest.approx(20.0, abs=0.5)
 
 
-@pytest.mark.parametrize("step_deg", [0.0, -2.0, 31.0, 200.0, float("nan")])
-def test_a_view_map_step_that_is_not_above_0_and_at_most_30_degrees_is_refused(step_deg):
+@pytest.mark.parametrize("step_deg", [0.0, 0.01, 0.49, -2.0, 31.0, 200.0, float("nan")])
+def test_a_view_map_step_outside_half_a_degree_to_30_degrees_is_refused(step_deg):
     segment = np.array([[0.0, 0.0, 0.0], [0.0, 0.0, 10.0]])
-    with pytest.raises(ValueError, match="angle step must be above 0 and at most 30°"):
+    with pytest.raises(ValueError, match="angle step must be from 0.5° .* to 30°"):
         view_map(segment, 1.0, step_deg=step_deg)
     assert view_map(segment, 1.0, step_deg=30.0).foreshortening.shape == (3, 5)  # the coarsest: 5 × 3 views
+    assert view_map(segment, 1.0, step_deg=0.5).foreshortening.shape == (161, 241)  # the finest: ±40° by ±60°
 
 
 def test_an_ostium_far_from_the_tree_is_refused_with_its_distance_and_a_near_one_is_taken():
@@ -813,3 +814,54 @@ def test_an_ostium_far_from_the_tree_is_refused_with_its_distance_and_a_near_one
         check_ostium(lumen, grid, far)
     with pytest.raises(ValueError, match="three finite coordinates"):
         check_ostium(lumen, grid, [0.0, float("nan"), 0.0])
+
+
+def test_masks_given_to_analyse_volume_read_alike_whatever_their_vessel_value_and_need_their_views():
+    from SDFCARLib.analysis.pipeline import analyse_volume, summary
+
+    phantom = straight_tube(24.0, 3.0, (1.0, 0.2, 0.4))
+    grid = grid_around(phantom.tree, 0.3)
+    volume = voxelize_exact(phantom.tree, grid).astype(np.float32)
+    views = standard_geometry("lao30-rao30").views
+    masks = [render_mask(phantom.tree, v) for v in views]
+
+    def mask_diameter(given):
+        data = summary(analyse_volume(volume, grid, views=views, masks=given, best_view=False, centreline_on_masks=False))
+        return data["branches"][0]["diameter_masks"]["mean_mm"]
+
+    as_bool = mask_diameter(masks)
+    assert as_bool == pytest.approx(3.0, abs=0.15)
+    # a PNG's 0/255: the edges at half the vessel value, not at 0.5 of 255 (a pixel wider each side)
+    assert mask_diameter([m.astype(np.uint8) * 255 for m in masks]) == pytest.approx(as_bool, abs=1e-6)
+    with pytest.raises(ValueError, match="2 masks for 0 views"):
+        analyse_volume(volume, grid, masks=masks, best_view=False)
+    with pytest.raises(ValueError, match=r"mask of view 2: mask shape \(256, 256\) differs from the detector shape"):
+        analyse_volume(volume, grid, views=views, masks=[masks[0], masks[1][::2, ::2]], best_view=False)
+
+
+def test_an_analysis_folder_in_the_way_is_found_before_the_reconstruction_and_before_the_analysis(tmp_path, capsys,
+                                                                                                  monkeypatch):
+    from SDFCARLib.cli import main, reconstruct as cli_reconstruct
+    from SDFCARLib.sample_data import SAMPLE_DIR
+
+    out = tmp_path / "r"
+    (out / "analysis").mkdir(parents=True)
+    (out / "analysis" / "analysis.json").write_text("{}", encoding="utf-8")  # an earlier run's analysis
+
+    def no_fit(*args, **kwargs):
+        raise AssertionError("the reconstruction ran although its analysis could not be written")
+
+    monkeypatch.setattr(cli_reconstruct, "run_reconstruction", no_fit)
+    assert main(["reconstruct", "--geometry", str(SAMPLE_DIR / "geometry.json"), "--mask1", str(SAMPLE_DIR / "view1_mask.png"),
+                 "--mask2", str(SAMPLE_DIR / "view2_mask.png"), "--out", str(out), "--analyse", "--no-progress"]) == 2
+    assert "already holds analysis.json" in capsys.readouterr().err
+    assert sorted(p.name for p in out.iterdir()) == ["analysis"]  # nothing of a new result beside the old analysis
+
+    folder, _ = _result_folder(tmp_path)
+    (folder / "analysis").mkdir()
+    (folder / "analysis" / "view_map.png").write_bytes(b"not ours to replace")
+    monkeypatch.setattr("SDFCARLib.analysis.outputs.analyse_volume", no_fit)
+    assert main(["analyse", str(folder)]) == 2
+    assert "already holds view_map.png" in capsys.readouterr().err
+    assert main(["analyse", str(folder), "--out", ""]) == 2
+    assert "empty name" in capsys.readouterr().err

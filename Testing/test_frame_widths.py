@@ -127,6 +127,42 @@ def test_analyse_command_fits_the_frames(tmp_path, tube_frames, capsys):
     assert "--psf-sigma-mm" in capsys.readouterr().err
 
 
+@pytest.mark.parametrize("spoil, message", [
+    ("masks", "only 2 grey level(s): it looks like a mask"),
+    ("scaled", "no grey level above 1"),
+    ("nan", "NaN or infinite"),
+])
+def test_frames_that_cannot_be_the_detector_s_are_refused_before_any_work(tmp_path, tube_frames, capsys, spoil, message):
+    from SDFCARLib.cli import main
+    from SDFCARLib.io import write_image_nrrd
+
+    realistic = tube_frames[0]
+    folder, masks, frames = _tube_result_folder(tmp_path, realistic)
+    if spoil == "masks":
+        given = masks  # the masks handed over as frames: widths fitted to a step, lesions graded "on the frames"
+    else:
+        frame = realistic.frames[1].astype(np.float64)
+        frame = frame / frame.max() if spoil == "scaled" else np.where(np.arange(frame.shape[1]) < 5, np.nan, frame)
+        given = [frames[0], str(write_image_nrrd(tmp_path / "spoilt.nrrd", frame))]
+    capsys.readouterr()
+    assert main(["analyse", str(folder), "--frames", *given, "--view-step-deg", "20"]) == 2
+    err = capsys.readouterr().err
+    assert message in err and ("frame of view 1" if spoil == "masks" else "frame of view 2") in err
+    assert not (folder / "analysis").exists()
+
+
+def test_a_blur_or_a_view_step_out_of_range_is_refused_before_any_work(tmp_path, tube_frames, capsys):
+    from SDFCARLib.cli import main
+
+    folder, masks, frames = _tube_result_folder(tmp_path, tube_frames[0])
+    capsys.readouterr()
+    assert main(["analyse", str(folder), "--frames", *frames, "--psf-sigma-mm", "1e9"]) == 2
+    assert "0 to 2" in capsys.readouterr().err
+    assert main(["analyse", str(folder), "--view-step-deg", "0.01"]) == 2
+    assert "from 0.5°" in capsys.readouterr().err
+    assert not (folder / "analysis").exists()
+
+
 def test_analysis_job_passes_frames_as_options(tmp_path, tube_frames):
     """The path the Slicer module's analyse(resultNode, options=…) takes: a job folder run in this process."""
     import json

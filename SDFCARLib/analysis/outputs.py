@@ -31,7 +31,8 @@ import numpy as np
 from ..evidence import unreadable_intensity
 from ..geometry import Geometry
 from ..io import InputError, read_image, read_label, read_mask, read_volume, write_json
-from ..outputs import staged_directory
+from ..lumen_profile import MAX_PSF_SIGMA_MM
+from ..outputs import check_destination, staged_directory
 from .pipeline import (FOUND_ON_FRAMES, FOUND_ON_MASKS, GRADED_ON_3D, PSF_BY_FRAMES, QCAResult, SegmentError, analyse_volume,
                        lesion_grade, summary, unseen_on)
 
@@ -238,9 +239,9 @@ def _frames_for(geometry: Optional[Geometry], view_masks, frames: Optional[Seque
                 psf_sigma_mm: Union[float, None, str]):
     if not frames:
         return None
-    if psf_sigma_mm != PSF_BY_FRAMES and psf_sigma_mm is not None and not psf_sigma_mm >= 0:
-        raise InputError(f"--psf-sigma-mm must be a blur in mm at the detector (0 or more; default 0.3, estimated on frames processed for display) or 'auto', "
-                         f"got {psf_sigma_mm}")
+    if psf_sigma_mm != PSF_BY_FRAMES and psf_sigma_mm is not None and not 0 <= psf_sigma_mm <= MAX_PSF_SIGMA_MM:
+        raise InputError(f"--psf-sigma-mm must be a blur in mm at the detector (0 to {MAX_PSF_SIGMA_MM:g}; default 0.3, estimated on "
+                         f"frames processed for display) or 'auto', got {psf_sigma_mm}")
     if geometry is None or view_masks is None:
         raise InputError("--frames needs the views' geometry and masks (report.json's or --masks): the masks' widths "
                          "start the fit of each frame's profile")
@@ -252,8 +253,23 @@ def _frames_for(geometry: Optional[Geometry], view_masks, frames: Optional[Seque
         if image.shape != tuple(view.detector_shape):
             raise InputError(f"frame of view {n} ({path}) has shape {image.shape}, the view's detector is "
                              f"{tuple(view.detector_shape)}: give the frame the mask was drawn on")
+        _check_frame_grey_levels(image, n, path)
         images.append(image)
     return images
+
+
+def _check_frame_grey_levels(image: np.ndarray, n: int, path: PathLike) -> None:
+    """Refuse a frame whose grey levels cannot be the detector's: the widths are fitted on −log of them."""
+    if not np.isfinite(image).all():
+        raise InputError(f"frame of view {n} ({path}) holds NaN or infinite values: give the frame as acquired")
+    levels = np.unique(image[:: max(image.shape[0] // 256, 1), :: max(image.shape[1] // 256, 1)])
+    if levels.size <= 2:
+        raise InputError(f"frame of view {n} ({path}) has only {levels.size} grey level(s): it looks like a mask, not an "
+                         f"angiogram frame; give masks with --masks and the frames they were drawn on with --frames")
+    if float(image.max()) <= 1.0:
+        raise InputError(f"frame of view {n} ({path}) has no grey level above 1 (largest {float(image.max()):.3g}): the "
+                         f"frames are read as intensities, −log of them the path through contrast, and a frame scaled to "
+                         f"[0, 1] or stored as −log keeps none of that; give the frame's grey levels as stored")
 
 
 def analysis_summary_lines(data: Dict[str, Any]) -> List[str]:
@@ -324,7 +340,11 @@ def analyse_result_dir(result_dir: PathLike, out_dir: Optional[PathLike] = None,
     result_dir = Path(result_dir)
     if not result_dir.is_dir():
         raise InputError(f"{result_dir} is not a folder; give the result folder of `reconstruct`")
+    if out_dir is not None and not str(out_dir).strip():
+        raise InputError("the output folder is an empty name (an unset variable?): give a folder, or none for "
+                         f"{result_dir / 'analysis'}")
     out = Path(out_dir) if out_dir is not None else result_dir / "analysis"
+    check_destination(out, ANALYSIS_FILES, overwrite)  # before the analysis, not after it
     report_path = result_dir / "report.json"
     report: Dict[str, Any] = {}
     if report_path.is_file():

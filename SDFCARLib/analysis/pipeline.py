@@ -106,6 +106,7 @@ from scipy.spatial import cKDTree
 
 from ..geometry import CArmView, VolumeGrid
 from ..lumen_profile import PSF_BY_FRAMES
+from ..masks import binarise_mask
 from .centreline import CentrelineBranch, CentrelineTree, bifurcation_angles, extract_centrelines
 from .diameter import (CrossSections, branch_cross_sections, ellipse_diameter, junction_zones, mask_diameters,
                        views_to_use)
@@ -310,6 +311,13 @@ def analyse_volume(volume: np.ndarray, grid: VolumeGrid, level: float = 0.5, vie
     if frames is not None and (masks is None or len(frames) != len(views)):
         raise ValueError(f"{len(frames)} frames for {len(views)} views and {'no' if masks is None else len(masks)} masks: "
                          "frame widths need one frame and one mask per view, in the views' order")
+    if masks is not None:
+        if len(masks) != len(views):
+            raise ValueError(f"{len(masks)} masks for {len(views)} views: the masks' diameters need the views they were "
+                             "drawn in, one mask per view in the views' order (give views=)")
+        # one reading of a mask everywhere (0/255 as 0/1: the edges are found at half the mask's value)
+        masks = [binarise_mask(m, view.detector_shape, source=f"mask of view {n}")
+                 for n, (m, view) in enumerate(zip(masks, views), start=1)]
     volume = np.asarray(volume)
     lumen = volume if volume.dtype == bool else volume >= level
     check_ostium(lumen, grid, ostium_mm)

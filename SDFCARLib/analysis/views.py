@@ -43,6 +43,7 @@ from ..geometry import CArmView
 PRIMARY_RANGE_DEG = (-60.0, 60.0)
 SECONDARY_RANGE_DEG = (-40.0, 40.0)
 MAX_VIEW_STEP_DEG = 30.0  # the map then still has 5 × 3 views over the clinical range (quick looks; 2 is the default)
+MIN_VIEW_STEP_DEG = 0.5  # 241 × 161 views; finer steps only cost memory (a C-arm is set to a degree)
 
 
 def view_direction(primary_deg, secondary_deg) -> np.ndarray:
@@ -206,9 +207,10 @@ def view_map(segment_mm: np.ndarray, segment_radii, others_mm: Optional[np.ndarr
     Ties (a straight segment is unforeshortened on a whole great circle of views) go to the view
     closest to AP (smallest α² + β²), the easiest to reach.
     """
-    if not 0 < step_deg <= MAX_VIEW_STEP_DEG:
-        raise ValueError(f"the view map's angle step must be above 0 and at most {MAX_VIEW_STEP_DEG:g}° (coarser maps "
-                         f"miss the best view), got {step_deg:g}°; the default is 2°")
+    if not MIN_VIEW_STEP_DEG <= step_deg <= MAX_VIEW_STEP_DEG:
+        raise ValueError(f"the view map's angle step must be from {MIN_VIEW_STEP_DEG:g}° (a C-arm is set to a degree; finer "
+                         f"maps only cost memory) to {MAX_VIEW_STEP_DEG:g}° (coarser maps miss the best view), got "
+                         f"{step_deg:g}°; the default is 2°")
     seg = np.asarray(segment_mm, float)
     seg_r = np.broadcast_to(np.asarray(segment_radii, float), (len(seg),))
     a = np.arange(primary_range_deg[0], primary_range_deg[1] + 1e-9, step_deg)

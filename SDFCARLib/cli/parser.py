@@ -14,7 +14,7 @@ from ..cli_types import positive_float
 from ..cli_types import positive_int as _positive_int
 from ..dicom import add_dicom_arguments
 from ..geometry import VIEW_PAIRS
-from ..lumen_profile import PSF_BY_FRAMES
+from ..lumen_profile import MAX_PSF_SIGMA_MM, PSF_BY_FRAMES
 from ..settings import DEFAULT_MODE, MASK_THRESHOLD_MM, MODES, PAPER_DETECTOR_SPACING_MM, setting_help
 from .common import EXIT_BAD_INPUT, EXIT_CANCELLED, EXIT_FAILURE, SETTINGS_SET_BY_FLAGS
 from .data import DEFAULT_SID_MM, DEFAULT_SOD_MM, cmd_evaluate, cmd_geometry_template, cmd_segment, cmd_simulate
@@ -31,8 +31,8 @@ def _blur_sigma(text: str) -> Union[float, None, str]:
         value = float(text)
     except ValueError:
         raise argparse.ArgumentTypeError(f"must be a blur in mm (0 or more) or 'auto', got {text!r}") from None
-    if not (math.isfinite(value) and value >= 0):
-        raise argparse.ArgumentTypeError(f"must be a blur in mm (0 or more) or 'auto', got {text}")
+    if not (math.isfinite(value) and 0 <= value <= MAX_PSF_SIGMA_MM):
+        raise argparse.ArgumentTypeError(f"must be a blur in mm (0 to {MAX_PSF_SIGMA_MM:g}) or 'auto', got {text}")
     return value
 
 
@@ -127,7 +127,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--ostium", type=float, nargs=3, metavar=("X", "Y", "Z"),
                    help="ostium in LPS mm (default: the thickest end of the tree)")
     p.add_argument("--view-step-deg", type=positive_float, default=2.0,
-                   help="angle step of the best-view map, above 0 and at most 30 (default 2)")
+                   help="angle step of the best-view map in degrees, 0.5 to 30 (default 2)")
     p.add_argument("--segment", type=float, nargs=6, metavar=("X1", "Y1", "Z1", "X2", "Y2", "Z2"),
                    help="two points in LPS mm marking the segment to measure (its 3D length, its foreshortening in "
                         "each acquired view) and to find the best view of, on one branch within 5 mm of its "

@@ -238,6 +238,10 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
         label = align_to_grid(label, label_grid, geometry.volume, what="ground-truth label")
     settings = settings_from_args(args)
     check_destination(args.out, result_file_names(len(geometry.views)), args.overwrite)  # before minutes of work
+    if args.analyse:
+        from ..analysis.outputs import ANALYSIS_FILES
+
+        check_destination(Path(args.out) / "analysis", ANALYSIS_FILES, args.overwrite)
     # the frames the masks were made on: the path-length evidence of frame_evidence (on in fast)
     if auto:  # the very frames the masks were segmented on
         frames = [frame for _, frame, _ in auto]
