@@ -865,3 +865,9 @@ def test_an_analysis_folder_in_the_way_is_found_before_the_reconstruction_and_be
     assert "already holds view_map.png" in capsys.readouterr().err
     assert main(["analyse", str(folder), "--out", ""]) == 2
     assert "empty name" in capsys.readouterr().err
+    from SDFCARLib.analysis.outputs import analyse_result_dir
+    from SDFCARLib.io import InputError
+
+    for option in ("masks", "frames"):  # from Python: one path, not a list of one per view
+        with pytest.raises(InputError, match=f"{option} is a list of paths, one per view"):
+            analyse_result_dir(folder, tmp_path / "a", **{option: str(tmp_path / "view1_mask.png")})

@@ -340,6 +340,9 @@ def analyse_result_dir(result_dir: PathLike, out_dir: Optional[PathLike] = None,
     result_dir = Path(result_dir)
     if not result_dir.is_dir():
         raise InputError(f"{result_dir} is not a folder; give the result folder of `reconstruct`")
+    for name, paths in (("masks", masks), ("frames", frames)):
+        if isinstance(paths, (str, Path)):  # one path would be read as a list of its characters
+            raise InputError(f"{name} is a list of paths, one per view in the views' order; got the one path {paths!r}")
     if out_dir is not None and not str(out_dir).strip():
         raise InputError("the output folder is an empty name (an unset variable?): give a folder, or none for "
                          f"{result_dir / 'analysis'}")
