@@ -39,7 +39,7 @@ import math
 import platform
 import time
 from dataclasses import dataclass, field
-from typing import Any, Callable, Dict, List, Optional, Sequence, Tuple
+from typing import Any, Callable, Dict, List, Optional, Sequence, Tuple, Union
 
 import numpy as np
 import scipy
@@ -66,7 +66,7 @@ from .pruning import PruneSettings, prune_redundant_branches, removal_zone, smal
 from .revival import revival_offsets, unexplained_in_every_view
 from .thin_weights import thin_vessel_weights
 from .width_agreement import disagreeing_pieces
-from .settings import MASK_THRESHOLD_MM, TARGET_KINDS, ReconstructionError, RegionSettings, Settings, make_settings
+from .settings import DEFAULT_PRESET, MASK_THRESHOLD_MM, TARGET_KINDS, ReconstructionError, RegionSettings, Settings, make_settings
 
 Progress = Optional[Callable[[Dict[str, Any]], None]]
 Cancel = Optional[Callable[[], bool]]
@@ -984,7 +984,7 @@ def volumes_of_occupancy(occupancy: np.ndarray, settings: Settings) -> Tuple[np.
 def reconstruct(
     geometry: Geometry,
     targets: Sequence[np.ndarray],
-    settings: Optional[Settings] = None,
+    settings: Union[Settings, Dict[str, Any], None] = None,
     target_kind: str = "mask",
     progress: Progress = None,
     cancel: Cancel = None,
@@ -996,6 +996,8 @@ def reconstruct(
 ) -> Reconstruction:
     """Reconstruct the vessel tree seen in ``targets`` (one image per view of ``geometry``).
 
+    ``settings``: a ``Settings``, or as the jobs take them a dict of a ``preset`` (default ``fast``) and the
+    settings it changes by key, e.g. ``{"steps": 200}``; None: ``fast``.
     ``frames``: the X-ray frames the masks were drawn or segmented on, one per view (optional);
     with ``frame_evidence`` the occupancy is fitted to the path lengths read off them (``evidence.py``).
     ``frame_intensity``: per view, the frame's DICOM Pixel Intensity Relationship (0028,1040), None where not
@@ -1005,6 +1007,9 @@ def reconstruct(
     ``snapshot(step, occupancy)`` — for benchmarks of time to accuracy — receives the occupancy
     volume every ``snapshot_every`` steps (its time is excluded from the optimisation timings).
     """
+    if isinstance(settings, dict):  # as the jobs take them: a preset (default fast) and the settings it changes
+        values = dict(settings)
+        settings = make_settings(values.pop("preset", DEFAULT_PRESET), **values)
     settings = settings or make_settings()
     # an 8-bit frame nobody said anything of was processed for display (evidence.assumed_relationship)
     frame_intensity, assumed = assumed_frame_intensity(frames, frame_intensity)

@@ -13,7 +13,7 @@ from SDFCARLib.losses import partial_occupancy_loss, silhouette
 from SDFCARLib.field import ImplicitField
 from SDFCARLib.optimiser import (ReconstructionCancelled, averaging_start, build_problem, evaluate_volume, field_config,
                                    fit_field, optimise, ramped_alpha, reconstruct, validate_targets)
-from SDFCARLib.settings import MODES, ReconstructionError, make_settings
+from SDFCARLib.settings import MODES, ReconstructionError, Settings, make_settings
 from SDFCARLib.phantoms import Branch, CentrelineTree, simulate_views, voxelize
 from SDFCARLib.projector import project_volume
 
@@ -94,6 +94,16 @@ def test_reconstruct_rejects_bad_input_before_working(case):
     with pytest.raises(ReconstructionError, match="the geometry has 1 view; a 3D reconstruction needs at least two views"):
         reconstruct(one_view, _masks(case)[:1], make_settings("fast", steps=5), progress=calls.append)
     assert calls == []
+
+
+def test_reconstruct_takes_its_settings_as_the_jobs_do_a_preset_and_the_keys_it_changes(case):
+    geometry = case[0]
+    with pytest.raises(ReconstructionError, match="unknown preset"):
+        reconstruct(geometry, _masks(case), {"preset": "quick", "steps": 5})
+    result = reconstruct(geometry, _masks(case), {"steps": 5, "device": "cpu", "reconnect": False})
+    assert isinstance(result.settings, Settings)
+    assert result.settings == make_settings("fast", steps=5, device="cpu", reconnect=False)
+    assert result.settings.run.preset == "fast" and result.settings.optimisation.steps == 5
 
 
 # --- tiny reconstructions -----------------------------------------------------------------------------------------------
