@@ -483,6 +483,9 @@ def test_analysis_nodes_in_a_scene(tmp_path):
     analyse_result_dir(folder, view_step_deg=10.0, ostium_mm=phantom.truth["ostium_mm"])
     scene = new_scene()
     nodes = add_analysis_nodes(scene, folder / "analysis", name="case")
+    # the result folder itself finds the analysis analyse wrote into it by default
+    again = add_analysis_nodes(scene, folder, name="again")
+    assert again["table"].GetNumberOfRows() == nodes["table"].GetNumberOfRows() and len(again["curves"]) == len(nodes["curves"])
     curve = nodes["curves"][0]
     assert curve.GetNumberOfControlPoints() > 10
     lps_first = np.array(json.loads((folder / "analysis" / "analysis.json").read_text())["branches"][0]["start_mm"])

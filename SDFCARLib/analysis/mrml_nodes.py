@@ -138,6 +138,8 @@ def add_analysis_nodes(scene, analysis_dir: PathLike, name: str = "SDFCAR", poin
     """Add the QCA nodes of an ``analyse`` output folder to ``scene`` (module docstring); return them."""
     slicer = _slicer_module()
     folder = Path(analysis_dir)
+    if not (folder / "analysis.json").is_file() and (folder / "analysis" / "analysis.json").is_file():
+        folder = folder / "analysis"  # the result folder given: analyse writes into its analysis/ by default
     summary_path = folder / "analysis.json"
     if not summary_path.is_file():
         raise FileNotFoundError(f"{summary_path} not found: run `python -m SDFCARLib analyse RESULT_DIR` first")
