@@ -101,12 +101,11 @@ def prepare_job(job_dir: PathLike, geometry: Geometry, targets: Sequence[np.ndar
 
 
 def _check_inputs(geometry: Geometry, targets: Sequence[np.ndarray], settings: Dict[str, Any], target_kind: str):
-    from .optimiser import ReconstructionError, make_settings, validate_targets
+    from .optimiser import ReconstructionError, validate_targets
+    from .settings import settings_from_values
 
-    values = dict(settings)
-    preset = values.pop("preset", "fast")
     try:
-        checked = make_settings(preset, **values)
+        checked = settings_from_values(settings)
         validate_targets(targets, geometry, target_kind)
     except ReconstructionError as exc:
         raise JobFolderError(str(exc)) from exc

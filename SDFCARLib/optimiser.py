@@ -66,7 +66,8 @@ from .pruning import PruneSettings, prune_redundant_branches, removal_zone, smal
 from .revival import revival_offsets, unexplained_in_every_view
 from .thin_weights import thin_vessel_weights
 from .width_agreement import disagreeing_pieces
-from .settings import DEFAULT_PRESET, MASK_THRESHOLD_MM, TARGET_KINDS, ReconstructionError, RegionSettings, Settings, make_settings
+from .settings import (MASK_THRESHOLD_MM, TARGET_KINDS, ReconstructionError, RegionSettings, Settings, make_settings,
+                       settings_from_values)
 
 Progress = Optional[Callable[[Dict[str, Any]], None]]
 Cancel = Optional[Callable[[], bool]]
@@ -1007,9 +1008,8 @@ def reconstruct(
     ``snapshot(step, occupancy)`` — for benchmarks of time to accuracy — receives the occupancy
     volume every ``snapshot_every`` steps (its time is excluded from the optimisation timings).
     """
-    if isinstance(settings, dict):  # as the jobs take them: a preset (default fast) and the settings it changes
-        values = dict(settings)
-        settings = make_settings(values.pop("preset", DEFAULT_PRESET), **values)
+    if isinstance(settings, dict):
+        settings = settings_from_values(settings)
     settings = settings or make_settings()
     # an 8-bit frame nobody said anything of was processed for display (evidence.assumed_relationship)
     frame_intensity, assumed = assumed_frame_intensity(frames, frame_intensity)

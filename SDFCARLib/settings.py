@@ -533,6 +533,13 @@ def make_settings(preset: str = DEFAULT_PRESET, **overrides: Any) -> Settings:
     return settings
 
 
+def settings_from_values(values: Dict[str, Any]) -> Settings:
+    """Settings as the jobs and ``reconstruct`` take them in a dict: a ``preset`` (default ``fast``) and the settings it
+    changes by key; validated."""
+    values = dict(values)
+    return make_settings(values.pop("preset", DEFAULT_PRESET), **values)
+
+
 def setting_help(exclude: Iterable[str] = ()) -> str:
     """One line per setting key with its default, for ``--help``; ``exclude``: the keys a command sets by its own flags."""
     defaults = Settings().to_dict()

@@ -152,3 +152,15 @@ def test_metric_registry():
     assert METRICS["cldice"].higher_is_better and not METRICS["chamfer_l2_mm"].higher_is_better
     assert METRICS["chamfer_l2_mm"].unit == "mm"
     assert METRICS["dice"].table_header == "Dice (%)" and METRICS["re_mse"].table_header == "reMSE (×1e-4)"
+
+
+def test_settings_from_values_take_a_preset_and_its_changes_as_the_jobs_do():
+    from SDFCARLib.settings import settings_from_values
+
+    assert settings_from_values({}) == make_settings("fast")
+    assert settings_from_values({"preset": "paper", "steps": 7}) == make_settings("paper", steps=7)
+    values = {"preset": "fast", "steps": 9}
+    settings_from_values(values)
+    assert values == {"preset": "fast", "steps": 9}  # the caller's dict is left as it was
+    with pytest.raises(ReconstructionError, match="unknown preset"):
+        settings_from_values({"preset": "quick"})
