@@ -874,3 +874,13 @@ def test_an_analysis_folder_in_the_way_is_found_before_the_reconstruction_and_be
     for option in ("masks", "frames"):  # from Python: one path, not a list of one per view
         with pytest.raises(InputError, match=f"{option} is a list of paths, one per view"):
             analyse_result_dir(folder, tmp_path / "a", **{option: str(tmp_path / "view1_mask.png")})
+    for option, value in (("view_step_deg", "2"), ("min_stenosis_pct", None)):
+        with pytest.raises(InputError, match=f"{option} must be a number"):
+            analyse_result_dir(folder, tmp_path / "a", **{option: value})
+    with pytest.raises(InputError, match="--psf-sigma-mm must be a blur in mm"):
+        analyse_result_dir(folder, tmp_path / "a", frames=[str(tmp_path / "f1.nrrd"), str(tmp_path / "f2.nrrd")],
+                           psf_sigma_mm="wide")
+    from SDFCARLib.analysis.pipeline import analyse_volume
+
+    with pytest.raises(ValueError, match="min_stenosis_pct is the least diameter stenosis"):
+        analyse_volume(np.zeros((4, 4, 4), np.float32), None, min_stenosis_pct=float("nan"))

@@ -23,6 +23,7 @@ from __future__ import annotations
 import csv
 import io as _io
 import json
+import numbers
 from pathlib import Path
 from typing import Any, Dict, List, Optional, Sequence, Union
 
@@ -239,7 +240,8 @@ def _frames_for(geometry: Optional[Geometry], view_masks, frames: Optional[Seque
                 psf_sigma_mm: Union[float, None, str]):
     if not frames:
         return None
-    if psf_sigma_mm != PSF_BY_FRAMES and psf_sigma_mm is not None and not 0 <= psf_sigma_mm <= MAX_PSF_SIGMA_MM:
+    if psf_sigma_mm != PSF_BY_FRAMES and psf_sigma_mm is not None and not (
+            isinstance(psf_sigma_mm, numbers.Real) and 0 <= psf_sigma_mm <= MAX_PSF_SIGMA_MM):
         raise InputError(f"--psf-sigma-mm must be a blur in mm at the detector (0 to {MAX_PSF_SIGMA_MM:g}; default 0.3, estimated on "
                          f"frames processed for display) or 'auto', got {psf_sigma_mm}")
     if geometry is None or view_masks is None:
@@ -343,6 +345,11 @@ def analyse_result_dir(result_dir: PathLike, out_dir: Optional[PathLike] = None,
     for name, paths in (("masks", masks), ("frames", frames)):
         if isinstance(paths, (str, Path)):  # one path would be read as a list of its characters
             raise InputError(f"{name} is a list of paths, one per view in the views' order; got the one path {paths!r}")
+    if isinstance(psf_sigma_mm, str) and psf_sigma_mm.strip().lower() == "auto":
+        psf_sigma_mm = None  # the command line's 'auto': estimated from the frames
+    for name, number in (("view_step_deg", view_step_deg), ("min_stenosis_pct", min_stenosis_pct)):
+        if isinstance(number, bool) or not isinstance(number, numbers.Real):
+            raise InputError(f"{name} must be a number, got {number!r}")
     if out_dir is not None and not str(out_dir).strip():
         raise InputError("the output folder is an empty name (an unset variable?): give a folder, or none for "
                          f"{result_dir / 'analysis'}")

@@ -311,6 +311,9 @@ def analyse_volume(volume: np.ndarray, grid: VolumeGrid, level: float = 0.5, vie
     if frames is not None and (masks is None or len(frames) != len(views)):
         raise ValueError(f"{len(frames)} frames for {len(views)} views and {'no' if masks is None else len(masks)} masks: "
                          "frame widths need one frame and one mask per view, in the views' order")
+    if not 0.0 < float(min_stenosis_pct) < 100.0:  # NaN too: it would find lesions nowhere and store null
+        raise ValueError(f"min_stenosis_pct is the least diameter stenosis reported as a lesion, a percentage above 0 and "
+                         f"below 100 (default 20), got {min_stenosis_pct}")
     if masks is not None:
         if len(masks) != len(views):
             raise ValueError(f"{len(masks)} masks for {len(views)} views: the masks' diameters need the views they were "
