@@ -128,7 +128,7 @@ def test_analyse_command_fits_the_frames(tmp_path, tube_frames, capsys):
 
 
 @pytest.mark.parametrize("spoil, message", [
-    ("masks", "only 2 grey level(s): it looks like a mask"),
+    ("masks", "two grey levels or fewer: it looks like a mask"),
     ("scaled", "no grey level above 1"),
     ("nan", "NaN or infinite"),
 ])

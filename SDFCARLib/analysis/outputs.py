@@ -29,7 +29,7 @@ from typing import Any, Dict, List, Optional, Sequence, Union
 
 import numpy as np
 
-from ..evidence import unreadable_intensity
+from ..evidence import is_binary_image, unreadable_intensity
 from ..geometry import Geometry
 from ..io import InputError, read_image, read_label, read_mask, read_volume, write_json
 from ..lumen_profile import MAX_PSF_SIGMA_MM
@@ -264,9 +264,8 @@ def _check_frame_grey_levels(image: np.ndarray, n: int, path: PathLike) -> None:
     """Refuse a frame whose grey levels cannot be the detector's: the widths are fitted on −log of them."""
     if not np.isfinite(image).all():
         raise InputError(f"frame of view {n} ({path}) holds NaN or infinite values: give the frame as acquired")
-    levels = np.unique(image[:: max(image.shape[0] // 256, 1), :: max(image.shape[1] // 256, 1)])
-    if levels.size <= 2:
-        raise InputError(f"frame of view {n} ({path}) has only {levels.size} grey level(s): it looks like a mask, not an "
+    if is_binary_image(image):
+        raise InputError(f"frame of view {n} ({path}) has two grey levels or fewer: it looks like a mask, not an "
                          f"angiogram frame; give masks with --masks and the frames they were drawn on with --frames")
     if float(image.max()) <= 1.0:
         raise InputError(f"frame of view {n} ({path}) has no grey level above 1 (largest {float(image.max()):.3g}): the "
