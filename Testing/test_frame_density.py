@@ -366,10 +366,36 @@ def test_a_lesion_the_frames_show_and_the_reconstruction_does_not_is_reported_fr
     assert grade["length_mm"] == pytest.approx(stenosed.truth["lesion_length_mm"], abs=2.0)
     assert 10.0 <= lesion["diameter_stenosis_pct"] < 20.0  # the 3D sections over the frames' extent
     assert (lesion["start_mm"], lesion["end_mm"]) == (grade["start_mm"], grade["end_mm"])
-    assert any("found on the frames only" in w and "branch 0" in w for w in data["warnings"])
-    assert "found on the frames only" in analysis_summary_lines(data)[1]
+    assert lesion["missed_in_3d"] == "narrows less"
+    [warning] = [w for w in data["warnings"] if "found on the frames only" in w]
+    assert "branch 0" in warning and "narrow there less than a lesion" in warning and "finer grid" not in warning
+    line = analysis_summary_lines(data)[1]
+    assert "found on the frames only (the 3D sections narrow there less than a lesion)" in line
     if importlib.util.find_spec("slicer") is not None:
         assert _qca_table(tmp_path / "frames", result, data).GetColumnByName("found_on").GetValue(0) == "frames"
+
+
+def test_a_lesion_of_the_frames_that_the_3d_sections_narrow_as_much_but_do_not_resolve_is_not_said_to_narrow_less(
+        stenosed_tube_frames):
+    from SDFCARLib.analysis.outputs import analysis_summary_lines
+    from SDFCARLib.analysis.phantoms import grid_around, voxelize_exact
+    from SDFCARLib.analysis.pipeline import analyse_volume, summary
+
+    # The exact 50 % lesion on a 1.25 mm grid: the 3 mm tube spans under 2.5 voxels, so the 3D sections narrow
+    # there by far more than a lesion but report none. The messages said "the 3D sections narrow less there".
+    stenosed, realistic = stenosed_tube_frames
+    grid = grid_around(stenosed.tree, 1.25)
+    data = summary(analyse_volume(voxelize_exact(stenosed.tree, grid).astype(np.float32), grid, views=VIEWS,
+                                  masks=realistic.masks, frames=realistic.frames, ostium_mm=stenosed.truth["ostium_mm"],
+                                  best_view=False, psf_sigma_mm=AngiogramSettings().psf_sigma_mm))
+    [lesion] = data["lesions"]
+    assert lesion["found_on"] == "frames" and lesion["diameter_stenosis_pct"] >= 30.0
+    assert lesion["missed_in_3d"] == "unresolved" and lesion["reference_diameter_mm"] < 2.5 * 1.25
+    [warning] = [w for w in data["warnings"] if "found on the frames only" in w]
+    line = analysis_summary_lines(data)[1]
+    for message in (warning, line):
+        assert "narrow there too" in message and "2.5 voxels" in message and "less" not in message
+    assert "finer grid" in warning
 
 
 def test_a_narrowing_of_the_frames_that_a_healthy_reconstruction_does_not_show_is_counted_not_reported(

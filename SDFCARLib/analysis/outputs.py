@@ -34,8 +34,8 @@ from ..geometry import Geometry
 from ..io import InputError, read_image, read_label, read_mask, read_volume, write_json
 from ..lumen_profile import MAX_PSF_SIGMA_MM
 from ..outputs import check_destination, staged_directory
-from .pipeline import (FOUND_ON_FRAMES, FOUND_ON_MASKS, GRADED_ON_3D, PSF_BY_FRAMES, QCAResult, SegmentError, analyse_volume,
-                       lesion_grade, summary, unseen_on)
+from .pipeline import (FOUND_ON_FRAMES, FOUND_ON_MASKS, GRADED_ON_3D, MISSED_IN_3D_PHRASE, PSF_BY_FRAMES, QCAResult,
+                       SegmentError, analyse_volume, lesion_grade, summary, unseen_on)
 
 PathLike = Union[str, Path]
 ANALYSIS_FILES = ("analysis.json", "centrelines.vtk", "diameter_profiles.png", "view_map.png")
@@ -294,10 +294,9 @@ def analysis_summary_lines(data: Dict[str, Any]) -> List[str]:
             seen.append(f"masks DS {lesion['masks_diameter_stenosis_pct']:.0f}%")
         if seen:
             line += "; " + "; ".join(seen)
-        if lesion.get("found_on") == FOUND_ON_FRAMES:
-            line += "; found on the frames only (the 3D sections narrow less there)"
-        elif lesion.get("found_on") == FOUND_ON_MASKS:
-            line += "; found on the masks only (the 3D sections did not report it)"
+        if lesion.get("found_on") in (FOUND_ON_FRAMES, FOUND_ON_MASKS):
+            why = MISSED_IN_3D_PHRASE.get(lesion.get("missed_in_3d"), "the 3D sections did not report it")
+            line += f"; found on the {lesion['found_on']} only ({why})"
         images = unseen_on(lesion.get("seen_on_frames"), lesion.get("seen_on_masks"))
         if images == "frames":
             line += "; NOT seen on the frames: check it there"

@@ -770,9 +770,35 @@ def _lesion_entry(p: BranchProfile, lesion: Lesion, min_stenosis_pct: float, vox
     found_on = (FOUND_ON_FRAMES if any(lesion is x for x in p.frames_only)
                 else FOUND_ON_MASKS if any(lesion is x for x in p.masks_only) else GRADED_ON_3D)
     return dict(lesion.to_dict(), branch_id=p.branch.branch_id, grade=grade.to_dict(), found_on=found_on,
+                missed_in_3d=None if found_on == GRADED_ON_3D else _why_missed_in_3d(lesion, min_stenosis_pct, voxel_mm),
                 mld_below_resolution=bool(lesion.mld_mm < RESOLVABLE_VOXELS * voxel_mm),
                 seen_on_frames=grade.seen_on_frames, frames=frames, seen_on_masks=grade.seen_on_masks,
                 masks_diameter_stenosis_pct=masks_stenosis_pct(p, lesion), **extra)
+
+
+# Why the 3D sections report no lesion where the frames or masks found one (analysis.json ``missed_in_3d``),
+# and how the messages say it: the 3D measures printed beside them are the sections' over the found extent.
+MISSED_NARROWS_LESS = "narrows less"
+MISSED_UNRESOLVED = "unresolved"
+MISSED_OTHER = "free end or beside another lesion"
+MISSED_IN_3D_PHRASE = {
+    MISSED_NARROWS_LESS: "the 3D sections narrow there less than a lesion",
+    MISSED_UNRESOLVED: (f"the 3D sections narrow there too, but over a vessel or a length under {RESOLVABLE_VOXELS:g} "
+                        f"voxels, which they do not report"),
+    MISSED_OTHER: ("the 3D sections narrow there too, but report no lesion of their own there (at a branch's free end, "
+                   "or beside another lesion they report)"),
+}
+
+
+def _why_missed_in_3d(lesion: Lesion, min_stenosis_pct: float, voxel_mm: float) -> str:
+    """Which of ``MISSED_IN_3D_PHRASE`` holds for a lesion found on the frames or masks only, its 3D measure
+    ``lesion`` (the sections over the found extent)."""
+    if lesion.diameter_stenosis_pct < min_stenosis_pct:
+        return MISSED_NARROWS_LESS
+    resolvable_mm = RESOLVABLE_VOXELS * voxel_mm
+    if lesion.reference_diameter_mm < resolvable_mm or lesion.length_mm < resolvable_mm:
+        return MISSED_UNRESOLVED
+    return MISSED_OTHER
 
 
 def _unseen_warning(lesions: List[Dict[str, Any]], images: str, check_on: str) -> Optional[str]:
@@ -791,17 +817,22 @@ def _found_only_warning(lesions: List[Dict[str, Any]], images: str) -> Optional[
     if not only:
         return None
     where = ", ".join(f"branch {d['branch_id']} at {d['grade']['mld_position_mm']:.1f} mm ({images} DS "
-                      f"{d['grade']['diameter_stenosis_pct']:.0f}%, 3D sections {d['diameter_stenosis_pct']:.0f}%)" for d in only)
+                      f"{d['grade']['diameter_stenosis_pct']:.0f}%, 3D sections {d['diameter_stenosis_pct']:.0f}%: "
+                      f"{MISSED_IN_3D_PHRASE[d['missed_in_3d']]})" for d in only)
+    reasons = {d["missed_in_3d"] for d in only}
+    why = []
+    if MISSED_NARROWS_LESS in reasons:
+        why.append("Where the 3D sections narrow less, the reconstruction is too coarse or too rough for this vessel, or "
+                   "a vessel crossing this one in a view narrows the frames' profile (check the angiograms).")
+    if MISSED_UNRESOLVED in reasons:
+        why.append("Where the grid does not resolve it, a reconstruction on a finer grid measures it in 3D.")
     if images == FOUND_ON_FRAMES:
-        why = ("The 3D sections narrow there less than a lesion, the frames more: the reconstruction is too coarse or "
-               "too rough for this vessel, or a vessel crossing this one in a view narrows the frames' profile (check "
-               "the angiograms); the grade is the frames'")
+        why.append("The grade is the frames'")
     else:
-        why = ("The 3D sections narrow there too but did not report it (a vessel thinner than the grid resolves, or a "
-               "rough lumen): the grade is the masks' two-view diameter, which reads an eccentric throat up to 20 "
-               "points off; grade it on the frames (analyse --frames)")
-    return (f"{len(only)} lesion(s) found on the {images} only: {where}. {why}; the 3D measures are the sections' over "
-            f"the {images}' extent.")
+        why.append("The grade is the masks' two-view diameter, which reads an eccentric throat up to 20 points off; "
+                   "grade it on the frames (analyse --frames)")
+    return (f"{len(only)} lesion(s) found on the {images} only: {where}. {' '.join(why)}; the 3D measures are the "
+            f"sections' over the {images}' extent.")
 
 
 def _thin_throat_warning(lesions: List[Dict[str, Any]], voxel_mm: float) -> Optional[str]:
