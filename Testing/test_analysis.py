@@ -819,6 +819,21 @@ def test_an_ostium_far_from_the_tree_is_refused_with_its_distance_and_a_near_one
         check_ostium(lumen, grid, [0.0, float("nan"), 0.0])
 
 
+def test_a_volume_with_nan_or_of_another_shape_than_its_grid_is_refused():
+    from SDFCARLib.analysis.pipeline import analyse_volume
+
+    phantom = straight_tube(16.0, 2.0)
+    grid = grid_around(phantom.tree, 0.5)
+    volume = voxelize_exact(phantom.tree, grid).astype(np.float32)
+    holed = volume.copy()
+    holed[volume.shape[0] // 2] = np.nan  # a slice lost: the sections read NaN as no lumen and break the tree
+    with pytest.raises(ValueError, match=rf"holds {volume.shape[1] * volume.shape[2]} NaN or infinite values"):
+        analyse_volume(holed, grid, best_view=False)
+    with pytest.raises(ValueError, match=r"has shape .* and its grid"):
+        analyse_volume(volume[:-1], grid, best_view=False)
+    assert len(analyse_volume(volume, grid, best_view=False).tree.branches) == 1
+
+
 def test_masks_given_to_analyse_volume_read_alike_whatever_their_vessel_value_and_need_their_views():
     from SDFCARLib.analysis.pipeline import analyse_volume, summary
 

@@ -322,6 +322,12 @@ def analyse_volume(volume: np.ndarray, grid: VolumeGrid, level: float = 0.5, vie
         masks = [binarise_mask(m, view.detector_shape, source=f"mask of view {n}")
                  for n, (m, view) in enumerate(zip(masks, views), start=1)]
     volume = np.asarray(volume)
+    if volume.shape != tuple(grid.shape):
+        raise ValueError(f"the volume has shape {volume.shape} and its grid {tuple(grid.shape)}: give the grid the "
+                         f"volume was reconstructed on")
+    if volume.dtype != bool and not np.isfinite(volume).all():  # NaN is no lumen yet its sections read it: a broken tree
+        raise ValueError(f"the volume holds {int((~np.isfinite(volume)).sum())} NaN or infinite values: give an occupancy "
+                         f"(0 to 1) or a label volume, as reconstruct writes it")
     lumen = volume if volume.dtype == bool else volume >= level
     check_ostium(lumen, grid, ostium_mm)
     fragments = find_fragments(lumen, grid, min_component_share, ostium_mm)
