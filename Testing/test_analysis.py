@@ -834,6 +834,29 @@ def test_a_volume_with_nan_or_of_another_shape_than_its_grid_is_refused():
     assert len(analyse_volume(volume, grid, best_view=False).tree.branches) == 1
 
 
+def test_an_ostium_given_at_a_distal_tip_is_warned_of_naming_the_thick_end_and_the_root_end_is_not():
+    from SDFCARLib.analysis.pipeline import analyse_volume, summary
+    from SDFCARLib.phantoms import lad_tree
+
+    tree = lad_tree(0)  # its main vessel 4 mm wide at the ostium, 1.4 mm at its distal tip
+    grid = grid_around(tree, 0.5)
+    volume = voxelize_exact(tree, grid).astype(np.float32)
+    ostium, tip = tree.branches[0].points[0], tree.branches[0].points[-1]
+
+    def ostium_warnings(point):
+        data = summary(analyse_volume(volume, grid, ostium_mm=point, best_view=False))
+        return data, [w for w in data["warnings"] if "the ostium given" in w]
+
+    data, warnings = ostium_warnings(ostium)
+    assert warnings == [] and data["settings"]["given_root"]["distance_to_thickest_end_mm"] < 3.0
+    data, [warning] = ostium_warnings(tip)
+    given = data["settings"]["given_root"]
+    assert 2 * given["given_radius_mm"] < 0.6 * 2 * given["thickest_end_radius_mm"]
+    assert np.linalg.norm(np.asarray(given["thickest_end_mm"]) - ostium) < 3.0  # it names where the ostium is
+    assert "backwards" in warning and "leave --ostium out" in warning
+    assert data["branches"][0]["start_mm"] == pytest.approx(list(tip), abs=2.0)  # the user's choice is still followed
+
+
 def test_masks_given_to_analyse_volume_read_alike_whatever_their_vessel_value_and_need_their_views():
     from SDFCARLib.analysis.pipeline import analyse_volume, summary
 

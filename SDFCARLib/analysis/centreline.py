@@ -34,7 +34,7 @@ from __future__ import annotations
 
 from collections import deque
 from dataclasses import dataclass, field
-from typing import Dict, List, Optional, Sequence
+from typing import Any, Dict, List, Optional, Sequence
 
 import numpy as np
 from scipy import ndimage, sparse
@@ -83,6 +83,8 @@ class CentrelineBranch:
 @dataclass
 class CentrelineTree:
     branches: List[CentrelineBranch] = field(default_factory=list)
+    # where an ostium was given: its skeleton's thickness beside the thickest end's (``_given_root_check``)
+    given_root: Optional[Dict[str, Any]] = None
 
     def branch(self, branch_id: int) -> CentrelineBranch:
         for b in self.branches:
@@ -134,16 +136,34 @@ def skeleton_graph(skeleton: np.ndarray, spacing_mm: Sequence[float]):
     return coords, graph
 
 
-def _pick_root(graph, radius: np.ndarray, world: np.ndarray, ostium_mm: Optional[np.ndarray]) -> int:
-    if ostium_mm is not None:
-        return int(np.argmin(np.linalg.norm(world - ostium_mm, axis=1)))
+def _thickness_mm(graph, radius: np.ndarray, nodes: np.ndarray) -> np.ndarray:
+    """Each node's "thickness": the largest inscribed radius within ``ROOT_RADIUS_REACH_MM`` along the skeleton."""
+    reach = csgraph.dijkstra(graph, indices=nodes, limit=ROOT_RADIUS_REACH_MM)
+    return np.where(np.isfinite(reach), radius[None, :], 0.0).max(axis=1)
+
+
+def _thickest_end(graph, radius: np.ndarray) -> int:
     degree = np.diff(graph.indptr)
     ends = np.nonzero(degree == 1)[0]
     if len(ends) == 0:  # a closed loop: start where it is thickest
         return int(np.argmax(radius))
-    reach = csgraph.dijkstra(graph, indices=ends, limit=ROOT_RADIUS_REACH_MM)
-    thickness = np.where(np.isfinite(reach), radius[None, :], 0.0).max(axis=1)
-    return int(ends[np.argmax(thickness)])
+    return int(ends[np.argmax(_thickness_mm(graph, radius, ends))])
+
+
+def _pick_root(graph, radius: np.ndarray, world: np.ndarray, ostium_mm: Optional[np.ndarray]) -> int:
+    if ostium_mm is not None:
+        return int(np.argmin(np.linalg.norm(world - ostium_mm, axis=1)))
+    return _thickest_end(graph, radius)
+
+
+def _given_root_check(graph, radius: np.ndarray, world: np.ndarray, root: int) -> Dict[str, Any]:
+    """How thick the skeleton is where a given ostium roots the tree, beside its thickest end (the root it
+    would have been given): a point at a distal tip orders the whole tree backwards."""
+    thickest = _thickest_end(graph, radius)
+    given, best = _thickness_mm(graph, radius, np.array([root, thickest]))
+    return {"given_radius_mm": float(given), "thickest_end_radius_mm": float(best),
+            "thickest_end_mm": world[thickest].tolist(),
+            "distance_to_thickest_end_mm": float(np.linalg.norm(world[root] - world[thickest]))}
 
 
 def _decompose(graph, root: int, radius: np.ndarray, min_branch_mm: float):
@@ -394,6 +414,8 @@ def extract_centrelines(volume: np.ndarray, grid: VolumeGrid, level: float = 0.5
         if sub.sum() / 2 < min_component_mm:
             continue
         root = _pick_root(sub, radius[members], world[members], ostium if p == nearest_piece else None)
+        if p == nearest_piece:
+            tree.given_root = _given_root_check(sub, radius[members], world[members], root)
         raw = _decompose(sub, root, radius[members], min_branch_mm)
         first_id = len(tree.branches)
         for k, (path, parent, _junction) in enumerate(raw):

@@ -218,6 +218,10 @@ def _choose_target(profiles: List[BranchProfile], min_stenosis_pct: float) -> Di
 
 
 OSTIUM_MAX_DISTANCE_MM = 10.0  # a given ostium this far from every lumen voxel is a mistake (RAS for LPS, a typo)
+# a given ostium where the tree is under this share of its thickest end's width, that end farther than
+# OSTIUM_THIN_MIN_DISTANCE_MM away, is warned of: the tree is ordered from it (a distal tip orders it backwards)
+OSTIUM_THIN_SHARE = 0.6
+OSTIUM_THIN_MIN_DISTANCE_MM = 6.0
 
 
 def check_ostium(lumen: np.ndarray, grid: VolumeGrid, ostium_mm: Optional[Sequence[float]]) -> None:
@@ -338,6 +342,7 @@ def analyse_volume(volume: np.ndarray, grid: VolumeGrid, level: float = 0.5, vie
         pieces = volume.copy()
         pieces[~fragments.analysed_mask()] = 0
     tree = extract_centrelines(pieces, grid, level=level, ostium_mm=ostium_mm, min_branch_mm=min_branch_mm)
+    given_root = tree.given_root
     fvol = np.asarray(volume, np.float32)
     # Sections of the parents first, for the strand test; the strands dropped need none (a rough
     # reconstruction has most of its branches among them).
@@ -417,7 +422,7 @@ def analyse_volume(volume: np.ndarray, grid: VolumeGrid, level: float = 0.5, vie
     settings = {"level": level, "min_branch_mm": min_branch_mm, "min_stenosis_pct": min_stenosis_pct, **blur,
                 "view_step_deg": view_step_deg, "ostium_mm": None if ostium_mm is None else list(map(float, ostium_mm)),
                 "min_component_share": min_component_share, "bridges_checked": len(bridges),
-                "strands_dropped": len(strands), "voxel_mm": voxel, "centreline_on_masks": centreline_on_masks,
+                "strands_dropped": len(strands), "given_root": given_root, "voxel_mm": voxel, "centreline_on_masks": centreline_on_masks,
                 "centreline_placement": None if placement is None else [p.to_dict() for p in placement],
                 "centred_on_sections": None if section_placement is None else [p.to_dict() for p in section_placement]}
     return QCAResult(tree, profiles, bifurcation_angles(tree), list(views), fore, target, vm, settings, fragments)
@@ -841,6 +846,21 @@ def _found_only_warning(lesions: List[Dict[str, Any]], images: str) -> Optional[
             f"sections' over the {images}' extent.")
 
 
+def _given_root_warning(given_root: Optional[Dict[str, Any]]) -> Optional[str]:
+    """A warning where the ostium given roots the tree far thinner than its thickest end (``OSTIUM_THIN_SHARE``)."""
+    if not given_root:
+        return None
+    given, best = 2 * given_root["given_radius_mm"], 2 * given_root["thickest_end_radius_mm"]
+    if given >= OSTIUM_THIN_SHARE * best or given_root["distance_to_thickest_end_mm"] <= OSTIUM_THIN_MIN_DISTANCE_MM:
+        return None
+    where = ", ".join(f"{v:.1f}" for v in given_root["thickest_end_mm"])
+    return (f"the ostium given roots the tree where the vessel is {given:.1f} mm wide, but its thickest end, at ({where}) "
+            f"LPS mm, is {best:.1f} mm wide: every branch is ordered from the ostium, so a point at a distal tip reads the "
+            f"tree backwards (lengths from the wrong end, side branches as the main vessel). If the ostium is not where you "
+            f"put it, give the root end (Slicer shows RAS: negate x and y) or leave --ostium out to start from the "
+            f"thickest end.")
+
+
 def _thin_throat_warning(lesions: List[Dict[str, Any]], voxel_mm: float) -> Optional[str]:
     thin = [d for d in lesions if d["mld_below_resolution"] and d["grade"]["source"] == GRADED_ON_3D]
     if not thin:
@@ -905,7 +925,8 @@ def summary(result: QCAResult) -> Dict[str, Any]:
                                  _unseen_warning(all_lesions, "masks", "angiograms"),
                                  _found_only_warning(all_lesions, FOUND_ON_FRAMES),
                                  _found_only_warning(all_lesions, FOUND_ON_MASKS),
-                                 _thin_throat_warning(all_lesions, voxel_mm)] if w],
+                                 _thin_throat_warning(all_lesions, voxel_mm),
+                                 _given_root_warning(result.settings.get("given_root"))] if w],
     }
     if result.view_map is not None:
         best = result.view_map.best()
