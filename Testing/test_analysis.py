@@ -462,6 +462,22 @@ def test_centrelines_vtk_reads_back_with_radii(tmp_path):
     assert len(tree.branches) == 1
     assert np.allclose(tree.branches[0].points, result.tree.branches[0].points_mm, atol=1e-4)
     assert np.median(tree.branches[0].radii) == pytest.approx(1.0, abs=0.08)
+    # every point array reaches a reader as it comes, without ReadAllScalarsOn (Slicer's model reader)
+    import vtk
+    from vtk.util.numpy_support import vtk_to_numpy
+
+    reader = vtk.vtkPolyDataReader()
+    reader.SetFileName(str(path))
+    reader.Update()
+    point_data = reader.GetOutput().GetPointData()
+    assert point_data.GetScalars().GetName() == "Radius"
+    profile = result.profiles[0]
+    arrays = {name: vtk_to_numpy(point_data.GetArray(name)) for name in ("Diameter3D", "DiameterMasks", "ArcLength")}
+    assert np.allclose(arrays["ArcLength"], profile.branch.arc_length_mm, atol=1e-4)
+    measured = np.isfinite(profile.diameter_mm)
+    assert np.allclose(arrays["Diameter3D"][measured], profile.diameter_mm[measured], atol=1e-4)
+    assert (arrays["Diameter3D"][~measured] == -1).all() and (arrays["DiameterMasks"] == -1).all()  # no masks given
+    assert vtk_to_numpy(reader.GetOutput().GetCellData().GetArray("BranchId")).tolist() == [0]
 
 
 def test_analyse_names_the_missing_volume(tmp_path, capsys):

@@ -8,7 +8,8 @@ runs ``pipeline.analyse_volume`` and writes, all at once or not at all (``staged
     centrelines.vtk         legacy ASCII polydata, one polyline per branch, ``SPACE=LPS`` in the
                             header line (as surface.vtk); point arrays Radius (3D equivalent
                             radius, the inscribed radius where a section could not be measured),
-                            Diameter3D, DiameterMasks (−1 where not measured), ArcLength;
+                            Diameter3D, DiameterMasks (−1 where not measured), ArcLength
+                            (a FIELD beside the Radius scalars: every reader loads them);
                             cell array BranchId. Written as text whether or not vtk is installed,
                             so the file is the same everywhere; vtk and Slicer read it.
     profile_branchNN.csv    arc length, 3D diameter, area, min/max diameter, mask diameter and
@@ -67,9 +68,13 @@ def centrelines_vtk_text(result: QCAResult) -> str:
         out.write(" ".join(map(str, [len(l)] + l)) + "\n")
     out.write(f"CELL_DATA {len(lines)}\nSCALARS BranchId int 1\nLOOKUP_TABLE default\n")
     out.write("\n".join(map(str, ids)) + "\n")
-    out.write(f"POINT_DATA {len(points)}\n")
+    # Radius as the scalars a viewer colours by; the others as a FIELD, which readers (vtkPolyDataReader,
+    # Slicer) load whole: of several SCALARS blocks a reader keeps only the first unless told ReadAllScalarsOn.
+    out.write(f"POINT_DATA {len(points)}\nSCALARS Radius float 1\nLOOKUP_TABLE default\n")
+    np.savetxt(out, np.concatenate(arrays.pop("Radius")), fmt="%.5f")
+    out.write(f"FIELD PointArrays {len(arrays)}\n")
     for name, values in arrays.items():
-        out.write(f"SCALARS {name} float 1\nLOOKUP_TABLE default\n")
+        out.write(f"{name} 1 {len(points)} float\n")
         np.savetxt(out, np.concatenate(values), fmt="%.5f")
     return out.getvalue()
 
