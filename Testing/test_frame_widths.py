@@ -201,9 +201,9 @@ def test_the_blur_is_estimated_from_the_frames(tmp_path, tube_frames, capsys):
 
 
 def test_frames_of_display_processed_runs_give_widths_but_no_lumen_area(tmp_path, tube_frames, capsys):
-    """Where report.json says the reconstruction's DICOM runs were processed for display (DISP), the frames'
-    absorbance is no path length: the widths are still fitted to their edges, no densitometric area is read,
-    and the analysis says why."""
+    """Where report.json says one of the reconstruction's DICOM runs was processed for display (DISP), that
+    frame's absorbance is no path length: its widths are still fitted to its edges, no densitometric area is
+    read from it, and the analysis says why; the other view's LIN frame keeps its densitometry."""
     import json
 
     from SDFCARLib.cli import main
@@ -223,8 +223,22 @@ def test_frames_of_display_processed_runs_give_widths_but_no_lumen_area(tmp_path
     data = json.loads((folder / "analysis" / "analysis.json").read_text())
     branch = data["branches"][0]
     assert branch["diameter_frames"]["mean_mm"] == pytest.approx(2.0, abs=0.15)  # the edges
-    assert branch["diameter_frames_density"] is None and data["settings"]["densitometry"] is False
-    assert any("view 2" in n and "DISP" in n and "densitometry" in n for n in data["notes"]) and "DISP" in err
+    settings = data["settings"]
+    assert settings["densitometry"] == [True, False] and settings["psf_sigma_estimated"] == [False, True]
+    assert settings["attenuation_per_mm"][0] > 0 and settings["attenuation_per_mm"][1] is None
+    assert branch["diameter_frames_density"]["mean_mm"] == pytest.approx(2.0, abs=0.15)  # view 1's areas alone
+    [note] = [n for n in data["notes"] if "densitometry" in n]
+    assert "view 2" in note and "DISP" in note and "view 1" not in note and "from the other views" in note
+    assert "DISP" in err
+    (folder / "report.json").write_text(json.dumps(dict(report, frame_intensity=["DISP", "DISP"])))
+    both = list(frames)
+    both[0] = str(write_image_nrrd(tmp_path / "frame1_disp.nrrd", display_processed(tube_frames[0].frames[0],
+                                                                                    VIEWS[0].pixel_spacing_mm)))
+    assert main(["analyse", str(folder), "--frames", *both, "--view-step-deg", "20", "--out", str(tmp_path / "d")]) == 0
+    shown = json.loads((tmp_path / "d" / "analysis.json").read_text())
+    assert shown["branches"][0]["diameter_frames_density"] is None and shown["settings"]["densitometry"] is False
+    assert shown["branches"][0]["diameter_frames"]["mean_mm"] == pytest.approx(2.0, abs=0.15)
+    assert any("the frames' widths are fitted to their edges" in n for n in shown["notes"])
     (folder / "report.json").write_text(json.dumps(dict(report, frame_intensity=["LIN", "LIN"])))
     assert main(["analyse", str(folder), "--frames", *linear_frames, "--view-step-deg", "20", "--overwrite"]) == 0
     linear = json.loads((folder / "analysis" / "analysis.json").read_text())

@@ -241,6 +241,14 @@ def _masks_for(report: Dict[str, Any], geometry: Optional[Geometry], masks: Opti
     return [read_mask(p, geometry.views[i].detector_shape, f"mask of view {i + 1}") for i, p in enumerate(paths)], None
 
 
+def _densitometry_per_view(report: Dict[str, Any], geometry: Optional[Geometry]) -> List[bool]:
+    """Per view, whether its frame's absorbance can be read (report.json "frame_intensity", as the reconstruction's
+    DICOM runs said; a view it does not name is read as it is)."""
+    said = list(report.get("frame_intensity") or ())
+    n_views = len(geometry.views) if geometry is not None else len(said)
+    return [n >= len(said) or not unreadable_intensity(said[n]) for n in range(n_views)]
+
+
 def _frames_for(geometry: Optional[Geometry], view_masks, frames: Optional[Sequence[PathLike]],
                 psf_sigma_mm: Union[float, None, str]):
     if not frames:
@@ -383,7 +391,7 @@ def analyse_result_dir(result_dir: PathLike, out_dir: Optional[PathLike] = None,
                                 ostium_mm=ostium_mm, view_step_deg=view_step_deg, min_stenosis_pct=min_stenosis_pct,
                                 bridges=bridges, frames=view_frames, psf_sigma_mm=psf_sigma_mm,
                                 centreline_on_masks=centreline_on_masks, segment_mm=segment_mm,
-                                densitometry=not processed,
+                                densitometry=_densitometry_per_view(report, geometry),
                                 **({} if min_component_share is None
                                                     else {"min_component_share": min_component_share}))
     except SegmentError as exc:
@@ -393,8 +401,13 @@ def analyse_result_dir(result_dir: PathLike, out_dir: Optional[PathLike] = None,
                       "report": report_path.name if report else None}
     notes = [mask_note] if mask_note else []
     if view_frames is not None and processed:
-        notes.append("; ".join(f"view {n}: {why}" for n, why in processed) + " (the reconstruction's DICOM runs): the frames' "
-                     "widths are fitted to their edges, no lumen area is read from them (densitometry needs LIN frames)")
+        if len(processed) == len(view_frames):
+            what = "the frames' widths are fitted to their edges, no lumen area is read from them"
+        else:
+            what = ("the widths of those views' frames are fitted to their edges and no lumen area is read from them; "
+                    "the areas come from the other views")
+        notes.append("; ".join(f"view {n}: {why}" for n, why in processed) + f" (the reconstruction's DICOM runs): {what} "
+                     "(densitometry needs LIN frames)")
     if reconnection.get("joined") and not reconnection.get("bridges"):
         notes.append(f"report.json says reconnection bridged {reconnection['joined']} gap(s) but not where (a result "
                      "from before bridges were recorded): lesions on them cannot be flagged; reconstruct again to check")

@@ -290,7 +290,7 @@ def analyse_volume(volume: np.ndarray, grid: VolumeGrid, level: float = 0.5, vie
                    psf_sigma_mm: Union[float, None, str] = PSF_BY_FRAMES,
                    centreline_on_masks: Optional[bool] = None,
                    segment_mm: Optional[Sequence[Sequence[float]]] = None, search_masks: bool = True,
-                   centre_on_sections: bool = True, densitometry: bool = True) -> QCAResult:
+                   centre_on_sections: bool = True, densitometry: Union[bool, Sequence[bool]] = True) -> QCAResult:
     """Every QCA measure of a vessel volume (module docstring); ``target`` overrides the chosen segment,
     as do two marked points ``segment_mm`` (LPS mm, ``segment_between``: SegmentError where they mark none).
 
@@ -302,7 +302,8 @@ def analyse_volume(volume: np.ndarray, grid: VolumeGrid, level: float = 0.5, vie
     sharpening is no detector blur — bench/RESULTS.md §80b), starting from the masks'.
     ``densitometry`` False: the frames were processed for display (or are LOG as stored), their widths are fitted
     on the grey level as a logarithm of the intensity and no lumen area is read from their absorbance
-    (``evidence.unreadable_intensity``, ``frame_widths.profile_values``).
+    (``evidence.unreadable_intensity``, ``frame_widths.profile_values``); one bool per view: so for those views
+    only, the others read as they are (a LIN run beside a DISP one keeps its densitometry).
     ``centreline_on_masks``: the centreline is re-placed on the masks' midlines (``mask_centreline.py``)
     for the lengths, positions, angles, foreshortening and views, while the 3D sections and the 2D
     widths stay on the volume's own centreline (through the lumen, lesions too); None: where masks of
@@ -315,6 +316,10 @@ def analyse_volume(volume: np.ndarray, grid: VolumeGrid, level: float = 0.5, vie
     if frames is not None and (masks is None or len(frames) != len(views)):
         raise ValueError(f"{len(frames)} frames for {len(views)} views and {'no' if masks is None else len(masks)} masks: "
                          "frame widths need one frame and one mask per view, in the views' order")
+    per_view_densitometry = ([bool(densitometry)] * len(views) if isinstance(densitometry, (bool, np.bool_))
+                             else [bool(d) for d in densitometry])
+    if frames is not None and len(per_view_densitometry) != len(views):
+        raise ValueError(f"densitometry is one bool, or one per view: got {len(per_view_densitometry)} for {len(views)} views")
     if not 0.0 < float(min_stenosis_pct) < 100.0:  # NaN too: it would find lesions nowhere and store null
         raise ValueError(f"min_stenosis_pct is the least diameter stenosis reported as a lesion, a percentage above 0 and "
                          f"below 100 (default 20), got {min_stenosis_pct}")
@@ -398,7 +403,7 @@ def analyse_volume(volume: np.ndarray, grid: VolumeGrid, level: float = 0.5, vie
     fore = {b.branch_id: [foreshortening(b.points_mm, v) for v in views] for b in tree.branches if len(b.points_mm) > 1}
     blur: Dict[str, Any] = {}
     if frames is not None and profiles:  # before the target: the worst lesion is the worst graded one
-        blur = _fit_frame_widths(profiles, frames, views, psf_for_frames(psf_sigma_mm, densitometry), densitometry)
+        blur = _fit_frame_widths(profiles, frames, views, psf_sigma_mm, per_view_densitometry)
         for prof in profiles:
             frames_lesions(prof, min_stenosis_pct, fragments, bridges)
     elif search_masks:
@@ -532,47 +537,57 @@ def psf_for_frames(psf_sigma_mm: Union[float, None, str], densitometry: bool) ->
 
 
 def _fit_frame_widths(profiles: List[BranchProfile], frames: Sequence[np.ndarray], views: Sequence[CArmView],
-                      psf_sigma_mm: Optional[float], densitometry: bool = True) -> Dict[str, Any]:
-    """Each profile's widths fitted to the frames; the blur used per view (estimated when None). ``densitometry``
-    False (frames processed for display: their grey levels are no absorbance) leaves the lumen areas unread and
-    fits the widths on the grey level as a logarithm of the intensity (``frame_widths.profile_values``)."""
-    log_grey = not densitometry
+                      psf_sigma_mm: Union[float, None, str], densitometry: Sequence[bool]) -> Dict[str, Any]:
+    """Each profile's widths fitted to the frames; the blur used per view (``psf_for_frames`` of each view:
+    estimated when None). A view whose ``densitometry`` is False (its frame processed for display: its grey
+    levels are no absorbance) gives no lumen areas and has its widths fitted on the grey level as a logarithm
+    of the intensity (``frame_widths.profile_values``); the other views are read as they are."""
+    log_grey = [not d for d in densitometry]
     sigmas, estimated = [], []
     for n, (frame, view) in enumerate(zip(frames, views)):
-        sigma = psf_sigma_mm
+        sigma = psf_for_frames(psf_sigma_mm, densitometry[n])
         if sigma is None:
             sigma = estimate_psf_sigma_mm(np.concatenate([p.width_branch.points_mm for p in profiles]),
                                           np.concatenate([p.width_branch.tangents() for p in profiles]), frame, view,
                                           np.concatenate([p.view_widths_mm[n] for p in profiles]),
-                                          grey_is_log_intensity=log_grey)
-        estimated.append(psf_sigma_mm is None and sigma is not None)
+                                          grey_is_log_intensity=log_grey[n])
+            estimated.append(sigma is not None)
+        else:
+            estimated.append(False)
         sigmas.append(float(DEFAULT_PSF_SIGMA_MM if sigma is None else sigma))
     per_profile = []
+    unread = None
     for p in profiles:
         fitted = np.stack([frame_widths(p.width_branch.points_mm, p.width_branch.tangents(), f, v, w, sigma,
-                                        grey_is_log_intensity=log_grey)
-                           for f, v, w, sigma in zip(frames, views, p.view_widths_mm, sigmas)])
+                                        grey_is_log_intensity=log)
+                           for f, v, w, sigma, log in zip(frames, views, p.view_widths_mm, sigmas, log_grey)])
         p.frame_view_widths_mm = fitted
-        if densitometry:
+        if any(densitometry):
+            unread = np.full(len(p.width_branch.points_mm), np.nan)
             per_profile.append(np.stack([densities(p.width_branch.points_mm, p.width_branch.tangents(), f, v, w, sigma)
-                                         for f, v, w, sigma in zip(frames, views, p.view_widths_mm, sigmas)]))
+                                         if lin else unread
+                                         for f, v, w, sigma, lin in zip(frames, views, p.view_widths_mm, sigmas,
+                                                                        densitometry)]))
     crowded = [_crowded_views(p, profiles, views, sigmas) for p in profiles]
     for p, c in zip(profiles, crowded):
         p.frame_diameter_mm = left_out_beyond_sections(ellipse_diameter(_uncrowded_widths(p.frame_view_widths_mm, c)),
                                                        p.diameter_mm)
         p.frame_views_crowded = c
-    if not densitometry:
+    if not any(densitometry):
         return {"psf_sigma_mm": sigmas, "psf_sigma_estimated": estimated, "attenuation_per_mm": None, "densitometry": False}
     # Each view's iodine attenuation from all branches' healthy points, where the vessel is round and
-    # no other vessel lies in that view's window.
+    # no other vessel lies in that view's window; none for a view processed for display.
     attenuations = [attenuation_per_mm(np.concatenate([d[n] for d in per_profile]),
                                        np.concatenate([p.frame_view_widths_mm[n] for p in profiles]),
                                        np.concatenate([~p.excluded & ~c[n] for p, c in zip(profiles, crowded)]))
-                    for n in range(len(views))]
+                    if densitometry[n] else None for n in range(len(views))]
     for p, d, c in zip(profiles, per_profile, crowded):
         p.frame_density_diameter_mm = left_out_beyond_sections(density_diameter(d, attenuations, ~c), p.diameter_mm)
         p.frame_density_views = density_views(d, attenuations, ~c)
-    return {"psf_sigma_mm": sigmas, "psf_sigma_estimated": estimated, "attenuation_per_mm": attenuations}
+    out = {"psf_sigma_mm": sigmas, "psf_sigma_estimated": estimated, "attenuation_per_mm": attenuations}
+    if not all(densitometry):
+        out["densitometry"] = [bool(d) for d in densitometry]  # per view: the areas are read on the True ones
+    return out
 
 
 def left_out_beyond_sections(frames_diameter_mm: np.ndarray, sections_diameter_mm: np.ndarray,
