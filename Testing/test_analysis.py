@@ -873,6 +873,34 @@ def test_an_ostium_given_at_a_distal_tip_is_warned_of_naming_the_thick_end_and_t
     assert data["branches"][0]["start_mm"] == pytest.approx(list(tip), abs=2.0)  # the user's choice is still followed
 
 
+def test_masks_given_in_the_wrong_view_order_are_warned_of_naming_the_order_that_matches():
+    from SDFCARLib.analysis.mask_order import share_on_masks
+    from SDFCARLib.analysis.pipeline import analyse_volume, summary
+    from SDFCARLib.phantoms import lad_tree
+
+    tree = lad_tree(0)
+    grid = grid_around(tree, 0.6)
+    volume = voxelize_exact(tree, grid).astype(np.float32)
+    views = standard_geometry("lao30-rao30").views
+    masks = [render_mask(tree, v) for v in views]
+
+    def analysed(given):
+        return summary(analyse_volume(volume, grid, views=views, masks=given, ostium_mm=tree.branches[0].points[0],
+                                      best_view=False))
+
+    data = analysed(masks)
+    assert min(data["settings"]["centreline_share_on_masks"]) > 0.95
+    assert not any("do not match their views" in w for w in data["warnings"])
+    data = analysed(masks[::-1])
+    assert max(data["settings"]["centreline_share_on_masks"]) < 0.5 and data["settings"]["masks_better_order"] == [1, 0]
+    [warning] = [w for w in data["warnings"] if "do not match their views" in w]
+    assert "mask 2 for view 1, mask 1 for view 2" in warning
+    points = np.concatenate([b.points for b in tree.branches])
+    far = views[0].source_position * 3  # behind the source: on no detector
+    assert share_on_masks(far[None], masks[:1], views[:1]) == [None]
+    assert share_on_masks(points, [np.zeros_like(masks[0])], views[:1]) == [0.0]
+
+
 def test_masks_given_to_analyse_volume_read_alike_whatever_their_vessel_value_and_need_their_views():
     from SDFCARLib.analysis.pipeline import analyse_volume, summary
 

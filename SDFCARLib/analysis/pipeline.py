@@ -116,6 +116,7 @@ from .fragments import MIN_COMPONENT_SHARE, UNRELIABLE, Fragments, find_fragment
 from .lesion import (Lesion, ReferenceFit, find_lesions, is_same_lesion, lesion_within, minimal_lumen, reference_fit,
                      relative_scatter, same_lesion_on)
 from .mask_centreline import place_on_masks
+from .mask_order import MIN_SHARE_ON_MASK, better_order, mask_order_warning, share_on_masks
 from .section_centreline import centre_on_sections as centre_on_sections_of
 from .views import ViewMap, foreshortening, other_vessel_clearance, overlap_fraction, view_label, view_map
 
@@ -362,6 +363,12 @@ def analyse_volume(volume: np.ndarray, grid: VolumeGrid, level: float = 0.5, vie
     if centre_on_sections:
         tree, section_placement = centre_on_sections_of(tree, sections_of)
     volume_tree, placement = tree, None
+    mask_shares = order = None
+    if masks is not None and len(views):  # before anything is read on the masks: do they belong to these views?
+        points = np.concatenate([b.points_mm for b in tree.branches])
+        mask_shares = share_on_masks(points, masks, views)
+        if any(x is not None and x < MIN_SHARE_ON_MASK for x in mask_shares):
+            order = better_order(points, masks, views)
     if centreline_on_masks is None:
         centreline_on_masks = masks is not None and len(views) >= 2
     if centreline_on_masks:
@@ -427,7 +434,8 @@ def analyse_volume(volume: np.ndarray, grid: VolumeGrid, level: float = 0.5, vie
     settings = {"level": level, "min_branch_mm": min_branch_mm, "min_stenosis_pct": min_stenosis_pct, **blur,
                 "view_step_deg": view_step_deg, "ostium_mm": None if ostium_mm is None else list(map(float, ostium_mm)),
                 "min_component_share": min_component_share, "bridges_checked": len(bridges),
-                "strands_dropped": len(strands), "given_root": given_root, "voxel_mm": voxel, "centreline_on_masks": centreline_on_masks,
+                "strands_dropped": len(strands), "given_root": given_root, "voxel_mm": voxel,
+                "centreline_share_on_masks": mask_shares, "masks_better_order": order, "centreline_on_masks": centreline_on_masks,
                 "centreline_placement": None if placement is None else [p.to_dict() for p in placement],
                 "centred_on_sections": None if section_placement is None else [p.to_dict() for p in section_placement]}
     return QCAResult(tree, profiles, bifurcation_angles(tree), list(views), fore, target, vm, settings, fragments)
@@ -941,7 +949,9 @@ def summary(result: QCAResult) -> Dict[str, Any]:
                                  _found_only_warning(all_lesions, FOUND_ON_FRAMES),
                                  _found_only_warning(all_lesions, FOUND_ON_MASKS),
                                  _thin_throat_warning(all_lesions, voxel_mm),
-                                 _given_root_warning(result.settings.get("given_root"))] if w],
+                                 _given_root_warning(result.settings.get("given_root")),
+                                 mask_order_warning(result.settings.get("centreline_share_on_masks") or (),
+                                                    result.settings.get("masks_better_order"))] if w],
     }
     if result.view_map is not None:
         best = result.view_map.best()
