@@ -131,6 +131,7 @@ def test_analyse_command_fits_the_frames(tmp_path, tube_frames, capsys):
     ("masks", "two grey levels or fewer: it looks like a mask"),
     ("scaled", "no grey level above 1"),
     ("nan", "NaN or infinite"),
+    ("inverted", "brighter than their surroundings"),
 ])
 def test_frames_that_cannot_be_the_detector_s_are_refused_before_any_work(tmp_path, tube_frames, capsys, spoil, message):
     from SDFCARLib.cli import main
@@ -142,13 +143,61 @@ def test_frames_that_cannot_be_the_detector_s_are_refused_before_any_work(tmp_pa
         given = masks  # the masks handed over as frames: widths fitted to a step, lesions graded "on the frames"
     else:
         frame = realistic.frames[1].astype(np.float64)
-        frame = frame / frame.max() if spoil == "scaled" else np.where(np.arange(frame.shape[1]) < 5, np.nan, frame)
+        if spoil == "inverted":  # vessels white, as a negative display shows them
+            frame = frame.max() + frame.min() - frame
+        else:
+            frame = frame / frame.max() if spoil == "scaled" else np.where(np.arange(frame.shape[1]) < 5, np.nan, frame)
         given = [frames[0], str(write_image_nrrd(tmp_path / "spoilt.nrrd", frame))]
     capsys.readouterr()
     assert main(["analyse", str(folder), "--frames", *given, "--view-step-deg", "20"]) == 2
     err = capsys.readouterr().err
     assert message in err and ("frame of view 1" if spoil == "masks" else "frame of view 2") in err
     assert not (folder / "analysis").exists()
+
+
+def test_vessel_contrast_is_the_darkening_under_the_mask_in_units_of_the_background_noise():
+    from SDFCARLib.analysis.frame_contrast import vessel_contrast
+
+    rows, cols = np.mgrid[:64, :64]
+    mask = (np.abs(rows - 32) <= 3) & (cols > 8) & (cols < 56)  # a 7-pixel vessel
+    noise = np.random.default_rng(1).normal(0.0, 10.0, mask.shape)
+    frame = 1000.0 + noise - 100.0 * mask  # the lumen 100 below the background, noise σ 10
+    assert vessel_contrast(frame, mask) == pytest.approx(10.0, rel=0.15)
+    assert vessel_contrast(2000.0 - frame, mask) == pytest.approx(-10.0, rel=0.15)
+    assert vessel_contrast(1000.0 + noise, mask) == pytest.approx(0.0, abs=0.3)
+    assert vessel_contrast(frame, np.zeros_like(mask)) is None
+    with pytest.raises(ValueError, match="differs from its mask"):
+        vessel_contrast(frame[:, :32], mask)
+
+
+def test_frames_that_show_no_vessel_under_their_masks_are_warned_of_by_view(tmp_path, tube_frames):
+    import json
+
+    from SDFCARLib.cli import main
+    from SDFCARLib.io import write_image_nrrd
+
+    realistic = tube_frames[0]
+    folder, masks, frames = _tube_result_folder(tmp_path, realistic)
+    frame = realistic.frames[1].astype(np.float64)
+    # view 2's frame without its vessel: the background's level and noise only
+    blank = np.median(frame) + np.random.default_rng(0).normal(0.0, 30.0, frame.shape)
+    cases = {"right": frames, "swapped": frames[::-1],
+             "blank": [frames[0], str(write_image_nrrd(tmp_path / "blank.nrrd", blank.astype(np.uint16)))]}
+    found = {}
+    for name, given in cases.items():
+        assert main(["analyse", str(folder), "--frames", *given, "--view-step-deg", "20", "--out", str(tmp_path / name)]) == 0
+        data = json.loads((tmp_path / name / "analysis.json").read_text())
+        found[name] = (data["settings"]["frame_vessel_contrast"], data["settings"]["frame_widths_measured"],
+                       [w for w in data["warnings"] if w.startswith("frames:")])
+    contrast, measured, warned = found["right"]
+    assert min(contrast) > 1.0 and min(measured) > 0.9 and warned == []
+    contrast, measured, warned = found["swapped"]
+    assert max(contrast) < 0.6 and len(warned) == 1
+    assert "view 1: the vessels hardly stand out" in warned[0] and "view 2: the vessels hardly stand out" in warned[0]
+    contrast, measured, warned = found["blank"]
+    assert contrast[0] > 1.0 and abs(contrast[1]) < 0.6 and measured == [1.0, 0.0] and len(warned) == 1
+    assert "view 1:" not in warned[0] and "view 2: the vessels hardly stand out" in warned[0]
+    assert "gave no width" in warned[0] and "rest on view 1 alone" in warned[0]
 
 
 def test_a_blur_or_a_view_step_out_of_range_is_refused_before_any_work(tmp_path, tube_frames, capsys):

@@ -6,6 +6,7 @@ Modules (one idea each)
     mask_centreline  each branch re-placed on the views' mask midlines (3D-QCA's centreline from the edges)
     mask_order  do the masks belong to their views? the share of the projected centreline on each
     diameter    diameters along a branch: 3D cross-sections of the field, 2D widths in the masks
+    frame_contrast  does each frame show its mask's vessels, dark? (an inverted frame is refused)
     frame_widths  2D widths fitted to the frames' intensity profiles (a blurred circular lumen)
     frame_density  lumen area from the frames' absorbance integrated across the vessel (densitometry)
     lesion      robust reference diameter, MLD, % diameter/area stenosis, lesion extent

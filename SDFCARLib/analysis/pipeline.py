@@ -110,6 +110,7 @@ from ..masks import binarise_mask
 from .centreline import CentrelineBranch, CentrelineTree, bifurcation_angles, extract_centrelines
 from .diameter import (CrossSections, branch_cross_sections, ellipse_diameter, junction_zones, mask_diameters,
                        views_to_use)
+from .frame_contrast import check_vessels_dark, frame_contrast_warning
 from .frame_density import attenuation_per_mm, densities, density_diameter, density_views
 from .frame_widths import DEFAULT_PSF_SIGMA_MM, estimate_psf_sigma_mm, frame_widths
 from .fragments import MIN_COMPONENT_SHARE, UNRELIABLE, Fragments, find_fragments, lesion_reasons
@@ -331,6 +332,9 @@ def analyse_volume(volume: np.ndarray, grid: VolumeGrid, level: float = 0.5, vie
         # one reading of a mask everywhere (0/255 as 0/1: the edges are found at half the mask's value)
         masks = [binarise_mask(m, view.detector_shape, source=f"mask of view {n}")
                  for n, (m, view) in enumerate(zip(masks, views), start=1)]
+    frame_contrasts = None
+    if frames is not None:  # a frame with the vessels bright is refused before any work
+        frame_contrasts = check_vessels_dark(frames, masks)
     volume = np.asarray(volume)
     if volume.shape != tuple(grid.shape):
         raise ValueError(f"the volume has shape {volume.shape} and its grid {tuple(grid.shape)}: give the grid the "
@@ -432,6 +436,7 @@ def analyse_volume(volume: np.ndarray, grid: VolumeGrid, level: float = 0.5, vie
         if best_view:
             vm = view_map(seg, seg_r, others, others_r, step_deg=view_step_deg)
     settings = {"level": level, "min_branch_mm": min_branch_mm, "min_stenosis_pct": min_stenosis_pct, **blur,
+                **({} if frame_contrasts is None else {"frame_vessel_contrast": frame_contrasts}),
                 "view_step_deg": view_step_deg, "ostium_mm": None if ostium_mm is None else list(map(float, ostium_mm)),
                 "min_component_share": min_component_share, "bridges_checked": len(bridges),
                 "strands_dropped": len(strands), "given_root": given_root, "voxel_mm": voxel,
@@ -576,13 +581,17 @@ def _fit_frame_widths(profiles: List[BranchProfile], frames: Sequence[np.ndarray
                                          if lin else unread
                                          for f, v, w, sigma, lin in zip(frames, views, p.view_widths_mm, sigmas,
                                                                         densitometry)]))
+    guessed = [sum(int(np.isfinite(p.view_widths_mm[n]).sum()) for p in profiles) for n in range(len(views))]
+    fitted_points = [sum(int(np.isfinite(p.frame_view_widths_mm[n]).sum()) for p in profiles) for n in range(len(views))]
+    measured = [f / g if g else None for f, g in zip(fitted_points, guessed)]
     crowded = [_crowded_views(p, profiles, views, sigmas) for p in profiles]
     for p, c in zip(profiles, crowded):
         p.frame_diameter_mm = left_out_beyond_sections(ellipse_diameter(_uncrowded_widths(p.frame_view_widths_mm, c)),
                                                        p.diameter_mm)
         p.frame_views_crowded = c
     if not any(densitometry):
-        return {"psf_sigma_mm": sigmas, "psf_sigma_estimated": estimated, "attenuation_per_mm": None, "densitometry": False}
+        return {"psf_sigma_mm": sigmas, "psf_sigma_estimated": estimated, "frame_widths_measured": measured,
+                "attenuation_per_mm": None, "densitometry": False}
     # Each view's iodine attenuation from all branches' healthy points, where the vessel is round and
     # no other vessel lies in that view's window; none for a view processed for display.
     attenuations = [attenuation_per_mm(np.concatenate([d[n] for d in per_profile]),
@@ -592,7 +601,8 @@ def _fit_frame_widths(profiles: List[BranchProfile], frames: Sequence[np.ndarray
     for p, d, c in zip(profiles, per_profile, crowded):
         p.frame_density_diameter_mm = left_out_beyond_sections(density_diameter(d, attenuations, ~c), p.diameter_mm)
         p.frame_density_views = density_views(d, attenuations, ~c)
-    out = {"psf_sigma_mm": sigmas, "psf_sigma_estimated": estimated, "attenuation_per_mm": attenuations}
+    out = {"psf_sigma_mm": sigmas, "psf_sigma_estimated": estimated, "frame_widths_measured": measured,
+           "attenuation_per_mm": attenuations}
     if not all(densitometry):
         out["densitometry"] = [bool(d) for d in densitometry]  # per view: the areas are read on the True ones
     return out
@@ -951,7 +961,9 @@ def summary(result: QCAResult) -> Dict[str, Any]:
                                  _thin_throat_warning(all_lesions, voxel_mm),
                                  _given_root_warning(result.settings.get("given_root")),
                                  mask_order_warning(result.settings.get("centreline_share_on_masks") or (),
-                                                    result.settings.get("masks_better_order"))] if w],
+                                                    result.settings.get("masks_better_order")),
+                                 frame_contrast_warning(result.settings.get("frame_vessel_contrast") or (),
+                                                        result.settings.get("frame_widths_measured") or ())] if w],
     }
     if result.view_map is not None:
         best = result.view_map.best()
