@@ -40,6 +40,7 @@ from scipy import ndimage
 
 from .lumen_profile import DEFAULT_PSF_SIGMA_MM, absorbance, fit_lumen, mean_profile
 from .geometry import CArmView
+from .masks import widened_mask
 
 
 class EvidenceError(ValueError):
@@ -151,16 +152,11 @@ def is_binary_image(image: np.ndarray) -> bool:
     return np.unique(np.asarray(image)).size <= 2
 
 
-def _widened(mask: np.ndarray, pixels: int) -> np.ndarray:
-    # scipy dilates until nothing changes when iterations < 1
-    return ndimage.binary_dilation(mask, iterations=pixels) if pixels > 0 else np.asarray(mask, bool)
-
-
 def absorbance_above_background(frame: np.ndarray, mask: np.ndarray, pixel_spacing_mm: Sequence[float],
                                 settings: EvidenceSettings = EvidenceSettings()) -> np.ndarray:
     """a − B̂ (steps 1–2 of the module docstring), everywhere in the image."""
     absorbances = absorbance(frame)
-    outside = ~_widened(mask, settings.clearance_px)
+    outside = ~widened_mask(mask, settings.clearance_px)
     if not outside.any():
         raise EvidenceError("the mask covers the whole frame: no background left to subtract")
     sigma_px = [settings.background_scale_mm / s for s in pixel_spacing_mm]
@@ -293,6 +289,6 @@ def view_evidence(frame: np.ndarray, mask: np.ndarray, view: CArmView,
     above = np.maximum(above, 0.0)
     if settings.deblur_iterations > 0:
         above = deblurred(above, view.pixel_spacing_mm, settings.psf_sigma_mm, settings.deblur_iterations)
-    keep = _widened(mask, settings.reach_px)
+    keep = widened_mask(mask, settings.reach_px)
     line_integral = np.where(keep, above / mu["attenuation_per_mm"], 0.0).astype(np.float32)
     return ViewEvidence(line_integral, mu["attenuation_per_mm"], mu)

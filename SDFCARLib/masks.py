@@ -95,6 +95,13 @@ def single_grey_image(array: Any, not_numeric: str, colour: str, not_2d: str) ->
     return a
 
 
+def widened_mask(mask: np.ndarray, pixels: int) -> np.ndarray:
+    """The mask (nonzero pixels) grown by ``pixels`` (4-connected steps); as it is for 0."""
+    inside = np.asarray(mask) > 0
+    # scipy dilates until nothing changes when iterations < 1
+    return ndimage.binary_dilation(inside, iterations=int(pixels)) if pixels > 0 else inside
+
+
 def binarise_mask(
     array: Any,
     detector_shape: Optional[Sequence[int]] = None,

@@ -156,7 +156,7 @@ def test_frames_that_cannot_be_the_detector_s_are_refused_before_any_work(tmp_pa
 
 
 def test_vessel_contrast_is_the_darkening_under_the_mask_in_units_of_the_background_noise():
-    from SDFCARLib.analysis.frame_contrast import vessel_contrast
+    from SDFCARLib.analysis.frame_contrast import check_vessels_dark, vessel_contrast
 
     rows, cols = np.mgrid[:64, :64]
     mask = (np.abs(rows - 32) <= 3) & (cols > 8) & (cols < 56)  # a 7-pixel vessel
@@ -168,6 +168,10 @@ def test_vessel_contrast_is_the_darkening_under_the_mask_in_units_of_the_backgro
     assert vessel_contrast(frame, np.zeros_like(mask)) is None
     with pytest.raises(ValueError, match="differs from its mask"):
         vessel_contrast(frame[:, :32], mask)
+    with pytest.raises(ValueError, match="frame of view 2: frame shape"):
+        check_vessels_dark([frame, frame[:, :32]], [mask, mask])
+    with pytest.raises(ValueError, match="frame of view 2: the vessels its mask outlines are brighter"):
+        check_vessels_dark([frame, 2000.0 - frame], [mask, mask])
 
 
 def test_frames_that_show_no_vessel_under_their_masks_are_warned_of_by_view(tmp_path, tube_frames):
@@ -285,14 +289,14 @@ def test_frames_of_display_processed_runs_give_widths_but_no_lumen_area(tmp_path
                                                                                     VIEWS[0].pixel_spacing_mm)))
     assert main(["analyse", str(folder), "--frames", *both, "--view-step-deg", "20", "--out", str(tmp_path / "d")]) == 0
     shown = json.loads((tmp_path / "d" / "analysis.json").read_text())
-    assert shown["branches"][0]["diameter_frames_density"] is None and shown["settings"]["densitometry"] is False
+    assert shown["branches"][0]["diameter_frames_density"] is None and shown["settings"]["densitometry"] == [False, False]
     assert shown["branches"][0]["diameter_frames"]["mean_mm"] == pytest.approx(2.0, abs=0.15)
     assert any("the frames' widths are fitted to their edges" in n for n in shown["notes"])
     (folder / "report.json").write_text(json.dumps(dict(report, frame_intensity=["LIN", "LIN"])))
     assert main(["analyse", str(folder), "--frames", *linear_frames, "--view-step-deg", "20", "--overwrite"]) == 0
     linear = json.loads((folder / "analysis" / "analysis.json").read_text())
     assert linear["branches"][0]["diameter_frames_density"]["mean_mm"] == pytest.approx(2.0, abs=0.15)
-    assert "densitometry" not in linear["settings"] and not linear["notes"]
+    assert linear["settings"]["densitometry"] == [True, True] and not linear["notes"]
 
 
 def test_the_frame_diameters_reach_the_slicer_profile_table(tmp_path, tube_frames):

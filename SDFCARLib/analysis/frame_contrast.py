@@ -16,7 +16,9 @@ from __future__ import annotations
 from typing import List, Optional, Sequence
 
 import numpy as np
-from scipy import ndimage
+
+from ..masks import widened_mask
+from .lesion import robust_sigma
 
 INVERTED_CONTRAST = -0.75  # below: the vessels are bright, the frame inverted
 MIN_VESSEL_CONTRAST = 0.6  # below: no vessel stands out under the mask
@@ -34,20 +36,23 @@ def vessel_contrast(frame: np.ndarray, mask: np.ndarray) -> Optional[float]:
                          f"was drawn on")
     if not inside.any():
         return None
-    near = ndimage.binary_dilation(inside, iterations=EDGE_SKIP_PX)
-    around = ndimage.binary_dilation(inside, iterations=SURROUND_PX) & ~near
+    around = widened_mask(inside, SURROUND_PX) & ~widened_mask(inside, EDGE_SKIP_PX)
     if not around.any():
         return None
-    background = float(np.median(image[around]))
-    spread = 1.4826 * float(np.median(np.abs(image[around] - background)))
+    spread = robust_sigma(image[around])
     if not spread > 0:
         return None
-    return (background - float(np.median(image[inside]))) / spread
+    return (float(np.median(image[around])) - float(np.median(image[inside]))) / spread
 
 
 def check_vessels_dark(frames: Sequence[np.ndarray], masks: Sequence[np.ndarray]) -> List[Optional[float]]:
     """Each view's ``vessel_contrast``; ValueError naming the first view whose vessels are bright."""
-    contrasts = [vessel_contrast(f, m) for f, m in zip(frames, masks)]
+    contrasts = []
+    for n, (frame, mask) in enumerate(zip(frames, masks), start=1):
+        try:
+            contrasts.append(vessel_contrast(frame, mask))
+        except ValueError as exc:
+            raise ValueError(f"frame of view {n}: {exc}") from None
     for n, c in enumerate(contrasts, start=1):
         if c is not None and c < INVERTED_CONTRAST:
             raise ValueError(
@@ -78,6 +83,10 @@ def frame_contrast_warning(contrasts: Sequence[Optional[float]], measured: Seque
             "order? Widths fitted on such a frame are not the vessel's.")
     if empty:
         others = [n for n in range(1, len(measured) + 1) if n not in empty]
-        text += (f" The frames' diameters rest on view {', '.join(map(str, others))} alone (a round lumen assumed)."
-                 if others else " No frame diameter was measured.")
+        if len(others) == 1:
+            text += f" The frames' diameters rest on view {others[0]} alone (a round lumen assumed)."
+        elif others:
+            text += f" The frames' diameters rest on views {', '.join(map(str, others))}."
+        else:
+            text += " No frame diameter was measured."
     return text

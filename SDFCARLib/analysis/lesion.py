@@ -69,7 +69,8 @@ class Lesion:
         return {k: float(v) for k, v in asdict(self).items()}
 
 
-def _robust_sigma(residuals: np.ndarray) -> float:
+def robust_sigma(residuals: np.ndarray) -> float:
+    """The standard deviation a normal scatter of ``residuals`` would have: 1.4826 × median absolute deviation."""
     return float(1.4826 * np.median(np.abs(residuals - np.median(residuals))))
 
 
@@ -94,7 +95,7 @@ def reference_fit(s_mm: np.ndarray, diameter_mm: np.ndarray, usable: Optional[np
     for _ in range(max_iterations):
         fit = a + b * s
         res = d - fit
-        sigma = max(_robust_sigma(res[kept]), 1e-3)
+        sigma = max(robust_sigma(res[kept]), 1e-3)
         tol = np.maximum(k * sigma, min_drop * fit)
         new = ok & (res > -tol) & (res < 2 * tol)
         if new.sum() < 3:
@@ -116,7 +117,7 @@ def relative_scatter(s_mm: np.ndarray, diameter_mm: np.ndarray, reference: Refer
     with np.errstate(invalid="ignore", divide="ignore"):
         relative = np.asarray(diameter_mm, float) / ref - 1.0
     use = reference.kept & np.isfinite(relative)
-    return _robust_sigma(relative[use]) if use.any() else float("nan")
+    return robust_sigma(relative[use]) if use.any() else float("nan")
 
 
 def _crossing(s: np.ndarray, n: np.ndarray, start: int, step: int, level: float) -> Optional[float]:

@@ -14,9 +14,9 @@ from itertools import permutations
 from typing import List, Optional, Sequence
 
 import numpy as np
-from scipy import ndimage
 
 from ..geometry import CArmView
+from ..masks import widened_mask
 
 MASK_TOLERANCE_PX = 2  # a centreline point this close to the mask is on it (a segmentation a pixel off)
 MIN_SHARE_ON_MASK = 0.5
@@ -27,8 +27,7 @@ def share_on_masks(points_mm: np.ndarray, masks: Sequence[np.ndarray], views: Se
                    tolerance_px: int = MASK_TOLERANCE_PX) -> List[Optional[float]]:
     """Per view, the share of the points that project onto the view's detector and fall on its mask
     (within ``tolerance_px``); None where none projects onto that detector."""
-    near = [ndimage.binary_dilation(np.asarray(m) > 0, iterations=tolerance_px) if tolerance_px else np.asarray(m) > 0
-            for m in masks]
+    near = [widened_mask(m, tolerance_px) for m in masks]
     return [_share_on(points_mm, mask, view) for mask, view in zip(near, views)]
 
 
@@ -48,8 +47,7 @@ def better_order(points_mm: np.ndarray, masks: Sequence[np.ndarray], views: Sequ
     view) that puts every view at or above it with the largest least share, if any; else None."""
     if len(views) > MAX_VIEWS_REORDERED or len(masks) != len(views):
         return None
-    near = [ndimage.binary_dilation(np.asarray(m) > 0, iterations=tolerance_px) if tolerance_px else np.asarray(m) > 0
-            for m in masks]
+    near = [widened_mask(m, tolerance_px) for m in masks]
     # each mask against each view once: shares[k][n] is mask k in view n
     shares = [[_share_on(points_mm, mask, view) for view in views] for mask in near]
     best, best_least = None, MIN_SHARE_ON_MASK

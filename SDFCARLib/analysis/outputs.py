@@ -404,8 +404,11 @@ def analyse_result_dir(result_dir: PathLike, out_dir: Optional[PathLike] = None,
         if len(processed) == len(view_frames):
             what = "the frames' widths are fitted to their edges, no lumen area is read from them"
         else:
-            what = ("the widths of those views' frames are fitted to their edges and no lumen area is read from them; "
-                    "the areas come from the other views")
+            what = "the widths of those views' frames are fitted to their edges and no lumen area is read from them; "
+            calibrated = [a for a in data["settings"].get("attenuation_per_mm") or () if a is not None]
+            what += ("the areas come from the other views" if calibrated else
+                     "the other views' attenuation could not be calibrated (too few healthy, uncrowded stretches), "
+                     "so no lumen area is read at all")
         notes.append("; ".join(f"view {n}: {why}" for n, why in processed) + f" (the reconstruction's DICOM runs): {what} "
                      "(densitometry needs LIN frames)")
     if reconnection.get("joined") and not reconnection.get("bridges"):

@@ -318,7 +318,7 @@ def analyse_volume(volume: np.ndarray, grid: VolumeGrid, level: float = 0.5, vie
     if frames is not None and (masks is None or len(frames) != len(views)):
         raise ValueError(f"{len(frames)} frames for {len(views)} views and {'no' if masks is None else len(masks)} masks: "
                          "frame widths need one frame and one mask per view, in the views' order")
-    per_view_densitometry = ([bool(densitometry)] * len(views) if isinstance(densitometry, (bool, np.bool_))
+    per_view_densitometry = ([bool(densitometry)] * len(views) if np.ndim(densitometry) == 0
                              else [bool(d) for d in densitometry])
     if frames is not None and len(per_view_densitometry) != len(views):
         raise ValueError(f"densitometry is one bool, or one per view: got {len(per_view_densitometry)} for {len(views)} views")
@@ -569,7 +569,6 @@ def _fit_frame_widths(profiles: List[BranchProfile], frames: Sequence[np.ndarray
             estimated.append(False)
         sigmas.append(float(DEFAULT_PSF_SIGMA_MM if sigma is None else sigma))
     per_profile = []
-    unread = None
     for p in profiles:
         fitted = np.stack([frame_widths(p.width_branch.points_mm, p.width_branch.tangents(), f, v, w, sigma,
                                         grey_is_log_intensity=log)
@@ -591,7 +590,7 @@ def _fit_frame_widths(profiles: List[BranchProfile], frames: Sequence[np.ndarray
         p.frame_views_crowded = c
     if not any(densitometry):
         return {"psf_sigma_mm": sigmas, "psf_sigma_estimated": estimated, "frame_widths_measured": measured,
-                "attenuation_per_mm": None, "densitometry": False}
+                "attenuation_per_mm": None, "densitometry": [False] * len(views)}
     # Each view's iodine attenuation from all branches' healthy points, where the vessel is round and
     # no other vessel lies in that view's window; none for a view processed for display.
     attenuations = [attenuation_per_mm(np.concatenate([d[n] for d in per_profile]),
@@ -601,11 +600,9 @@ def _fit_frame_widths(profiles: List[BranchProfile], frames: Sequence[np.ndarray
     for p, d, c in zip(profiles, per_profile, crowded):
         p.frame_density_diameter_mm = left_out_beyond_sections(density_diameter(d, attenuations, ~c), p.diameter_mm)
         p.frame_density_views = density_views(d, attenuations, ~c)
-    out = {"psf_sigma_mm": sigmas, "psf_sigma_estimated": estimated, "frame_widths_measured": measured,
-           "attenuation_per_mm": attenuations}
-    if not all(densitometry):
-        out["densitometry"] = [bool(d) for d in densitometry]  # per view: the areas are read on the True ones
-    return out
+    # per view: the areas are read on the True ones
+    return {"psf_sigma_mm": sigmas, "psf_sigma_estimated": estimated, "frame_widths_measured": measured,
+            "attenuation_per_mm": attenuations, "densitometry": [bool(d) for d in densitometry]}
 
 
 def left_out_beyond_sections(frames_diameter_mm: np.ndarray, sections_diameter_mm: np.ndarray,
@@ -867,7 +864,7 @@ def _found_only_warning(lesions: List[Dict[str, Any]], images: str) -> Optional[
     why = []
     if MISSED_NARROWS_LESS in reasons:
         why.append("Where the 3D sections narrow less, the reconstruction is too coarse or too rough for this vessel, or "
-                   "a vessel crossing this one in a view narrows the frames' profile (check the angiograms).")
+                   f"a vessel crossing this one in a view narrows the {images}' profile (check the angiograms).")
     if MISSED_UNRESOLVED in reasons:
         why.append("Where the grid does not resolve it, a reconstruction on a finer grid measures it in 3D.")
     if images == FOUND_ON_FRAMES:
