@@ -131,7 +131,7 @@ def test_analyse_command_fits_the_frames(tmp_path, tube_frames, capsys):
     ("masks", "two grey levels or fewer: it looks like a mask"),
     ("scaled", "no grey level above 1"),
     ("nan", "NaN or infinite"),
-    ("inverted", "brighter than their surroundings"),
+    ("inverted", "brighter than their surroundings under every mask"),
 ])
 def test_frames_that_cannot_be_the_detector_s_are_refused_before_any_work(tmp_path, tube_frames, capsys, spoil, message):
     from SDFCARLib.cli import main
@@ -143,15 +143,16 @@ def test_frames_that_cannot_be_the_detector_s_are_refused_before_any_work(tmp_pa
         given = masks  # the masks handed over as frames: widths fitted to a step, lesions graded "on the frames"
     else:
         frame = realistic.frames[1].astype(np.float64)
-        if spoil == "inverted":  # vessels white, as a negative display shows them
-            frame = frame.max() + frame.min() - frame
-        else:
-            frame = frame / frame.max() if spoil == "scaled" else np.where(np.arange(frame.shape[1]) < 5, np.nan, frame)
+        frame = frame / frame.max() if spoil == "scaled" else np.where(np.arange(frame.shape[1]) < 5, np.nan, frame)
         given = [frames[0], str(write_image_nrrd(tmp_path / "spoilt.nrrd", frame))]
+        if spoil == "inverted":  # both frames with the vessels white, as a negative display shows them
+            given = [str(write_image_nrrd(tmp_path / f"inverted{n}.nrrd", f.max() + f.min() - f.astype(np.float64)))
+                     for n, f in enumerate(realistic.frames, start=1)]
     capsys.readouterr()
     assert main(["analyse", str(folder), "--frames", *given, "--view-step-deg", "20"]) == 2
     err = capsys.readouterr().err
-    assert message in err and ("frame of view 1" if spoil == "masks" else "frame of view 2") in err
+    assert message in err
+    assert {"masks": "frame of view 1", "inverted": "view 2 -"}.get(spoil, "frame of view 2") in err
     assert not (folder / "analysis").exists()
 
 
@@ -170,8 +171,10 @@ def test_vessel_contrast_is_the_darkening_under_the_mask_in_units_of_the_backgro
         vessel_contrast(frame[:, :32], mask)
     with pytest.raises(ValueError, match="frame of view 2: frame shape"):
         check_vessels_dark([frame, frame[:, :32]], [mask, mask])
-    with pytest.raises(ValueError, match="frame of view 2: the vessels its mask outlines are brighter"):
-        check_vessels_dark([frame, 2000.0 - frame], [mask, mask])
+    with pytest.raises(ValueError, match="brighter than their surroundings under every mask"):
+        check_vessels_dark([2000.0 - frame, 2000.0 - frame], [mask, mask])
+    one_inverted = check_vessels_dark([frame, 2000.0 - frame], [mask, mask])  # a vessel seen end-on can read so
+    assert one_inverted[0] > 5.0 and one_inverted[1] < -5.0
 
 
 def test_frames_that_show_no_vessel_under_their_masks_are_warned_of_by_view(tmp_path, tube_frames):
@@ -185,7 +188,8 @@ def test_frames_that_show_no_vessel_under_their_masks_are_warned_of_by_view(tmp_
     frame = realistic.frames[1].astype(np.float64)
     # view 2's frame without its vessel: the background's level and noise only
     blank = np.median(frame) + np.random.default_rng(0).normal(0.0, 30.0, frame.shape)
-    cases = {"right": frames, "swapped": frames[::-1],
+    inverted = str(write_image_nrrd(tmp_path / "inverted.nrrd", frame.max() + frame.min() - frame))
+    cases = {"right": frames, "swapped": frames[::-1], "one inverted": [frames[0], inverted],
              "blank": [frames[0], str(write_image_nrrd(tmp_path / "blank.nrrd", blank.astype(np.uint16)))]}
     found = {}
     for name, given in cases.items():
@@ -198,6 +202,9 @@ def test_frames_that_show_no_vessel_under_their_masks_are_warned_of_by_view(tmp_
     contrast, measured, warned = found["swapped"]
     assert max(contrast) < 0.6 and len(warned) == 1
     assert "view 1: the vessels hardly stand out" in warned[0] and "view 2: the vessels hardly stand out" in warned[0]
+    contrast, measured, warned = found["one inverted"]
+    assert contrast[0] > 1.0 and contrast[1] < -0.75 and len(warned) == 1
+    assert "view 1:" not in warned[0] and "view 2: its frame is brighter under its mask than around it" in warned[0]
     contrast, measured, warned = found["blank"]
     assert contrast[0] > 1.0 and abs(contrast[1]) < 0.6 and measured == [1.0, 0.0] and len(warned) == 1
     assert "view 1:" not in warned[0] and "view 2: the vessels hardly stand out" in warned[0]
