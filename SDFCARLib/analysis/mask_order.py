@@ -23,36 +23,45 @@ MIN_SHARE_ON_MASK = 0.5
 MAX_VIEWS_REORDERED = 4  # other orders are tried up to this many views (4! = 24 orders)
 
 
+def shares_on_masks(points_mm: np.ndarray, masks: Sequence[np.ndarray], views: Sequence[CArmView],
+                    tolerance_px: int = MASK_TOLERANCE_PX) -> List[List[Optional[float]]]:
+    """``shares[k][n]``: the share of the points projected onto view ``n``'s detector that fall on mask ``k`` (within
+    ``tolerance_px``); None where none projects onto that detector, or the mask has another shape than it (it cannot be
+    that view's). Each view is projected once, each mask widened once."""
+    near = [widened_mask(m, tolerance_px) for m in masks]
+    pixels = [_detector_pixels(points_mm, view) for view in views]
+    return [[None if at is None or mask.shape != tuple(view.detector_shape) else float(mask[at].mean())
+             for at, view in zip(pixels, views)] for mask in near]
+
+
 def share_on_masks(points_mm: np.ndarray, masks: Sequence[np.ndarray], views: Sequence[CArmView],
                    tolerance_px: int = MASK_TOLERANCE_PX) -> List[Optional[float]]:
-    """Per view, the share of the points that project onto the view's detector and fall on its mask
-    (within ``tolerance_px``); None where none projects onto that detector."""
-    near = [widened_mask(m, tolerance_px) for m in masks]
-    return [_share_on(points_mm, mask, view) for mask, view in zip(near, views)]
+    """Per view, the share of the points that project onto the view's detector and fall on its own mask."""
+    shares = shares_on_masks(points_mm, masks, views, tolerance_px)
+    return [shares[n][n] for n in range(len(views))]
 
 
-def _share_on(points_mm: np.ndarray, near_mask: np.ndarray, view: CArmView) -> Optional[float]:
+def _detector_pixels(points_mm: np.ndarray, view: CArmView):
+    """(rows, cols) of the points that project onto the view's detector, rounded to its pixels; None if none does."""
     row, col, _ = view.project(np.asarray(points_mm, float))
-    rows, cols = near_mask.shape
+    rows, cols = view.detector_shape
     with np.errstate(invalid="ignore"):
         on_detector = np.isfinite(row) & np.isfinite(col) & (row > -0.5) & (col > -0.5) & (row < rows - 0.5) & (col < cols - 0.5)
     if not on_detector.any():
         return None
-    return float(near_mask[np.round(row[on_detector]).astype(int), np.round(col[on_detector]).astype(int)].mean())
+    return np.round(row[on_detector]).astype(int), np.round(col[on_detector]).astype(int)
 
 
-def better_order(points_mm: np.ndarray, masks: Sequence[np.ndarray], views: Sequence[CArmView],
-                 tolerance_px: int = MASK_TOLERANCE_PX) -> Optional[List[int]]:
-    """Where the given order leaves a view under ``MIN_SHARE_ON_MASK``: the order of the masks (mask index per
-    view) that puts every view at or above it with the largest least share, if any; else None."""
-    if len(views) > MAX_VIEWS_REORDERED or len(masks) != len(views):
+def better_order(shares: Sequence[Sequence[Optional[float]]]) -> Optional[List[int]]:
+    """From ``shares_on_masks``: the order of the masks (mask index per view) other than the given one that puts
+    every view at or above ``MIN_SHARE_ON_MASK`` with the largest least share, if any (up to
+    ``MAX_VIEWS_REORDERED`` views); else None."""
+    n_views = len(shares)
+    if n_views > MAX_VIEWS_REORDERED:
         return None
-    near = [widened_mask(m, tolerance_px) for m in masks]
-    # each mask against each view once: shares[k][n] is mask k in view n
-    shares = [[_share_on(points_mm, mask, view) for view in views] for mask in near]
     best, best_least = None, MIN_SHARE_ON_MASK
-    for order in permutations(range(len(views))):
-        if list(order) == list(range(len(views))):
+    for order in permutations(range(n_views)):
+        if list(order) == list(range(n_views)):
             continue
         least = min((shares[k][n] if shares[k][n] is not None else 1.0) for n, k in enumerate(order))
         if least >= best_least:

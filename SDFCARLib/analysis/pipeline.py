@@ -117,7 +117,7 @@ from .fragments import MIN_COMPONENT_SHARE, UNRELIABLE, Fragments, find_fragment
 from .lesion import (Lesion, ReferenceFit, find_lesions, is_same_lesion, lesion_within, minimal_lumen, reference_fit,
                      relative_scatter, same_lesion_on)
 from .mask_centreline import place_on_masks
-from .mask_order import MIN_SHARE_ON_MASK, better_order, mask_order_warning, share_on_masks
+from .mask_order import MIN_SHARE_ON_MASK, better_order, mask_order_warning, shares_on_masks
 from .section_centreline import centre_on_sections as centre_on_sections_of
 from .views import ViewMap, foreshortening, other_vessel_clearance, overlap_fraction, view_label, view_map
 
@@ -370,9 +370,10 @@ def analyse_volume(volume: np.ndarray, grid: VolumeGrid, level: float = 0.5, vie
     mask_shares = order = None
     if masks is not None and len(views):  # before anything is read on the masks: do they belong to these views?
         points = np.concatenate([b.points_mm for b in tree.branches])
-        mask_shares = share_on_masks(points, masks, views)
+        shares = shares_on_masks(points, masks, views)
+        mask_shares = [shares[n][n] for n in range(len(views))]
         if any(x is not None and x < MIN_SHARE_ON_MASK for x in mask_shares):
-            order = better_order(points, masks, views)
+            order = better_order(shares)
     if centreline_on_masks is None:
         centreline_on_masks = masks is not None and len(views) >= 2
     if centreline_on_masks:
