@@ -79,7 +79,8 @@ def prepare_job(job_dir: PathLike, geometry: Geometry, targets: Sequence[np.ndar
     job_dir = Path(job_dir)
     if (job_dir / "job.json").exists():
         raise JobFolderError(f"{job_dir} already holds a job; choose a new folder for a new job")
-    _check_inputs(geometry, targets, dict(settings or {}), target_kind)  # before anything is written
+    _refuse_used_folder(job_dir)
+    given = _check_inputs(geometry, targets, settings if settings is not None else {}, target_kind)[1]
     if frames is not None:
         _check_frames(geometry, frames)
     intensity = _checked_intensity(geometry, frame_intensity)
@@ -90,7 +91,7 @@ def prepare_job(job_dir: PathLike, geometry: Geometry, targets: Sequence[np.ndar
         np.save(job_dir / f"view{n}.npy", np.asarray(target, dtype=np.float32))
     for n, frame in enumerate(frames or [], start=1):
         np.save(job_dir / f"frame{n}.npy", np.asarray(frame, dtype=np.float32))
-    manifest = {"name": name, "target_kind": target_kind, "settings": dict(settings or {}), "views": len(targets)}
+    manifest = {"name": name, "target_kind": target_kind, "settings": given, "views": len(targets)}
     if intensity is not None:
         manifest["frame_intensity"] = intensity
     if notes is not None:
@@ -100,16 +101,30 @@ def prepare_job(job_dir: PathLike, geometry: Geometry, targets: Sequence[np.ndar
     return job_dir
 
 
+def _refuse_used_folder(job_dir: Path) -> None:
+    """A job writes its inputs (geometry.json, view1.npy …, mask1.png …) and results there: a folder holding anything
+    else would have the user's own files replaced, so only a new or empty folder is taken."""
+    if job_dir.exists() and not job_dir.is_dir():
+        raise JobFolderError(f"{job_dir} is a file, not a folder; choose a new folder for the job")
+    held = sorted(p.name for p in job_dir.iterdir()) if job_dir.is_dir() else []
+    if held:
+        shown = ", ".join(held[:5]) + (f" and {len(held) - 5} more" if len(held) > 5 else "")
+        raise JobFolderError(f"{job_dir} already holds files ({shown}); a job writes its inputs and results there: "
+                             f"choose a new or empty folder")
+
+
 def _check_inputs(geometry: Geometry, targets: Sequence[np.ndarray], settings: Dict[str, Any], target_kind: str):
     from .optimiser import ReconstructionError, validate_targets
-    from .settings import settings_from_values
+    from .settings import SETTING_KEYS, checked_setting_value, settings_from_values
 
     try:
         checked = settings_from_values(settings)
         validate_targets(targets, geometry, target_kind)
     except ReconstructionError as exc:
         raise JobFolderError(str(exc)) from exc
-    return checked
+    # what was given, as plain Python values (numpy numbers become JSON's), for job.json
+    given = {key: checked_setting_value(key, value, SETTING_KEYS[key][1]) for key, value in settings.items()}
+    return checked, given
 
 
 def _checked_intensity(geometry: Geometry, frame_intensity: Optional[Sequence[Optional[str]]]) -> Optional[List[Optional[str]]]:
@@ -162,7 +177,7 @@ def _load_job(job_dir: Path):
         except (ValueError, OSError) as exc:
             raise JobFolderError(f"{path} is not a readable .npy image: {exc}") from exc
     kind = manifest.get("target_kind", "mask")
-    settings = _check_inputs(geometry, targets, manifest.get("settings", {}), kind)
+    settings = _check_inputs(geometry, targets, manifest.get("settings", {}), kind)[0]
     frame_paths = [job_dir / f"frame{n}.npy" for n in range(1, len(geometry.views) + 1)]
     frames = None
     if any(p.is_file() for p in frame_paths):
@@ -514,6 +529,7 @@ def prepare_analysis_job(job_dir: PathLike, result_dir: PathLike, out_dir: Optio
     result_dir = Path(result_dir).absolute()
     if (job_dir / "job.json").exists() or (job_dir / ANALYSIS_MANIFEST).exists():
         raise JobFolderError(f"{job_dir} already holds a job; choose a new folder for a new job")
+    _refuse_used_folder(job_dir)
     if not result_dir.is_dir():
         raise JobFolderError(f"result folder {result_dir} does not exist; the result's files were moved or deleted")
     if not any((result_dir / f).is_file() for f in ("occupancy.nrrd", "segmentation.seg.nrrd")):

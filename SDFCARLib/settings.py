@@ -317,7 +317,7 @@ class Settings:
             raise ReconstructionError(f"unknown setting(s): {', '.join(unknown)}; known: {', '.join(sorted(SETTING_KEYS))}")
         grouped: Dict[str, Dict[str, Any]] = {group: {} for group in GROUPS}
         for key, value in values.items():
-            grouped[SETTING_KEYS[key][0]][key] = value
+            grouped[SETTING_KEYS[key][0]][key] = checked_setting_value(key, value, SETTING_KEYS[key][1])
         return cls(**{group: GROUPS[group](**kw) for group, kw in grouped.items()})
 
     def to_dict(self) -> Dict[str, Any]:
@@ -536,6 +536,9 @@ def make_settings(preset: str = DEFAULT_PRESET, **overrides: Any) -> Settings:
 def settings_from_values(values: Dict[str, Any]) -> Settings:
     """Settings as the jobs and ``reconstruct`` take them in a dict: a ``preset`` (default ``fast``) and the settings it
     changes by key; validated."""
+    if not isinstance(values, Mapping):
+        raise ReconstructionError(f"the settings are a dict of setting keys and values, e.g. {{'preset': 'fast', "
+                                  f"'steps': 200}} ({{}} for the fast preset as it is), got {type(values).__name__}")
     values = dict(values)
     return make_settings(values.pop("preset", DEFAULT_PRESET), **values)
 
@@ -571,6 +574,41 @@ def parse_setting_overrides(items: Optional[Sequence[str]], reserved: Optional[M
             raise ReconstructionError(f"--set {key}=…: unknown setting {key!r}; known: {known}")
         out[key] = typed_setting_value(key, text.strip(), SETTING_KEYS[key][1])
     return out
+
+
+def checked_setting_value(key: str, value: Any, kind: Any) -> Any:
+    """``value`` as a Python value of ``kind`` (bool, int, float, str, or Optional of one), from a script, a job's
+    settings or a JSON file; anything else is refused by name. Text is not read as a number or a switch here: a
+    text box's "false" would otherwise switch a setting on (``typed_setting_value`` reads ``--set``'s text)."""
+    import numbers
+
+    optional = typing.get_origin(kind) is typing.Union and type(None) in typing.get_args(kind)
+    base = next(a for a in typing.get_args(kind) if a is not type(None)) if optional else kind
+    if value is None:
+        if optional:
+            return None
+        raise ReconstructionError(f"setting {key} needs a value ({base.__name__}), got None")
+    shown = f"{value!r} ({type(value).__name__})"
+    is_bool = isinstance(value, bool) or type(value).__name__ in ("bool", "bool_")  # numpy's too, not importing it
+    if base is bool:
+        if is_bool:
+            return bool(value)
+        raise ReconstructionError(f"setting {key} is a switch: give True or False, got {shown}")
+    if base is int:
+        if not is_bool and isinstance(value, numbers.Real) and math.isfinite(float(value)) and float(value) == int(value):
+            return int(value)
+        raise ReconstructionError(f"setting {key} takes a whole number, got {shown}")
+    if base is float:
+        if not is_bool and isinstance(value, numbers.Real):
+            if not math.isfinite(float(value)):
+                raise ReconstructionError(f"setting {key} must be a finite number, got {shown}")
+            return float(value)
+        raise ReconstructionError(f"setting {key} takes a number, e.g. 1e-3, got {shown}")
+    if base is str:
+        if isinstance(value, str):
+            return value
+        raise ReconstructionError(f"setting {key} takes a name (text), got {shown}")
+    return value
 
 
 def typed_setting_value(key: str, text: str, kind: Any) -> Any:

@@ -178,6 +178,44 @@ def test_bad_job_folders_are_rejected_before_start(tiny_case, tmp_path):
     assert not list(tmp_path.glob("*/progress.jsonl")) and not list(tmp_path.glob("*/status.json"))
 
 
+def test_a_folder_holding_the_users_files_is_refused_and_left_as_it_was(tiny_case, tmp_path):
+    """A job writes geometry.json, view1.npy … there: a folder with anything in it is refused before a byte is
+    written, so a user's own files are never replaced (an empty folder is taken)."""
+    from SDFCARLib.jobs import prepare_analysis_job
+
+    used = tmp_path / "patient8"
+    used.mkdir()
+    (used / "geometry.json").write_text('{"description": "mine"}')
+    np.save(used / "view1.npy", np.arange(4.0))
+    with pytest.raises(JobFolderError, match=r"already holds files \(geometry.json, view1.npy\).*new or empty folder"):
+        ReconstructionJob.start(used, tiny_case.geometry, tiny_case.masks, SMALL)
+    assert sorted(p.name for p in used.iterdir()) == ["geometry.json", "view1.npy"]
+    assert (used / "geometry.json").read_text() == '{"description": "mine"}'
+    np.testing.assert_array_equal(np.load(used / "view1.npy"), np.arange(4.0))
+    with pytest.raises(JobFolderError, match="already holds files"):
+        prepare_analysis_job(used, tmp_path)
+    (tmp_path / "a file").write_text("x")
+    with pytest.raises(JobFolderError, match="is a file, not a folder"):
+        prepare_job(tmp_path / "a file", tiny_case.geometry, tiny_case.masks, SMALL)
+    (tmp_path / "empty").mkdir()
+    assert (prepare_job(tmp_path / "empty", tiny_case.geometry, tiny_case.masks, SMALL) / "job.json").is_file()
+
+
+def test_settings_of_the_wrong_type_are_refused_by_name_before_start(tiny_case, tmp_path):
+    for given, message in [({"calibrate": "false"}, "calibrate is a switch: give True or False, got 'false'"),
+                           ({"steps": "3"}, "steps takes a whole number, got '3'"),
+                           ({"steps": 2.5}, "steps takes a whole number, got 2.5"),
+                           ({"seed": "x"}, "seed takes a whole number")]:
+        with pytest.raises(JobFolderError, match=message):
+            ReconstructionJob.start(tmp_path / "job", tiny_case.geometry, tiny_case.masks, dict(SMALL, **given))
+        assert not (tmp_path / "job").exists()
+    # numpy's numbers (a script's arithmetic) are taken, and job.json holds them as plain JSON
+    folder = prepare_job(tmp_path / "np", tiny_case.geometry, tiny_case.masks,
+                         dict(SMALL, steps=np.int64(5), memory_check=np.bool_(False), learning_rate=np.float32(0.01)))
+    stored = json.loads((folder / "job.json").read_text())["settings"]
+    assert stored["steps"] == 5 and stored["memory_check"] is False and stored["learning_rate"] == pytest.approx(0.01)
+
+
 # --- the 3D-QCA of a result in a worker process ------------------------------------------------------
 def test_analysis_job_writes_a_new_folder_each_time(tmp_path):
     from test_analysis import _result_folder

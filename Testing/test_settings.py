@@ -164,3 +164,47 @@ def test_settings_from_values_take_a_preset_and_its_changes_as_the_jobs_do():
     assert values == {"preset": "fast", "steps": 9}  # the caller's dict is left as it was
     with pytest.raises(ReconstructionError, match="unknown preset"):
         settings_from_values({"preset": "quick"})
+
+
+@pytest.mark.parametrize("given, message", [
+    (dict(calibrate="false"), "setting calibrate is a switch: give True or False, got 'false' (str)"),
+    (dict(memory_check=0), "setting memory_check is a switch: give True or False, got 0 (int)"),
+    (dict(steps="3"), "setting steps takes a whole number, got '3' (str)"),
+    (dict(steps=2.5), "setting steps takes a whole number, got 2.5 (float)"),
+    (dict(steps=True), "setting steps takes a whole number, got True (bool)"),
+    (dict(learning_rate="1e-3"), "setting learning_rate takes a number, e.g. 1e-3, got '1e-3' (str)"),
+    (dict(learning_rate=float("nan")), "setting learning_rate must be a finite number, got nan"),
+    (dict(device=0), "setting device takes a name (text), got 0 (int)"),
+    (dict(alpha=None), None),  # None leaves a setting at the preset's value (make_settings' rule)
+])
+def test_settings_of_the_wrong_type_are_refused_by_name(given, message):
+    """A script's or a JSON file's values are not read as text: "false" would switch a setting on."""
+    from SDFCARLib.settings import Settings
+
+    if message is None:
+        assert make_settings("fast", **given) == make_settings("fast")
+        return
+    with pytest.raises(ReconstructionError) as info:
+        make_settings("fast", **given)
+    assert message in str(info.value)
+    with pytest.raises(ReconstructionError, match="needs a value"):
+        Settings.from_dict({"steps": None})
+
+
+def test_numpy_numbers_and_whole_floats_are_taken_as_plain_values():
+    import numpy as np
+
+    s = make_settings("fast", steps=np.int64(7), seed=3.0, calibrate=np.bool_(True), learning_rate=np.float32(0.5),
+                      support_margin_mm=2, threads=None)
+    assert (s.optimisation.steps, s.run.seed, s.calibration.calibrate) == (7, 3, True)
+    assert type(s.optimisation.steps) is int and type(s.calibration.calibrate) is bool
+    assert type(s.optimisation.learning_rate) is float and type(s.region.support_margin_mm) is float
+    assert s.run.threads is None
+
+
+def test_settings_from_values_refuse_what_is_not_a_dict():
+    from SDFCARLib.settings import settings_from_values
+
+    for values in (None, ["preset", "fast"], "fast"):
+        with pytest.raises(ReconstructionError, match="the settings are a dict of setting keys and values"):
+            settings_from_values(values)
