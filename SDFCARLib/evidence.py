@@ -88,6 +88,9 @@ def unreadable_intensity(relationship: Optional[str]) -> Optional[str]:
         value, "a vendor's processed image")
     why = (f"its Pixel Intensity Relationship (0028,1040) is {value} ({meaning}), not LIN: its grey levels are not "
            "proportional to the X-ray intensity, so no path length can be read from them")
+    if value not in (LINEAR_INTENSITY, "LOG", "DISP"):  # a vendor's term (GE's DRM), or a user's misspelling
+        why += (f" ({value} is none of the standard's terms LIN, LOG, DISP, so it is taken as a vendor's own; give "
+                "'LIN' if the frame's grey levels follow the X-ray intensity)")
     if value == "LOG":  # handed over as stored; the DICOM readers linearise such frames
         why += (" (read the run with SDFCARLib.dicom.load_xa, or pass the stored frame through "
                 "SDFCARLib.dicom.intensity.linearised: either brings LOG frames to a linear scale)")
@@ -276,7 +279,12 @@ def view_evidence(frame: np.ndarray, mask: np.ndarray, view: CArmView,
     if frame.ndim != 2 or frame.shape != mask.shape:
         raise EvidenceError(f"the frame has shape {frame.shape} but the view's mask {mask.shape}: give the frame "
                             "the mask was drawn or segmented on (same rows and columns)")
-    if not np.all(np.isfinite(frame)) or float(np.max(frame)) <= 0:
+    bad = ~np.isfinite(frame)
+    if bad.any():
+        row, col = map(int, np.argwhere(bad)[0])
+        raise EvidenceError(f"{int(bad.sum())} of the frame's pixels are NaN or infinite (the first at row {row}, "
+                            f"column {col}): give the recorded X-ray frame with a number in every pixel")
+    if float(np.max(frame)) <= 0:
         raise EvidenceError("the frame has no positive finite intensities: give the recorded X-ray frame "
                             "(vessels dark), not a mask or a processed image")
     if not mask.any():

@@ -108,6 +108,11 @@ def test_bad_frames_are_refused_with_the_reason():
     for not_a_frame in (mask * 255.0, np.where(mask, 3000.0, 1000.0)):  # a mask, an inverted frame
         with pytest.raises(EvidenceError):
             view_evidence(not_a_frame, mask, VIEW)
+    holed = frame.copy()
+    holed[2:4, 5:8] = np.nan
+    holed[10, 0] = np.inf
+    with pytest.raises(EvidenceError, match=r"7 of the frame's pixels are NaN or infinite \(the first at row 2, column 5\)"):
+        view_evidence(holed, mask, VIEW)
     thin = _tubes_image(radii_mm=(0.3, 0.3))  # no vessel thick enough to read μ across
     with pytest.raises(EvidenceError, match="attenuation"):
         view_evidence(_frame(thin[1], 1.0), thin[2], VIEW)
@@ -426,6 +431,20 @@ def test_only_linear_frames_give_path_lengths():
     for value, meaning in (("DISP", "processed for display"), ("LOG", "a logarithm"), ("DRM", "a vendor's")):
         why = unreadable_intensity(value)
         assert f"(0028,1040) is {value}" in why and meaning in why and "not LIN" in why
+        # a term outside the standard's (a vendor's, or a misspelt LIN) says so and what to give instead
+        assert ("none of the standard's terms LIN, LOG, DISP" in why) == (value == "DRM")
+    assert "give 'LIN' if the frame's grey levels follow the X-ray intensity" in unreadable_intensity("LINEAR")
+
+
+def test_a_frame_with_nan_pixels_is_named_not_taken_for_a_mask(angiogram_case):
+    geometry, _, frames, masks = angiogram_case
+    holed = [frames[0].astype(np.float32), frames[1]]  # detector counts: integers, NaN only once they are floats
+    holed[0][:5, :5] = np.nan
+    evidence = read_frame_evidence(holed, masks, geometry, make_settings("fast"), "mask")
+    assert evidence.images is None and "view 1" in evidence.record["why"]
+    assert "25 of the frame's pixels are NaN or infinite" in evidence.record["why"]
+    blank = [np.full(frames[0].shape, np.nan, np.float32), frames[1]]  # not "binary images (masks)"
+    assert "NaN or infinite" in read_frame_evidence(blank, masks, geometry, make_settings("fast"), "mask").record["why"]
 
 
 def test_display_processed_frames_place_the_views_but_are_not_fitted(angiogram_case):
