@@ -429,6 +429,12 @@ class Geometry:
     @classmethod
     def from_dict(cls, data: Any) -> "Geometry":
         _require(isinstance(data, dict), f"the geometry must be a JSON object, got {type(data).__name__}")
+        volume_data = data.get("volume")
+        _require(not (volume_data is None or volume_data == "auto" or (isinstance(volume_data, dict) and "auto" in volume_data))
+                 or "views" not in data,
+                 "the geometry asks for an automatic volume (no grid given): read it with "
+                 "SDFCARLib.region.read_geometry, which returns the geometry and the request, or give the volume's "
+                 "shape and spacing_mm")
         missing = [k for k in ("volume", "views") if k not in data]
         _require(not missing, f"the geometry is missing required field(s): {', '.join(missing)}")
         unknown = sorted(set(data) - {"volume", "views", "description", "provenance"})

@@ -450,3 +450,19 @@ def test_object_motion_round_trips_and_zero_motion_keeps_the_digest():
     assert Geometry.from_dict(plain.to_dict()).digest() == plain.digest()
     with pytest.raises(GeometryError, match=r"views\[0\]\.object_translation_mm must be a list of 3 numbers"):
         Geometry.from_dict({**moved.to_dict(), "views": [{**view.to_dict(), "object_translation_mm": [1.0]}]})
+
+
+def test_loading_a_geometry_that_asks_for_an_automatic_volume_names_the_reader_that_takes_it(tmp_path):
+    from SDFCARLib.region import read_geometry
+
+    view = CArmView(30.0, 0.0, 1000.0, 750.0, (0.5, 0.5), (128, 128)).to_dict()
+    for volume in ("auto", {"auto": True, "spacing_mm": 0.5}, None):
+        data = {"views": [view, dict(view, primary_deg=-30.0)]}
+        if volume is not None:
+            data["volume"] = volume
+        path = tmp_path / "geometry.json"
+        path.write_text(json.dumps(data))
+        with pytest.raises(GeometryError, match="asks for an automatic volume.*SDFCARLib.region.read_geometry"):
+            Geometry.load(path)
+        geometry, request = read_geometry(path)
+        assert request is not None and len(geometry.views) == 2
