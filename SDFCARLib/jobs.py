@@ -120,10 +120,12 @@ def _check_inputs(geometry: Geometry, targets: Sequence[np.ndarray], settings: D
     try:
         checked = settings_from_values(settings)
         validate_targets(targets, geometry, target_kind)
+        # what was given, as plain Python values (numpy numbers become JSON's), for job.json; None leaves a setting
+        # at the preset's value, as make_settings has it
+        given = {key: checked_setting_value(key, value, SETTING_KEYS[key][1])
+                 for key, value in settings.items() if value is not None}
     except ReconstructionError as exc:
         raise JobFolderError(str(exc)) from exc
-    # what was given, as plain Python values (numpy numbers become JSON's), for job.json
-    given = {key: checked_setting_value(key, value, SETTING_KEYS[key][1]) for key, value in settings.items()}
     return checked, given
 
 

@@ -214,6 +214,9 @@ def test_settings_of_the_wrong_type_are_refused_by_name_before_start(tiny_case, 
                          dict(SMALL, steps=np.int64(5), memory_check=np.bool_(False), learning_rate=np.float32(0.01)))
     stored = json.loads((folder / "job.json").read_text())["settings"]
     assert stored["steps"] == 5 and stored["memory_check"] is False and stored["learning_rate"] == pytest.approx(0.01)
+    # None leaves a setting at the preset's value, as make_settings and reconstruct have it
+    folder = prepare_job(tmp_path / "none", tiny_case.geometry, tiny_case.masks, dict(SMALL, seed=None, steps=None))
+    assert "seed" not in json.loads((folder / "job.json").read_text())["settings"]
 
 
 # --- the 3D-QCA of a result in a worker process ------------------------------------------------------
