@@ -117,6 +117,9 @@ class CArmView:
     principal_point_px: Optional[Tuple[float, float]] = None  # (row, col)
     object_rotation_deg: Tuple[float, float, float] = (0.0, 0.0, 0.0)  # see "Object motion" above
     object_translation_mm: Tuple[float, float, float] = (0.0, 0.0, 0.0)
+    # where the values came from (GEOM.json's optional per-view "provenance"): kept for the reader and written back by
+    # ``Geometry.save``, but no part of the geometry: not compared, not in ``to_dict`` or the digest
+    provenance: Any = field(default=None, compare=False, repr=False)
 
     def __post_init__(self) -> None:
         self.validate("view")
@@ -294,6 +297,7 @@ class CArmView:
                                                  f"{where}.object_rotation_deg"),
                 object_translation_mm=_number_list(data.get("object_translation_mm", (0.0, 0.0, 0.0)), 3,
                                                    f"{where}.object_translation_mm"),
+                provenance=data.get("provenance"),
             )
         except GeometryError as exc:
             # Range checks in validate() speak of "view"; give the caller's field path instead.
@@ -390,12 +394,19 @@ class VolumeGrid:
         return cls(shape=shape, spacing_mm=spacing, center_mm=center)
 
 
+#: GEOM.json's optional top-level keys for the reader (``Geometry.annotations``)
+ANNOTATION_KEYS = ("description", "provenance")
+
+
 @dataclass(frozen=True)
 class Geometry:
     """A reconstruction problem's geometry: the volume grid and the C-arm views (GEOM.json)."""
 
     volume: VolumeGrid
     views: Tuple[CArmView, ...] = field(default_factory=tuple)
+    # GEOM.json's optional top-level "description" and "provenance", kept for the reader and written back by ``save``;
+    # like a view's provenance, no part of the geometry (not compared, not in ``to_dict`` or the digest)
+    annotations: Dict[str, Any] = field(default_factory=dict, compare=False, repr=False)
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "views", tuple(self.views))
@@ -437,12 +448,12 @@ class Geometry:
                  "shape and spacing_mm")
         missing = [k for k in ("volume", "views") if k not in data]
         _require(not missing, f"the geometry is missing required field(s): {', '.join(missing)}")
-        unknown = sorted(set(data) - {"volume", "views", "description", "provenance"})
+        unknown = sorted(set(data) - {"volume", "views", *ANNOTATION_KEYS})
         _require(not unknown, f"the geometry has unknown field(s): {', '.join(unknown)}")
         volume = VolumeGrid.from_dict(data["volume"])
         _require(isinstance(data["views"], list) and len(data["views"]) >= 1, "views must be a non-empty list")
         views = tuple(CArmView.from_dict(v, f"views[{n}]") for n, v in enumerate(data["views"]))
-        return cls(volume=volume, views=views)
+        return cls(volume=volume, views=views, annotations={k: data[k] for k in ANNOTATION_KEYS if k in data})
 
     @classmethod
     def load(cls, path: PathLike) -> "Geometry":
@@ -461,7 +472,13 @@ class Geometry:
             raise GeometryError(f"{path}: {exc}") from exc
 
     def save(self, path: PathLike) -> None:
-        Path(path).write_text(json.dumps(self.to_dict(), indent=2) + "\n", encoding="utf-8")
+        """GEOM.json: the geometry, with the description and provenance it was loaded with."""
+        data = self.to_dict()
+        for entry, view in zip(data["views"], self.views):
+            if view.provenance is not None:
+                entry["provenance"] = view.provenance
+        data.update(self.annotations)
+        Path(path).write_text(json.dumps(data, indent=2) + "\n", encoding="utf-8")
 
     def digest(self) -> str:
         """Short stable hash of the geometry, for provenance."""

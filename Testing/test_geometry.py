@@ -466,3 +466,19 @@ def test_loading_a_geometry_that_asks_for_an_automatic_volume_names_the_reader_t
             Geometry.load(path)
         geometry, request = read_geometry(path)
         assert request is not None and len(geometry.views) == 2
+
+
+def test_description_and_provenance_survive_a_load_and_save_but_are_no_part_of_the_geometry(tmp_path):
+    geometry = standard_geometry("lao30-rao30")
+    data = geometry.to_dict()
+    data["description"] = "patient 7, LAD"
+    data["provenance"] = {"primary_deg": "PositionerPrimaryAngle (0018,1510)"}
+    data["views"][1]["provenance"] = {"sid_mm": "DistanceSourceToDetector (0018,1110)"}
+    (tmp_path / "in.json").write_text(json.dumps(data))
+    loaded = Geometry.load(tmp_path / "in.json")
+    assert loaded == geometry and loaded.digest() == geometry.digest()  # the same geometry, annotated
+    assert loaded.to_dict() == geometry.to_dict()
+    loaded.save(tmp_path / "out.json")
+    assert json.loads((tmp_path / "out.json").read_text()) == data
+    geometry.save(tmp_path / "plain.json")  # none given, none written
+    assert set(json.loads((tmp_path / "plain.json").read_text())) == {"volume", "views"}
