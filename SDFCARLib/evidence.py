@@ -151,8 +151,10 @@ def assumed_frame_intensity(frames: Optional[Sequence[Optional[np.ndarray]]],
 
 def is_binary_image(image: np.ndarray) -> bool:
     """Two grey levels or fewer: a mask shown as a frame (the sample case does), not a recorded X-ray
-    frame; there is no intensity profile to read."""
-    return np.unique(np.asarray(image)).size <= 2
+    frame; there is no intensity profile to read. An image with NaN or infinite pixels is none (np.unique would
+    count all its NaNs as one level)."""
+    image = np.asarray(image)
+    return bool(np.all(np.isfinite(image))) and np.unique(image).size <= 2
 
 
 def absorbance_above_background(frame: np.ndarray, mask: np.ndarray, pixel_spacing_mm: Sequence[float],

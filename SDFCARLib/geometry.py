@@ -440,9 +440,9 @@ class Geometry:
     @classmethod
     def from_dict(cls, data: Any) -> "Geometry":
         _require(isinstance(data, dict), f"the geometry must be a JSON object, got {type(data).__name__}")
-        volume_data = data.get("volume")
-        _require(not (volume_data is None or volume_data == "auto" or (isinstance(volume_data, dict) and "auto" in volume_data))
-                 or "views" not in data,
+        given = data.get("volume")
+        asks_for_automatic_volume = given is None or given == "auto" or (isinstance(given, dict) and "auto" in given)
+        _require("views" not in data or not asks_for_automatic_volume,
                  "the geometry asks for an automatic volume (no grid given): read it with "
                  "SDFCARLib.region.read_geometry, which returns the geometry and the request, or give the volume's "
                  "shape and spacing_mm")

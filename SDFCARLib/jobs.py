@@ -115,18 +115,17 @@ def _refuse_used_folder(job_dir: Path) -> None:
 
 def _check_inputs(geometry: Geometry, targets: Sequence[np.ndarray], settings: Dict[str, Any], target_kind: str):
     from .optimiser import ReconstructionError, validate_targets
-    from .settings import SETTING_KEYS, checked_setting_value, settings_from_values
+    from .settings import settings_from_values
 
     try:
         checked = settings_from_values(settings)
         validate_targets(targets, geometry, target_kind)
-        # what was given, as plain Python values (numpy numbers become JSON's), for job.json; None leaves a setting
-        # at the preset's value, as make_settings has it
-        given = {key: checked_setting_value(key, value, SETTING_KEYS[key][1])
-                 for key, value in settings.items() if value is not None}
     except ReconstructionError as exc:
         raise JobFolderError(str(exc)) from exc
-    return checked, given
+    # what was given, for job.json, as the checked settings hold it (plain Python values: numpy numbers become
+    # JSON's); None leaves a setting at the preset's value, as make_settings has it
+    values = checked.to_dict()
+    return checked, {key: values[key] for key, value in settings.items() if value is not None}
 
 
 def _checked_intensity(geometry: Geometry, frame_intensity: Optional[Sequence[Optional[str]]]) -> Optional[List[Optional[str]]]:

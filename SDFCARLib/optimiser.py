@@ -260,7 +260,7 @@ def _frame_evidence(frames: Optional[Sequence[np.ndarray]], masks: Sequence[np.n
     if len(frames) != len(geometry.views):
         raise ReconstructionError(f"{len(frames)} frame(s) for {len(geometry.views)} views: give one frame per view, "
                                   "in the geometry's order, or none")
-    if any(frame is not None and np.all(np.isfinite(frame)) and is_binary_image(frame) for frame in frames):
+    if any(frame is not None and is_binary_image(frame) for frame in frames):
         # e.g. the sample case, whose "frames" are its masks: nothing to read, nothing to warn about
         return None, {"used": False, "why": "the frames are binary images (masks), not recorded X-ray frames"}, []
     images, views = [], []

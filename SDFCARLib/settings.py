@@ -582,8 +582,7 @@ def checked_setting_value(key: str, value: Any, kind: Any) -> Any:
     text box's "false" would otherwise switch a setting on (``typed_setting_value`` reads ``--set``'s text)."""
     import numbers
 
-    optional = typing.get_origin(kind) is typing.Union and type(None) in typing.get_args(kind)
-    base = next(a for a in typing.get_args(kind) if a is not type(None)) if optional else kind
+    base, optional = _base_type(kind)
     if value is None:
         if optional:
             return None
@@ -611,10 +610,15 @@ def checked_setting_value(key: str, value: Any, kind: Any) -> Any:
     return value
 
 
+def _base_type(kind: Any) -> Tuple[Any, bool]:
+    """(X, whether None is allowed) of a setting's declared type X or Optional[X]."""
+    optional = typing.get_origin(kind) is typing.Union and type(None) in typing.get_args(kind)
+    return (next(a for a in typing.get_args(kind) if a is not type(None)) if optional else kind), optional
+
+
 def typed_setting_value(key: str, text: str, kind: Any) -> Any:
     """The text of ``--set key=text`` as ``kind`` (bool, int, float, str, or Optional of one)."""
-    optional = typing.get_origin(kind) is typing.Union and type(None) in typing.get_args(kind)
-    base = next(a for a in typing.get_args(kind) if a is not type(None)) if optional else kind
+    base, optional = _base_type(kind)
     lowered = text.lower()
     if lowered in ("none", "null"):
         if optional:
