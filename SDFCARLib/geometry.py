@@ -441,7 +441,7 @@ class Geometry:
     def from_dict(cls, data: Any) -> "Geometry":
         _require(isinstance(data, dict), f"the geometry must be a JSON object, got {type(data).__name__}")
         given = data.get("volume")
-        asks_for_automatic_volume = given is None or given == "auto" or (isinstance(given, dict) and "auto" in given)
+        asks_for_automatic_volume = given is None or given == "auto" or (isinstance(given, dict) and given.get("auto") is not None)
         _require("views" not in data or not asks_for_automatic_volume,
                  "the geometry asks for an automatic volume (no grid given): read it with "
                  "SDFCARLib.region.read_geometry, which returns the geometry and the request, or give the volume's "

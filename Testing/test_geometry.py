@@ -468,6 +468,18 @@ def test_loading_a_geometry_that_asks_for_an_automatic_volume_names_the_reader_t
         assert request is not None and len(geometry.views) == 2
 
 
+def test_a_volume_with_auto_null_is_an_explicit_grid_with_an_unknown_field_for_both_readers(tmp_path):
+    from SDFCARLib.region import read_geometry
+
+    view = CArmView(30.0, 0.0, 1000.0, 750.0, (0.5, 0.5), (128, 128)).to_dict()
+    volume = {"auto": None, "shape": [8, 8, 8], "spacing_mm": [1.0, 1.0, 1.0]}
+    path = tmp_path / "geometry.json"
+    path.write_text(json.dumps({"views": [view, dict(view, primary_deg=-30.0)], "volume": volume}))
+    for reader in (Geometry.load, read_geometry):
+        with pytest.raises(GeometryError, match=r"volume has unknown field\(s\): auto"):
+            reader(path)
+
+
 def test_description_and_provenance_survive_a_load_and_save_but_are_no_part_of_the_geometry(tmp_path):
     geometry = standard_geometry("lao30-rao30")
     data = geometry.to_dict()
