@@ -836,7 +836,11 @@ class SDFCARLogic(ScriptedLoadableModuleLogic):
             sliceIndex = self.sliceIndex(frameNode, self.frameNode(frameNode, index), index)
             return mrml.mask_from_segmentation_node(maskNode, frameNode, slice_index=sliceIndex)
         frame = self.frameNode(maskNode, index)
-        return mrml.mask_from_volume_node(frame, slice_index=self.sliceIndex(maskNode, frame, index))
+        reference = self.frameNode(frameNode, index)
+        # a labelmap exported cropped to the vessels is placed on the frame's pixels
+        return mrml.mask_from_volume_node(frame, slice_index=self.sliceIndex(maskNode, frame, index),
+                                          reference_volume_node=reference,
+                                          reference_slice_index=self.sliceIndex(frameNode, reference, index))
 
     @staticmethod
     def maskSegmentation(frameNode, maskNode=None):

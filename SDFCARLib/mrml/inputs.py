@@ -22,6 +22,7 @@ Grey levels
 
 from __future__ import annotations
 
+import numbers
 from typing import Any, List, Optional, Sequence, Tuple
 
 import numpy as np
@@ -29,8 +30,14 @@ import numpy as np
 from ..evidence import DISPLAY_INTENSITY, LINEAR_INTENSITY
 from ..masks import MaskError, binarise_mask
 from .results import _segment_ids, _segment_mask_at_ras
-from .scene import (ATTRIBUTE_PREFIX, MRMLBridgeError, _image_data, _numpy_matrix, _slicer, _vtk_matrix, nodes_by_class,
-                    prepare_scene, scene_transaction)
+from .scene import (ATTRIBUTE_PREFIX, MRMLBridgeError, _image_data, _local_to_world_matrix, _numpy_matrix, _slicer, _vtk_matrix,
+                    nodes_by_class, prepare_scene, scene_transaction)
+
+
+def _checked_index(value: Any, what: str) -> int:
+    if isinstance(value, bool) or not isinstance(value, numbers.Integral):
+        raise MRMLBridgeError(f"{what} must be a whole number (0-based), got {value!r}")
+    return int(value)
 
 
 def frame_from_volume_node(node, slice_index: Optional[int] = None) -> np.ndarray:
@@ -43,6 +50,8 @@ def frame_from_volume_node(node, slice_index: Optional[int] = None) -> np.ndarra
 
     if node is None or not hasattr(node, "GetImageData"):
         raise MRMLBridgeError("no volume node given; choose the volume that holds the X-ray frame")
+    if slice_index is not None:
+        slice_index = _checked_index(slice_index, f"the slice index of volume {node.GetName()!r}")
     image = node.GetImageData()
     if image is None or image.GetPointData().GetScalars() is None:
         raise MRMLBridgeError(f"volume {node.GetName()!r} holds no image data; load the frame first")
@@ -63,15 +72,77 @@ def frame_from_volume_node(node, slice_index: Optional[int] = None) -> np.ndarra
     return array[slice_index]
 
 
+def _ijk_to_ras(node) -> np.ndarray:
+    vtk_matrix = _vtk_matrix(np.eye(4))
+    node.GetIJKToRASMatrix(vtk_matrix)
+    return _numpy_matrix(vtk_matrix)
+
+
+def _pixel_centres(volume_node, slice_index: Optional[int], into_node=None) -> Tuple[int, int, np.ndarray]:
+    """(rows, cols, points (rows·cols, 3)): the centres of a frame's pixels, row by row, in ``into_node``'s own
+    RAS coordinates (world RAS when None), parent transforms of both nodes applied."""
+    rows, cols = frame_from_volume_node(volume_node, slice_index).shape
+    k = 0 if volume_node.GetImageData().GetDimensions()[2] == 1 else int(slice_index)
+    ijk_to_target = _local_to_world_matrix(volume_node) @ _ijk_to_ras(volume_node)
+    if into_node is not None:
+        ijk_to_target = np.linalg.inv(_local_to_world_matrix(into_node)) @ ijk_to_target
+    jj, ii = np.meshgrid(np.arange(rows), np.arange(cols), indexing="ij")
+    ijk = np.stack([ii.reshape(-1), jj.reshape(-1), np.full(rows * cols, k)], axis=-1).astype(np.float64)
+    return rows, cols, ijk @ ijk_to_target[:3, :3].T + ijk_to_target[:3, 3]
+
+
+def _mask_on_reference_pixels(node, slice_index: Optional[int], values: np.ndarray, reference, reference_slice_index):
+    """A mask volume's values (rows, cols) on the pixels of the frame ``reference``.
+
+    A mask of the frame's size is the frame's pixel for pixel, wherever its node lies (a mask image loaded
+    from a file has a spacing of 1 and no origin). A mask of another size must lie on the frame's pixels
+    (a labelmap exported cropped to the vessels): it is taken where it lies, or refused."""
+    name, frame_name = node.GetName(), reference.GetName()
+    rows, cols, points = _pixel_centres(reference, reference_slice_index, into_node=node)
+    if values.shape == (rows, cols):
+        return values
+    ras_to_ijk = np.linalg.inv(_ijk_to_ras(node))
+    ijk = points @ ras_to_ijk[:3, :3].T + ras_to_ijk[:3, 3]
+    own_k = 0 if node.GetImageData().GetDimensions()[2] == 1 else int(slice_index)
+    nearest = np.rint(ijk).astype(np.int64)
+    if not (np.allclose(ijk, nearest, atol=1e-3) and (nearest[:, 2] == own_k).all()):
+        raise MRMLBridgeError(
+            f"mask volume {name!r} ({values.shape[0]} × {values.shape[1]} pixels) is not the size of frame "
+            f"{frame_name!r} ({rows} × {cols}) and does not lie on its pixels; give the mask drawn on that frame, "
+            "pixel for pixel")
+    in_mask = ((nearest[:, 0] >= 0) & (nearest[:, 0] < values.shape[1]) & (nearest[:, 1] >= 0) & (nearest[:, 1] < values.shape[0]))
+    sampled = np.zeros(rows * cols, dtype=values.dtype)
+    sampled[in_mask] = values[nearest[in_mask, 1], nearest[in_mask, 0]]
+    lost = int(np.count_nonzero(values)) - int(np.count_nonzero(sampled))
+    if lost > 0:
+        raise MRMLBridgeError(
+            f"mask volume {name!r} reaches beyond frame {frame_name!r}: {lost} of its non-zero pixels lie outside the "
+            "frame; give the mask drawn on that frame")
+    return sampled.reshape(rows, cols)
+
+
 def mask_from_volume_node(node, threshold: Optional[float] = None, slice_index: Optional[int] = None,
-                          label: Optional[float] = None) -> np.ndarray:
+                          label: Optional[float] = None, reference_volume_node=None,
+                          reference_slice_index: Optional[int] = None) -> np.ndarray:
     """A boolean vessel mask (rows, cols) from a labelmap or scalar volume node holding a 2D frame.
 
     Labelmaps and two-valued volumes give ``value != 0`` (``label``: only that value); other
     scalar volumes need ``threshold`` (vessel = value > threshold). The result must pass
     ``masks.binarise_mask``: a two-valued image whose background is not 0 is refused there.
+    With ``reference_volume_node`` (the frame, slice ``reference_slice_index`` of a multi-frame volume) a
+    mask of another size than the frame (a labelmap exported cropped) is placed on the frame's pixels.
     """
+    if threshold is not None and label is not None:
+        raise MRMLBridgeError("give a threshold (for a grey image) or a label (for a label image), not both")
+    if threshold is not None and (isinstance(threshold, bool) or not isinstance(threshold, numbers.Real)
+                                  or not np.isfinite(threshold)):
+        raise MRMLBridgeError(f"the threshold must be a finite number, got {threshold!r}")
     frame = frame_from_volume_node(node, slice_index)
+    bad = int(np.count_nonzero(~np.isfinite(frame)))
+    if bad:
+        raise MRMLBridgeError(f"volume {node.GetName()!r} has {bad} NaN or infinite pixels; fix the mask image")
+    if reference_volume_node is not None:
+        frame = _mask_on_reference_pixels(node, slice_index, frame, reference_volume_node, reference_slice_index)
     if threshold is not None:
         frame = frame > float(threshold)
     elif label is None and not node.IsA("vtkMRMLLabelMapVolumeNode"):
@@ -91,9 +162,10 @@ def mask_from_segmentation_node(segmentation_node, reference_volume_node=None,
                                 segments: Optional[Sequence[str]] = None, slice_index: Optional[int] = None) -> np.ndarray:
     """A boolean vessel mask (rows, cols) on a 2D frame from a segmentation node.
 
-    The mask is the union of ``segments`` (IDs or names; default: every segment) sampled at the
-    pixel centres of ``reference_volume_node`` (default: the segmentation's reference geometry
-    volume), which holds the frame (slice ``slice_index`` of a multi-frame volume).
+    The mask is the union of ``segments`` (IDs or names, or one of them; default: every segment) sampled at
+    the pixel centres of ``reference_volume_node`` (default: the segmentation's reference geometry
+    volume), which holds the frame (slice ``slice_index`` of a multi-frame volume); parent transforms of
+    both nodes are applied. The mask must pass ``masks.binarise_mask``: an unpainted segment is refused.
     """
     slicer = _slicer()
     if segmentation_node is None or not segmentation_node.IsA("vtkMRMLSegmentationNode"):
@@ -107,71 +179,97 @@ def mask_from_segmentation_node(segmentation_node, reference_volume_node=None,
     all_ids = _segment_ids(segmentation_node)
     if not all_ids:
         raise MRMLBridgeError(f"segmentation {segmentation_node.GetName()!r} has no segment; paint the vessels first")
+    if isinstance(segments, str):
+        segments = [segments]
+    keys = list(segments) if segments is not None else all_ids
+    if not keys:
+        raise MRMLBridgeError(f"no segment of {segmentation_node.GetName()!r} was chosen; name the vessels' segments, "
+                              "or give none to take every segment")
     segmentation = segmentation_node.GetSegmentation()
     chosen: List[str] = []
-    for key in (segments if segments is not None else all_ids):
+    for key in keys:
         if key in all_ids:
             chosen.append(key)
             continue
-        by_name = segmentation.GetSegmentIdBySegmentName(key)
+        by_name = segmentation.GetSegmentIdBySegmentName(key) if isinstance(key, str) else ""
         if not by_name:
             names = [segmentation.GetSegment(i).GetName() for i in all_ids]
             raise MRMLBridgeError(f"segmentation {segmentation_node.GetName()!r} has no segment {key!r} (segments: {', '.join(names)})")
         chosen.append(by_name)
-    rows, cols = frame_from_volume_node(reference_volume_node, slice_index).shape
-    vtk_matrix = _vtk_matrix(np.eye(4))
-    reference_volume_node.GetIJKToRASMatrix(vtk_matrix)
-    ijk_to_ras = _numpy_matrix(vtk_matrix)
-    k = 0 if reference_volume_node.GetImageData().GetDimensions()[2] == 1 else int(slice_index)
-    jj, ii = np.meshgrid(np.arange(rows), np.arange(cols), indexing="ij")
-    ijk = np.stack([ii.reshape(-1), jj.reshape(-1), np.full(rows * cols, k)], axis=-1).astype(np.float64)
-    ras = ijk @ ijk_to_ras[:3, :3].T + ijk_to_ras[:3, 3]
+    rows, cols, points = _pixel_centres(reference_volume_node, slice_index, into_node=segmentation_node)
     mask = np.zeros(rows * cols, dtype=bool)
     for segment_id in chosen:
-        mask |= _segment_mask_at_ras(segmentation_node, segment_id, ras)
-    return mask.reshape(rows, cols)
+        mask |= _segment_mask_at_ras(segmentation_node, segment_id, points)
+    names = ", ".join(repr(segmentation.GetSegment(i).GetName()) for i in chosen)
+    try:
+        return binarise_mask(mask.reshape(rows, cols),
+                             source=f"segmentation {segmentation_node.GetName()!r} (segment {names}) on frame "
+                                    f"{reference_volume_node.GetName()!r}")
+    except MaskError as exc:
+        raise MRMLBridgeError(str(exc)) from exc
+
+
+def _checked_frame_layout(frame: Any, name: str, pixel_spacing_mm: Sequence[float]) -> Tuple[np.ndarray, Tuple[float, float]]:
+    frame = np.asarray(frame)
+    if frame.ndim != 2 or frame.size == 0:
+        raise MRMLBridgeError(f"frame {name!r} must be a non-empty 2D array (rows, cols), got shape {frame.shape}")
+    if frame.dtype == bool:
+        frame = frame.astype(np.uint8)
+    if not (np.issubdtype(frame.dtype, np.integer) or np.issubdtype(frame.dtype, np.floating)):
+        raise MRMLBridgeError(f"frame {name!r} must hold real numbers, got data type {frame.dtype}")
+    try:
+        spacing = tuple(float(v) for v in pixel_spacing_mm)
+    except (TypeError, ValueError):
+        spacing = ()
+    if len(spacing) != 2 or not all(np.isfinite(v) and v > 0 for v in spacing):
+        raise MRMLBridgeError(f"pixel_spacing_mm of frame {name!r} must be two positive numbers (row, column spacing "
+                              f"in mm), got {pixel_spacing_mm!r}")
+    return frame, spacing
 
 
 def add_frame_volume_node(scene, frame: np.ndarray, name: str, pixel_spacing_mm: Sequence[float] = (1.0, 1.0),
                           class_name: str = "vtkMRMLScalarVolumeNode"):
     """A volume node with one slice holding a 2D frame (rows, cols), laid out as Slicer's DICOM
-    module lays out XA frames (IJK→RAS = diag(−col spacing, −row spacing, 1))."""
-    frame = np.asarray(frame)
-    if frame.ndim != 2:
-        raise MRMLBridgeError(f"frame {name!r} must be 2D (rows, cols), got shape {frame.shape}")
-    if frame.dtype == bool:
-        frame = frame.astype(np.uint8)
-    node = scene.AddNewNodeByClass(class_name, name)
-    node.SetAndObserveImageData(_image_data(frame.T[:, :, None]))
-    node.SetIJKToRASMatrix(_vtk_matrix(np.diag([-float(pixel_spacing_mm[1]), -float(pixel_spacing_mm[0]), 1.0, 1.0])))
-    node.CreateDefaultDisplayNodes()
+    module lays out XA frames (IJK→RAS = diag(−col spacing, −row spacing, 1)). Bad input adds no node."""
+    frame, (row_spacing, col_spacing) = _checked_frame_layout(frame, name, pixel_spacing_mm)
+    if class_name not in ("vtkMRMLScalarVolumeNode", "vtkMRMLLabelMapVolumeNode"):
+        raise MRMLBridgeError(f"a frame is held by a vtkMRMLScalarVolumeNode or a vtkMRMLLabelMapVolumeNode, "
+                              f"not {class_name!r}")
+    with scene_transaction(scene):
+        node = scene.AddNewNodeByClass(class_name, name)
+        node.SetAndObserveImageData(_image_data(frame.T[:, :, None]))
+        node.SetIJKToRASMatrix(_vtk_matrix(np.diag([-col_spacing, -row_spacing, 1.0, 1.0])))
+        node.CreateDefaultDisplayNodes()
     return node
 
 
-def _frame_labelmap(mask: np.ndarray, frame_node):
-    """vtkOrientedImageData of a 2D mask (rows, cols) laid on a frame volume node's pixels."""
+def _frame_labelmap(mask: np.ndarray, frame_node, segmentation_node):
+    """vtkOrientedImageData of a 2D mask (rows, cols) laid on a frame volume node's pixels, in the
+    segmentation node's own coordinates. The mask passes ``masks.binarise_mask``."""
     import vtk
 
     slicer = _slicer()
-    mask = np.asarray(mask, dtype=bool)
     frame = frame_from_volume_node(frame_node)
-    if mask.shape != frame.shape:
-        raise MRMLBridgeError(f"mask shape {mask.shape} differs from the frame shape {frame.shape} of {frame_node.GetName()!r}")
+    try:
+        mask = binarise_mask(mask, detector_shape=frame.shape, source=f"the mask for frame {frame_node.GetName()!r}")
+    except MaskError as exc:
+        raise MRMLBridgeError(str(exc)) from exc
     labelmap = slicer.vtkOrientedImageData()
     labelmap.ShallowCopy(_image_data(mask.T[:, :, None].astype(np.uint8), vtk.VTK_UNSIGNED_CHAR))
-    matrix = _vtk_matrix(np.eye(4))
-    frame_node.GetIJKToRASMatrix(matrix)
-    labelmap.SetImageToWorldMatrix(matrix)
+    image_to_segmentation = (np.linalg.inv(_local_to_world_matrix(segmentation_node))
+                             @ _local_to_world_matrix(frame_node) @ _ijk_to_ras(frame_node))
+    labelmap.SetImageToWorldMatrix(_vtk_matrix(image_to_segmentation))
     return labelmap
 
 
 def set_segment_mask(segmentation_node, mask: np.ndarray, frame_node, segment_name: str = "Vessels",
                      color: Sequence[float] = (1.0, 0.3, 0.3)) -> str:
-    """Replace (or add) the segment ``segment_name`` with a 2D mask (rows, cols) on a frame; return its ID."""
+    """Replace (or add) the segment ``segment_name`` with a 2D mask (rows, cols) on a frame; return its ID.
+    The mask must pass ``masks.binarise_mask`` (binary, finite, neither empty nor everything)."""
     slicer = _slicer()
     if segmentation_node.GetScene() is not None:
         prepare_scene(segmentation_node.GetScene())
-    labelmap = _frame_labelmap(mask, frame_node)
+    labelmap = _frame_labelmap(mask, frame_node, segmentation_node)
     segmentation = segmentation_node.GetSegmentation()
     segment_id = segmentation.GetSegmentIdBySegmentName(segment_name)
     if segment_id:

@@ -21,6 +21,8 @@ from __future__ import annotations
 import json
 import math
 import tempfile
+import xml.etree.ElementTree as ET
+import zipfile
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Any, Dict, Iterator, List, Mapping, Optional, Sequence, Union
@@ -82,6 +84,22 @@ def _vtk_matrix(array: np.ndarray):
 
 def _numpy_matrix(vtk_matrix) -> np.ndarray:
     return np.array([[vtk_matrix.GetElement(r, c) for c in range(4)] for r in range(4)])
+
+
+def _local_to_world_matrix(node) -> np.ndarray:
+    """4×4 from a transformable node's own RAS coordinates (where its IJK→RAS or its points lie) to the
+    scene's world RAS: its parent transforms applied. A non-linear transform is refused, naming the fix."""
+    import vtk
+
+    parent = node.GetParentTransformNode() if node is not None else None
+    if parent is None:
+        return np.eye(4)
+    if not parent.IsTransformToWorldLinear():
+        raise MRMLBridgeError(f"{node.GetName()!r} is under the non-linear transform {parent.GetName()!r}; harden the "
+                              "transform on it (Data module: Harden transform) or remove it")
+    matrix = vtk.vtkMatrix4x4()
+    parent.GetMatrixTransformToWorld(matrix)
+    return _numpy_matrix(matrix)
 
 
 def _image_data(array_ijk: np.ndarray, vtk_type: Optional[int] = None):
@@ -299,11 +317,53 @@ def _safe_file_name(name: str) -> str:
     return keep.strip("._") or "node"
 
 
+#: what ``load_scene`` reads: a scene file and a scene bundle
+SCENE_FILE_SUFFIXES = (".mrml", ".mrb")
+
+
+def _scene_text_problem(text: bytes) -> Optional[str]:
+    """Why ``text`` is not a MRML scene (None when it is one): checked before a scene is cleared for it."""
+    try:
+        root = ET.fromstring(text)
+    except ET.ParseError as exc:
+        return f"it is not an XML file ({exc})"
+    if root.tag != "MRML":
+        return f"its XML root is <{root.tag}>, not <MRML>"
+    return None
+
+
+def _bundle_scene_problem(path: Path) -> Optional[str]:
+    """Why the .mrb bundle ``path`` holds no loadable scene (None when it holds one)."""
+    try:
+        with zipfile.ZipFile(path) as bundle:
+            inside = [name for name in bundle.namelist() if name.lower().endswith(".mrml")]
+            if not inside:
+                return "it holds no .mrml scene"
+            return _scene_text_problem(bundle.read(inside[0]))
+    except (zipfile.BadZipFile, OSError) as exc:
+        return f"it is not a Slicer scene bundle (a zip file): {exc}"
+
+
 def load_scene(scene, path: PathLike, clear: bool = True):
-    """Load a .mrml or .mrb file into ``scene`` (replacing its content when ``clear``); return the scene."""
+    """Load a .mrml or .mrb file into ``scene`` (replacing its content when ``clear``); return the scene.
+
+    The file is checked before the scene is touched: a wrong or damaged file leaves the scene as it was.
+    """
     path = Path(path).resolve()
     if not path.is_file():
         raise MRMLBridgeError(f"scene file {path} does not exist")
+    if path.suffix.lower() not in SCENE_FILE_SUFFIXES:
+        raise MRMLBridgeError(f"{path} is not a scene file: give a .mrml scene or a .mrb bundle (a result folder's "
+                              "scene.mrml); load data files with add_reconstruction_to_scene or Slicer's Add Data")
+    if path.suffix.lower() == ".mrb":
+        problem = _bundle_scene_problem(path)
+    else:
+        try:
+            problem = _scene_text_problem(path.read_bytes())
+        except OSError as exc:
+            problem = f"it cannot be read ({exc.strerror or exc})"
+    if problem:
+        raise MRMLBridgeError(f"{path} cannot be loaded as a scene: {problem}; nothing in the scene was changed")
     prepare_scene(scene)
     if path.suffix.lower() == ".mrb":
         io = scene.GetDataIOManager()
