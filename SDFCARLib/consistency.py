@@ -15,6 +15,11 @@ Measure
     values measured on correct, swapped and sign-flipped pairs). Centreline pixels weigh every
     vessel by its length, not its width.
 
+Views along one line
+    Two views whose projection lines are (nearly) parallel, either way round, see the same shadow: depth
+    between them is not resolved (``view_separation_warnings``). 3D-QCA systems ask for views at least 25°
+    apart; a separation under 1° is a run given twice.
+
 What it cannot see
     A ray crosses many vessels of the other view, so the measure is lenient: rigid motions of a
     few millimetres between the acquisitions, and swapping the two views of a mirror-symmetric
@@ -102,3 +107,35 @@ def consistency_warnings(consistency: Sequence[float], options: ConsistencyOptio
                 "along the epipolar lines; check the angle signs (LAO +, RAO −, CRA +, CAU −), that each mask "
                 "belongs to its view and to the same cardiac phase, and the SID/SOD values")
     return warnings
+
+
+#: the least angle between the projection lines of the two views furthest apart without a warning (3D-QCA
+#: systems ask for two views at least 25° apart), and the separation under which two views are one
+MIN_VIEW_SEPARATION_DEG = 25.0
+SAME_VIEW_SEPARATION_DEG = 1.0
+
+
+def view_separation_deg(a: CArmView, b: CArmView) -> float:
+    """Angle (degrees, 0–90) between two views' projection lines; opposite views (180° apart) are 0."""
+    cosine = abs(float(np.dot(a.detector_direction, b.detector_direction)))
+    return float(np.degrees(np.arccos(min(cosine, 1.0))))
+
+
+def view_separation_warnings(geometry: Geometry) -> List[str]:
+    """Warnings (possibly none) about views that look along the same line: a run given twice, or views too close
+    in angle for any pair to resolve depth."""
+    views = geometry.views
+    out: List[str] = []
+    separations = {(i, j): view_separation_deg(views[i], views[j])
+                   for i in range(len(views)) for j in range(i + 1, len(views))}
+    for (i, j), angle in separations.items():
+        if angle < SAME_VIEW_SEPARATION_DEG:
+            out.append(f"views {i + 1} and {j + 1} look along the same line ({views[i].describe()} and "
+                       f"{views[j].describe()}, {angle:.1f}° apart): the same run given twice, or the same "
+                       "projection from opposite sides; give views of different angles")
+    widest = max(separations.values(), default=0.0)
+    if SAME_VIEW_SEPARATION_DEG <= widest < MIN_VIEW_SEPARATION_DEG:  # under 1°: named pair by pair above
+        out.append(f"the views are at most {widest:.1f}° apart (the angle between their projection lines): depth "
+                   f"is poorly resolved and the tree will be smeared along the views' axis; give views at least "
+                   f"{MIN_VIEW_SEPARATION_DEG:g}° apart")
+    return out

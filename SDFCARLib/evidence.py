@@ -102,6 +102,9 @@ def unreadable_intensity(relationship: Optional[str]) -> Optional[str]:
 #: a viewer's PNG or JPEG export is 8 bits), and −log of such grey levels reads path lengths half as thick as the
 #: masks (bench/RESULTS.md §76a)
 EIGHT_BIT_MAX = 255
+#: the share of negative pixels past which a frame is not read as detector intensities: a raw frame's offset
+#: correction leaves a few noisy pixels of the collimated border below 0, signed or shifted storage half of them
+MAX_NEGATIVE_SHARE = 0.01
 
 
 def is_eight_bit_frame(frame: np.ndarray) -> bool:
@@ -289,6 +292,12 @@ def view_evidence(frame: np.ndarray, mask: np.ndarray, view: CArmView,
     if float(np.max(frame)) <= 0:
         raise EvidenceError("the frame has no positive finite intensities: give the recorded X-ray frame "
                             "(vessels dark), not a mask or a processed image")
+    negative_share = float(np.mean(frame < 0))
+    if negative_share > MAX_NEGATIVE_SHARE:
+        raise EvidenceError(f"{100 * negative_share:.0f} % of the frame's pixels are negative (the least "
+                            f"{float(frame.min()):g}): intensities on the detector's linear scale are not, so these are "
+                            "signed or offset values (DICOM Pixel Representation 1, or a rescale intercept); give the "
+                            "recorded frame on its linear scale, or reconstruct from the masks alone")
     if not mask.any():
         raise EvidenceError("the view's mask is empty: no vessel to read evidence for")
     above = absorbance_above_background(frame, mask, view.pixel_spacing_mm, settings)

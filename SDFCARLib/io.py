@@ -23,6 +23,7 @@ file, what is wrong and how to fix it.
 
 from __future__ import annotations
 
+import errno
 import json
 import math
 import os
@@ -558,6 +559,8 @@ def process_umask() -> int:
 def atomic_write(path: PathLike, write: Callable[[Path], Any]) -> Path:
     """Call ``write(temporary_path)`` and move the file into place: a failure leaves ``path`` as it was."""
     path = Path(path)
+    if path.is_dir():
+        raise IsADirectoryError(errno.EISDIR, "a folder of that name exists; give a file name", str(path))
     path.parent.mkdir(parents=True, exist_ok=True)
     handle, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=str(path.parent))
     os.close(handle)

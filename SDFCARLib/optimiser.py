@@ -53,7 +53,7 @@ from .geometry import Geometry
 from .hull import support_mask
 from .losses import (DistanceSettings, GeometricLoss, ViewTarget, excess_path_loss, frame_target, make_target,
                      occupancy_loss, partial_occupancy_loss)
-from .consistency import consistency_warnings, view_consistency
+from .consistency import consistency_warnings, view_consistency, view_separation_warnings
 from .evidence import (EvidenceError, EvidenceSettings, assumed_frame_intensity, is_binary_image, unreadable_intensity,
                        view_evidence)
 from .mask_checks import mask_warnings, support_masks
@@ -305,6 +305,7 @@ def build_problem(geometry: Geometry, targets: Sequence[np.ndarray], settings: S
         for n, (mask, view) in enumerate(zip(pixels, geometry.views), start=1):
             warnings += mask_warnings(mask, view.pixel_spacing_mm, source=f"view {n}")
         # Seconds to catch a wrong angle sign or a mask of the wrong view before minutes of work.
+        warnings += view_separation_warnings(geometry)
         consistency = view_consistency(geometry, despeckled)
         warnings += consistency_warnings(consistency)
     if settings.region.support == "hull":

@@ -193,3 +193,34 @@ def test_an_image_said_to_be_processed_for_display_is_segmented_without_the_edge
     xa = write_xa(tmp_path / "run.dcm", display_processed(frame, 0.39)[None], bits_stored=8)
     assert main(["segment", "--dicom", str(xa), "--image-intensity", "DISP", "--out", str(tmp_path / "x.png")]) == 2
     assert "remove --image-intensity" in capsys.readouterr().err
+
+
+def test_segment_keeps_the_pixel_spacing_the_tags_give_when_the_distances_are_missing(run, tmp_path, capsys):
+    path, _ = run
+    import pydicom
+
+    ds = pydicom.dcmread(str(path))
+    for keyword in ("DistanceSourceToPatient", "EstimatedRadiographicMagnificationFactor"):
+        delattr(ds, keyword)
+    no_sod = tmp_path / "no_sod.dcm"
+    ds.save_as(str(no_sod))
+    out = tmp_path / "m.png"
+    assert main(["segment", "--dicom", str(no_sod), "--out", str(out)]) == 0
+    err = capsys.readouterr().err
+    parameters = json.loads((tmp_path / "m.json").read_text())["parameters"]
+    assert parameters["pixel_spacing_source"] == "the DICOM tags"  # 0.39 mm from ImagerPixelSpacing, kept
+    assert parameters["magnification_source"] == "default (not given)"
+    assert "note: the magnification could not be read from the tags" in err and "--magnification" in err
+    assert "DistanceSourceToPatient" in err
+
+
+def test_reconstruct_with_auto_masks_keeps_auto_mask_files_the_folder_holds(run, tmp_path, capsys):
+    path, _ = run
+    out = tmp_path / "result"
+    out.mkdir()
+    (out / "auto_mask1.png").write_bytes(b"the user's file")
+    args = ["reconstruct", "--dicom1", str(path), "--dicom2", str(path.parent / "run2.dcm"), "--auto-masks",
+            "--volume-shape", "8", "8", "8", "--volume-spacing", "8", "--steps", "1", "--no-progress", "--out", str(out)]
+    assert main(args) == 2
+    assert "auto_mask1.png" in capsys.readouterr().err
+    assert (out / "auto_mask1.png").read_bytes() == b"the user's file" and not (out / "report.json").exists()

@@ -152,8 +152,9 @@ def load_geometry(path: str):
     return Geometry.load(path)
 
 
-def print_provenance(provenance: Dict[str, Any]) -> None:
-    """Every geometry value read from DICOM and where it came from, so a clinician can check it."""
+def print_provenance(provenance: Dict[str, Any], warnings: bool = True) -> None:
+    """Every geometry value read from DICOM and where it came from, so a clinician can check it (and, with
+    ``warnings``, the geometry's warnings: ``reconstruct`` leaves them to the fit, which gives them too)."""
     for n, view in enumerate(provenance.get("views", []), start=1):
         frame = view.get("frame", {})
         print(f"view {n}: {view.get('file')} frame {frame.get('index')} ({frame.get('reason', '')})", file=sys.stderr)
@@ -164,6 +165,8 @@ def print_provenance(provenance: Dict[str, Any]) -> None:
     volume = provenance.get("volume")
     if volume:
         print(f"volume: {volume.get('value')}  [{volume.get('source')}]", file=sys.stderr)
+    for warning in provenance.get("warnings", []) if warnings else []:
+        print(f"warning: {warning}", file=sys.stderr)
 
 
 def print_summary(files: Dict[str, Path]) -> None:

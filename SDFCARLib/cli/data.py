@@ -40,15 +40,19 @@ def cmd_segment(args: argparse.Namespace) -> int:
         relationship = run.frames_relationship
         if relationship:
             source["pixel_intensity_relationship"] = relationship
-        try:
-            view, _ = view_from_dicom(run, choice.index)
-            if not spacing:
-                spacing, spacing_source = list(view.pixel_spacing_mm), "the DICOM tags"
-            if not magnification:
-                magnification, magnification_source = view.sid_mm / view.sod_mm, "the DICOM tags' SID/SOD"
-            source["geometry"] = "pixel spacing and SID/SOD from the DICOM tags unless given"
-        except DicomInputError as exc:
-            source["geometry"] = f"not read from the tags ({exc})"
+        tag_spacing, tag_magnification, problems = _scale_from_tags(run, choice.index, view_from_dicom, DicomInputError)
+        if not spacing and tag_spacing:
+            spacing, spacing_source = tag_spacing, "the DICOM tags"
+        if not magnification and tag_magnification:
+            magnification, magnification_source = tag_magnification, "the DICOM tags' SID/SOD"
+        source["geometry"] = "pixel spacing and SID/SOD from the DICOM tags unless given"
+        for what, option, given, problem in (("pixel spacing", "--pixel-spacing", spacing, problems.get("spacing")),
+                                             ("magnification", "--magnification", magnification,
+                                              problems.get("magnification"))):
+            if problem and not given:
+                source["geometry"] += f"; the {what} is not in the tags ({problem})"
+                print(f"note: the {what} could not be read from the tags, so a typical value is assumed: {problem}; "
+                      f"give it with {option}", file=sys.stderr)
         print(f"frame {choice.index} (0-based): {choice.reason}", file=sys.stderr)
     else:
         if args.frame is not None:
@@ -86,6 +90,36 @@ def cmd_segment(args: argparse.Namespace) -> int:
     for path in paths.values():
         print(f"wrote {path}")
     return EXIT_OK
+
+
+def _scale_from_tags(run, frame: int, view_from_dicom, error_type):
+    """(detector pixel spacing (row, col) or None, SID/SOD or None, {"spacing"/"magnification": why not}) of a
+    run's frame: each read from the tags on its own, so that one missing tag does not lose the other (the
+    angles do not matter for a mask and are not read)."""
+    angles = {"primary_deg": 0.0, "secondary_deg": 0.0}
+    stand_in_distances = {"sid_mm": 1000.0, "sod_mm": 750.0}
+    stand_in_spacing = {"pixel_spacing_mm": [1.0, 1.0]}
+    try:
+        view, _ = view_from_dicom(run, frame, angles)
+        return list(view.pixel_spacing_mm), view.sid_mm / view.sod_mm, {}
+    except error_type:
+        pass
+    spacing = magnification = None
+    problems = {}
+    try:  # the distances stood in for: what fails is the spacing (one calibrated at the patient needs them)
+        view, provenance = view_from_dicom(run, frame, {**angles, **stand_in_distances})
+        if "calibrated at the patient" in provenance["fields"]["pixel_spacing_mm"]["source"]:
+            problems["spacing"] = "the spacing is calibrated at the patient and needs the distances"
+        else:
+            spacing = list(view.pixel_spacing_mm)
+    except error_type as exc:
+        problems["spacing"] = str(exc)
+    try:  # the spacing stood in for: what fails is the distances
+        view, _ = view_from_dicom(run, frame, {**angles, **stand_in_spacing})
+        magnification = view.sid_mm / view.sod_mm
+    except error_type as exc:
+        problems["magnification"] = str(exc)
+    return spacing, magnification, problems
 
 
 def cmd_simulate(args: argparse.Namespace) -> int:

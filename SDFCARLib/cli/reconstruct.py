@@ -79,7 +79,7 @@ def _geometry_for_reconstruct(args: argparse.Namespace):
         if args.geometry:
             raise ValueError("give either --geometry or the XA runs (--dicom A B …, or --dicom1/--dicom2), not both")
         geometry, provenance = cli_geometry_from_args(args)
-        print_provenance(provenance)
+        print_provenance(provenance, warnings=False)
         return geometry, provenance, _dicom_volume_request(args)
     if not args.geometry:
         raise ValueError("missing --geometry: give a GEOM.json, or the XA DICOM runs, one per view, with --dicom A B … "
@@ -237,7 +237,14 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
         label, label_grid = read_label(args.label, grid=geometry.volume, what="ground-truth label")
         label = align_to_grid(label, label_grid, geometry.volume, what="ground-truth label")
     settings = settings_from_args(args)
-    check_destination(args.out, result_file_names(len(geometry.views)), args.overwrite)  # before minutes of work
+    auto_mask_names = []
+    if auto:
+        from ..masks import segmentation_paths
+
+        auto_mask_names = [path.name for n in range(1, len(auto) + 1)
+                           for path in segmentation_paths(Path(args.out) / f"auto_mask{n}.png").values()]
+    # before minutes of work
+    check_destination(args.out, result_file_names(len(geometry.views)) + auto_mask_names, args.overwrite)
     if args.analyse:
         from ..analysis.outputs import ANALYSIS_FILES
 
@@ -265,7 +272,7 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
         names = []
         for n, (run, (f, frame, a)) in enumerate(zip(dicom_runs_from_args(args), auto), start=1):
             write_segmentation(Path(args.out) / f"auto_mask{n}.png", frame, a,
-                               {"dicom": absolute_path(run.path), "frame": f}, overwrite=True)
+                               {"dicom": absolute_path(run.path), "frame": f}, overwrite=args.overwrite)
             names.append(f"auto_mask{n}.png")
         print(f"masks made by the segment pipeline (--auto-masks): {args.out}/{', '.join(names)} "
               "(overlays beside them; check them by eye)")

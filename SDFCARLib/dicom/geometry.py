@@ -50,13 +50,15 @@ from ..geometry import CArmView, Geometry, GeometryError, VolumeGrid
 from ..io import json_compatible, write_text_atomically
 from ..settings import PAPER_SPACING_MM, PAPER_VOLUME_SHAPE
 from .frames import choose_frame
-from .read import DicomInputError, PathLike, XARun, load_xa, tag_floats, tag_label
+from .read import DicomInputError, PathLike, XARun, load_xa, tag_floats, tag_label, tag_number
 
 #: The reconstruction grid when none is given: 128³ voxels of 0.8 mm centred at the isocenter.
 DEFAULT_VOLUME = VolumeGrid(PAPER_VOLUME_SHAPE, (PAPER_SPACING_MM,) * 3, (0.0, 0.0, 0.0))
 
 
 # --- overrides -------------------------------------------------------------------------------------
+#: a C-arm's source-to-detector distance is 900–1200 mm; under this a value in cm is the likely cause
+MIN_PLAUSIBLE_SID_MM = 300.0
 OVERRIDE_KEYS = ("primary_deg", "secondary_deg", "sid_mm", "sod_mm", "pixel_spacing_mm", "principal_point_px")
 # The command-line options of ``cli.add_dicom_arguments`` per key, for the messages saying how to
 # supply a value (named here because ``cli`` imports this module).
@@ -149,6 +151,15 @@ def _frame_angle(run: XARun, keyword: str, increment_keyword: str, frame: int,
     return angle, f"{start_source} of the first frame, {how} from tag {tag_label(increment_keyword)}"
 
 
+def _numbers_or_none(value: Any) -> List[float]:
+    """A spacing tag's finite numbers, or [] when absent or not numbers (named by the missing-spacing message)."""
+    try:
+        numbers = [] if value is None else tag_floats(value)
+    except (TypeError, ValueError):
+        return []
+    return numbers if all(math.isfinite(v) for v in numbers) else []
+
+
 def _tag_pixel_spacing(run: XARun, f: int, sid_over_sod: float, magnification: Any,
                        mag_source: str) -> Tuple[Optional[List[float]], str]:
     """Detector pixel spacing (row, col) from the tags and fallbacks, or (None, "")."""
@@ -156,11 +167,11 @@ def _tag_pixel_spacing(run: XARun, f: int, sid_over_sod: float, magnification: A
     spacing_value = None
     spacing_source = ""
     imager, where = run.lookup("ImagerPixelSpacing", f)
-    if imager is not None and len(tag_floats(imager)) == 2:
+    if len(_numbers_or_none(imager)) == 2:
         spacing_value, spacing_source = tag_floats(imager), run.source("ImagerPixelSpacing", where)
     if spacing_value is None:
         pixel, where = run.lookup("PixelSpacing", f)
-        if pixel is not None and len(tag_floats(pixel)) == 2:
+        if len(_numbers_or_none(pixel)) == 2:
             calibration, _ = run.lookup("PixelSpacingCalibrationType", f)
             if calibration is None:
                 spacing_value = tag_floats(pixel)
@@ -183,8 +194,8 @@ def _tag_pixel_spacing(run: XARun, f: int, sid_over_sod: float, magnification: A
             fov_keyword = "FieldOfViewDimensionsInFloat"
         else:
             fov_keyword = "FieldOfViewDimensions"
-        if fov is not None:
-            dims = tag_floats(fov)
+        dims = _numbers_or_none(fov)
+        if len(dims) in (1, 2):  # a square or round field (one value), or rows × columns; anything else is unusable
             if len(dims) == 2:
                 spacing_value = [dims[0] / rows, dims[1] / cols]
             else:
@@ -193,9 +204,13 @@ def _tag_pixel_spacing(run: XARun, f: int, sid_over_sod: float, magnification: A
                               "(assumes the stored image spans the field of view at the detector)")
     if spacing_value is None:
         size, where = run.lookup("IntensifierSize", f)
+        try:
+            size = None if size is None else tag_number(size)
+        except ValueError:
+            size = None  # named by view_from_dicom's message when no spacing is found
         if size is not None:
-            spacing_value = [float(size) / max(rows, cols)] * 2
-            spacing_source = (f"fallback: {run.source('IntensifierSize', where)} {float(size):g} mm / larger image side "
+            spacing_value = [size / max(rows, cols)] * 2
+            spacing_source = (f"fallback: {run.source('IntensifierSize', where)} {size:g} mm / larger image side "
                               f"{max(rows, cols)} (assumes the image spans the intensifier's field)")
     return spacing_value, spacing_source
 
@@ -205,8 +220,15 @@ def _unmodelled_notes(run: XARun, f: int, primary_deg: float) -> List[str]:
     notes: List[str] = []
     for keyword in ("DetectorPrimaryAngle", "DetectorSecondaryAngle", "FieldOfViewRotation"):
         value, where = run.lookup(keyword, f)
-        if value is not None and float(value) != 0.0:
-            notes.append(f"{run.source(keyword, where)} = {float(value):g}°: not modelled; the geometry assumes 0")
+        if value is None:
+            continue
+        try:
+            angle = tag_number(value)
+        except ValueError as exc:
+            notes.append(f"{run.source(keyword, where)} {exc}: not read; the geometry assumes 0")
+            continue
+        if angle != 0.0:
+            notes.append(f"{run.source(keyword, where)} = {angle:g}°: not modelled; the geometry assumes 0")
     flip, where = run.lookup("FieldOfViewHorizontalFlip", f)
     if flip is not None and str(flip).strip().upper() == "YES":
         notes.append(f"{run.source('FieldOfViewHorizontalFlip', where)} = YES: the image is mirrored; flip it back "
@@ -255,6 +277,20 @@ def view_from_dicom(
     def missing(key: str, what: str, looked: str) -> DicomInputError:
         return DicomInputError(f"{label}: the {what} is missing: {looked}. {_how_to_supply(key, view_number)}")
 
+    def tag_value(key: Optional[str], keyword: str, value: Any, where: Optional[str]) -> Optional[float]:
+        """The tag's one number; one that holds no single number is refused naming the fix, or noted and
+        left out where the user gives ``key`` (or, with ``key`` None, where a fallback only may use it)."""
+        if value is None:
+            return None
+        try:
+            return tag_number(value)
+        except ValueError as exc:
+            problem = f"{run.source(keyword, where)} {exc}"
+        if key is None or key in user:
+            notes.append(f"{problem}: not used")
+            return None
+        raise DicomInputError(f"{label}: {problem}. {_how_to_supply(key, view_number)}")
+
     # Angles (first frame + increments for rotational runs).
     for key, keyword, increment_keyword, what in (
         ("primary_deg", "PositionerPrimaryAngle", "PositionerPrimaryAngleIncrement", "primary angle (LAO +/RAO −)"),
@@ -263,8 +299,9 @@ def view_from_dicom(
         value, where = run.lookup(keyword, f)
         source = run.source(keyword, where)
         angle = None
-        if value is not None:
-            angle, source = _frame_angle(run, keyword, increment_keyword, f, float(value), source)
+        start = tag_value(key, keyword, value, where)
+        if start is not None:
+            angle, source = _frame_angle(run, keyword, increment_keyword, f, start, source)
             if angle != _wrap_angle(angle) and key == "primary_deg":
                 source += f", wrapped from {angle:g}° into [-180, 180]"
                 angle = _wrap_angle(angle)
@@ -283,11 +320,12 @@ def view_from_dicom(
         sod_keyword = "DistanceSourceToIsocenter"
     magnification, mag_where = run.lookup("EstimatedRadiographicMagnificationFactor", f)
     mag_source = run.source("EstimatedRadiographicMagnificationFactor", mag_where)
-    if magnification is not None and not float(magnification) > 0:
-        notes.append(f"{mag_source} = {magnification} is not positive and was ignored")
+    magnification = tag_value(None, "EstimatedRadiographicMagnificationFactor", magnification, mag_where)
+    if magnification is not None and not magnification > 0:
+        notes.append(f"{mag_source} = {magnification:g} is not positive and was ignored")
         magnification = None
-    sid_value = None if sid is None else float(sid)
-    sod_value = None if sod is None else float(sod)
+    sid_value = tag_value("sid_mm", "DistanceSourceToDetector", sid, sid_where)
+    sod_value = tag_value("sod_mm", sod_keyword, sod, sod_where)
     sid_source = run.source("DistanceSourceToDetector", sid_where)
     sod_source = run.source(sod_keyword, sod_where)
     if not from_user("sid_mm", sid_value, sid_source):
@@ -324,9 +362,12 @@ def view_from_dicom(
                                                        magnification, mag_source)
     if not from_user("pixel_spacing_mm", spacing_value, spacing_source):
         if spacing_value is None:
+            keywords = ("ImagerPixelSpacing", "PixelSpacing", "FieldOfViewDimensions", "IntensifierSize")
+            unusable = [f"{tag_label(k)} = {str(run.lookup(k, f)[0]).strip()!r}" for k in keywords
+                        if run.lookup(k, f)[0] is not None]
             raise missing("pixel_spacing_mm", "detector pixel spacing",
-                          f"none of {tag_label('ImagerPixelSpacing')}, {tag_label('PixelSpacing')}, "
-                          f"{tag_label('FieldOfViewDimensions')}, {tag_label('IntensifierSize')} is present "
+                          f"none of {', '.join(tag_label(k) for k in keywords)} gives it"
+                          f"{' (present but not usable: ' + '; '.join(unusable) + ')' if unusable else ' (none is present)'} "
                           "(the spacing is the detector element pitch times the binning; the system's DICOM "
                           "conformance statement gives it)")
         fields["pixel_spacing_mm"] = {"value": [float(v) for v in spacing_value], "source": spacing_source}
@@ -397,11 +438,24 @@ def geometry_from_dicom_runs(
         grid, volume_source = VolumeGrid.from_dict(volume), "user"
     read = [view_from_dicom(run, frame, extra, view_number=n)
             for n, (run, frame, extra) in enumerate(zip(runs, frames, overrides), start=1)]
-    geometry = Geometry(volume=grid, views=tuple(view for view, _ in read))
+    try:
+        geometry = Geometry(volume=grid, views=tuple(view for view, _ in read))
+    except GeometryError as exc:
+        text = str(exc)
+        for n, (_, prov) in enumerate(read):
+            text = text.replace(f"views[{n}]", f"view {n + 1} ({prov.get('file')})")
+        short = [str(n) for n, (view, _) in enumerate(read, start=1) if view.sid_mm < MIN_PLAUSIBLE_SID_MM]
+        if short:
+            text += (f"; the source-to-detector distance of view {', '.join(short)} is under {MIN_PLAUSIBLE_SID_MM:g} mm: "
+                     "DICOM gives distances in mm (was the tag written in cm?)")
+        raise DicomInputError(text) from None
+    from ..consistency import view_separation_warnings  # scipy and scikit-image: not at the command line's start
+
     provenance = {
         "generator": f"SDFCARLib {__version__} dicom.geometry_from_dicom_runs",
         "volume": {"value": grid.to_dict(), "source": volume_source},
         "views": [prov for _, prov in read],
+        "warnings": view_separation_warnings(geometry),
     }
     return geometry, provenance
 

@@ -16,6 +16,8 @@ installs it on demand, the first time a DICOM view is used).
 
 from __future__ import annotations
 
+import math
+
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Dict, List, Optional, Tuple, Union
@@ -79,11 +81,32 @@ def _is_empty(value: Any) -> bool:
         return False
 
 
+def _is_multi_value(value: Any) -> bool:
+    return isinstance(value, (list, tuple)) or type(value).__name__ == "MultiValue"
+
+
 def tag_floats(value: Any) -> List[float]:
     """A numeric attribute's value(s) (one number or a multi-value) as a list of floats."""
-    if isinstance(value, (list, tuple)) or type(value).__name__ == "MultiValue":
+    if _is_multi_value(value):
         return [float(v) for v in value]
     return [float(value)]
+
+
+def tag_number(value: Any) -> float:
+    """A single-valued numeric attribute as a finite float. ValueError, its message what is wrong (to follow the
+    tag's name), for several values, text that is no number, or NaN."""
+    if _is_multi_value(value):
+        if len(value) != 1:
+            shown = "\\".join(str(v) for v in value)
+            raise ValueError(f"holds {len(value)} values ({shown}) where it has one")
+        value = value[0]
+    try:
+        number = float(value)
+    except (TypeError, ValueError):
+        raise ValueError(f"= {str(value).strip()!r} is not a number") from None
+    if not math.isfinite(number):
+        raise ValueError(f"= {str(value).strip()!r} is not a finite number")
+    return number
 
 
 
@@ -170,10 +193,10 @@ def _sop_class_check(ds: Any, path: Path) -> str:
         return sop
     from pydicom.uid import UID
 
-    name = UID(sop).name if sop else "no SOP Class UID"
+    what = f"its SOP class is {UID(sop).name} ({sop})" if sop else "it has no SOP Class UID (0008,0016)"
     modality = str(ds.get("Modality", "") or "?")
     raise DicomInputError(
-        f"{path} is not an X-ray angiography image: its SOP class is {name} ({sop or 'missing'}), modality {modality}. "
+        f"{path} is not an X-ray angiography image: {what}, modality {modality}. "
         "SDFCAR reads X-Ray Angiographic (1.2.840.10008.5.1.4.1.1.12.1), X-Ray Radiofluoroscopic (…12.2) and "
         "Enhanced XA/XRF (…12.1.1, …12.2.1) objects: export the original angiography run from the archive, "
         "or give a PNG/TIFF/NRRD image with the geometry typed in by hand")
@@ -210,9 +233,43 @@ def check_decodable(transfer_syntax: Any, path: PathLike = "") -> None:
 
 def _rescale(run: "XARun") -> Tuple[float, float]:
     """Modality rescale (top level, or the Pixel Value Transformation functional group)."""
-    slope, _ = run.lookup("RescaleSlope")
-    intercept, _ = run.lookup("RescaleIntercept")
-    return (1.0 if slope is None else float(slope), 0.0 if intercept is None else float(intercept))
+    numbers = []
+    for keyword, default in (("RescaleSlope", 1.0), ("RescaleIntercept", 0.0)):
+        value, where = run.lookup(keyword)
+        try:
+            numbers.append(default if value is None else tag_number(value))
+        except ValueError as exc:
+            raise DicomInputError(f"{run.path}: {run.source(keyword, where)} {exc}; the frames' grey levels cannot be "
+                                  "read: export the run again from the system or the archive") from None
+    return numbers[0], numbers[1]
+
+
+def _dataset_without_preamble(path: Path) -> Any:
+    """A dataset written without the 128-byte preamble and file meta (some archives export these); None when
+    the file is no dataset."""
+    import pydicom
+
+    try:
+        ds = pydicom.dcmread(str(path), force=True)
+    except Exception:
+        return None
+    return ds if "SOPClassUID" in ds and "PixelData" in ds else None
+
+
+def _record_transfer_syntax(ds: Any) -> None:
+    """A file meta without a Transfer Syntax UID gets the encoding its reader found, so that its pixels decode."""
+    from pydicom.dataset import FileMetaDataset
+    from pydicom.uid import ExplicitVRBigEndian, ExplicitVRLittleEndian, ImplicitVRLittleEndian
+
+    meta = getattr(ds, "file_meta", None)
+    if meta is not None and "TransferSyntaxUID" in meta:
+        return
+    encoding = getattr(ds, "original_encoding", None)  # pydicom 3; pydicom 2 sets the two flags
+    implicit, little = encoding if encoding and encoding[0] is not None else (ds.is_implicit_VR, ds.is_little_endian)
+    if meta is None:
+        meta = ds.file_meta = FileMetaDataset()
+    meta.TransferSyntaxUID = (ImplicitVRLittleEndian if implicit else
+                              ExplicitVRLittleEndian if little else ExplicitVRBigEndian)
 
 
 def load_xa(path: PathLike) -> XARun:
@@ -221,17 +278,23 @@ def load_xa(path: PathLike) -> XARun:
     from pydicom.errors import InvalidDicomError
 
     path = Path(path)
+    if path.is_dir():
+        raise DicomInputError(f"{path} is a folder; give one run's DICOM file in it (one file per view)")
     if not path.is_file():
         raise DicomInputError(f"DICOM file not found: {path}")
     try:
         ds = pydicom.dcmread(str(path))
     except InvalidDicomError:
-        raise DicomInputError(
-            f"{path} is not a DICOM file (no DICOM header); give the X-ray angiography DICOM file, or read "
-            "PNG/TIFF/NRRD images with the geometry typed in by hand") from None
+        ds = _dataset_without_preamble(path)
+        if ds is None:
+            raise DicomInputError(
+                f"{path} is not a DICOM file (no DICOM header); give the X-ray angiography DICOM file, or read "
+                "PNG/TIFF/NRRD images with the geometry typed in by hand") from None
     except Exception as exc:  # truncated or corrupt files
         raise DicomInputError(f"{path} cannot be read as DICOM: {exc}") from None
     sop = _sop_class_check(ds, path)
+    if "PixelData" in ds:
+        _record_transfer_syntax(ds)
     if "PixelData" not in ds:
         raise DicomInputError(f"{path} has no pixel data (7FE0,0010): it holds no image frames")
     meta = getattr(ds, "file_meta", None)
