@@ -276,6 +276,9 @@ class ParameterNode:
         for callback in list(OBSERVERS):
             callback()
 
+    def GetScene(self):
+        return None  # no MRML scene here: the views' same-scene check is tested against slicer-core (test_mrml_inputs)
+
     def SetParameter(self, name, value):
         if self.parameters.get(name) != str(value):
             self.parameters[name] = str(value)

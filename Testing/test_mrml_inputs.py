@@ -158,3 +158,100 @@ def test_a_frame_node_of_bad_input_is_not_added(scene):
         with pytest.raises(mrml.MRMLBridgeError, match=expected):
             mrml.add_frame_volume_node(scene, frame, "f", pixel_spacing_mm=spacing, class_name=class_name)
     assert node_names(scene) == before
+
+
+# --- results --------------------------------------------------------------------------------------------
+def test_a_result_of_the_wrong_kind_is_refused_and_a_report_of_another_shape_read_as_far_as_it_goes(scene, tmp_path):
+    import json
+
+    from test_mrml import blob_result, small_geometry, snapshot, write_result_files
+
+    geometry = small_geometry()
+    before = snapshot(scene)
+    for values in (np.where(blob_result(geometry).segmentation, 0.9, 0.02), np.where(blob_result(geometry).segmentation,
+                                                                                      1.0, np.nan)):
+        result = blob_result(geometry)
+        result.segmentation = values
+        with pytest.raises(mrml.MRMLBridgeError, match="the mask must be boolean"):
+            mrml.add_reconstruction_to_scene(scene, result, "Probabilities")
+        assert snapshot(scene) == before
+    listed = blob_result(geometry, report=[1, 2])
+    with pytest.raises(mrml.MRMLBridgeError, match="report must be a JSON object, got list"):
+        mrml.add_reconstruction_to_scene(scene, listed, "Listed")
+    assert snapshot(scene) == before
+    # a hand-edited report: the sections of another kind are left out, the rest kept
+    edited = blob_result(geometry, report={"settings": "fast", "final_losses": [0.1], "ensemble_choice": "x",
+                                           "versions": "1.0", "method": "SDF-CAR"})
+    nodes = mrml.add_reconstruction_to_scene(scene, edited, "Edited")
+    provenance = mrml.node_provenance(nodes.segmentation)
+    assert provenance["method"] == "SDF-CAR" and "preset" not in provenance and "finalLoss" not in provenance
+    # report.json in another encoding
+    folder = tmp_path / "result"
+    folder.mkdir()
+    write_result_files(folder, geometry, blob_result(geometry))
+    (folder / "report.json").write_text(json.dumps({"method": "SDF-CAR"}), encoding="utf-16")
+    before = snapshot(scene)
+    with pytest.raises(mrml.MRMLBridgeError, match="cannot read the report"):
+        mrml.add_reconstruction_to_scene(scene, folder, "UTF-16")
+    assert snapshot(scene) == before
+
+
+def test_a_result_file_whose_first_segment_was_emptied_shows_the_segment_with_voxels(scene, tmp_path):
+    from test_mrml import blob_result, small_geometry, write_result_files
+
+    geometry = small_geometry()
+    result = blob_result(geometry)
+    folder = tmp_path / "result"
+    folder.mkdir()
+    seg_path, _, _ = write_result_files(folder, geometry, result)
+    edit = mrml.new_scene()
+    seg = mrml.add_reconstruction_to_scene(edit, folder, "edit").segmentation
+    seg.GetSegmentation().AddEmptySegment("notes", "notes", [0.0, 1.0, 0.0])
+    segmentation = seg.GetSegmentation()
+    first = segmentation.GetNthSegmentID(0)
+    # the tree moved to a second segment, the first left empty (as a user's edit in Slicer may leave it)
+    copied = segmentation.GetNthSegmentID(1)
+    labelmap = mrml.results._oriented_labelmap(result.segmentation, geometry.volume)
+    assert slicer.vtkSlicerSegmentationsModuleLogic.SetBinaryLabelmapToSegment(
+        labelmap, seg, copied, slicer.vtkSlicerSegmentationsModuleLogic.MODE_REPLACE)
+    empty = mrml.results._oriented_labelmap(np.zeros(geometry.volume.shape, bool), geometry.volume)
+    assert slicer.vtkSlicerSegmentationsModuleLogic.SetBinaryLabelmapToSegment(
+        empty, seg, first, slicer.vtkSlicerSegmentationsModuleLogic.MODE_REPLACE)
+    storage = slicer.vtkMRMLSegmentationStorageNode()
+    storage.SetFileName(str(seg_path))
+    assert storage.WriteData(seg)
+    nodes = mrml.add_reconstruction_to_scene(scene, folder, "Edited")
+    assert nodes.segment_id == copied
+    np.testing.assert_array_equal(mrml.segmentation_mask_lps(nodes.segmentation, geometry.volume, nodes.segment_id),
+                                  result.segmentation)
+
+
+def test_result_sources_and_c_arm_options_of_the_wrong_kind_are_named(scene, tmp_path):
+    from test_mrml import small_geometry, snapshot
+
+    before = snapshot(scene)
+    a_file = tmp_path / "segmentation.seg.nrrd"
+    a_file.write_text("x")
+    with pytest.raises(mrml.MRMLBridgeError, match="is a file; give the reconstruction's output folder"):
+        mrml.add_reconstruction_to_scene(scene, a_file, "x")
+    with pytest.raises(mrml.MRMLBridgeError, match="unknown result file key.*occupnacy"):
+        mrml.add_reconstruction_to_scene(scene, {"segmentation": a_file, "occupnacy": a_file}, "x")
+    with pytest.raises(mrml.MRMLBridgeError, match="no result given"):
+        mrml.add_reconstruction_to_scene(scene, None, "x")
+    geometry = small_geometry()
+    for points in (0, 1, 2.5, True):
+        with pytest.raises(mrml.MRMLBridgeError, match="max_points_per_side must be a whole number of 2 or more"):
+            mrml.add_carm_geometry_to_scene(scene, geometry, max_points_per_side=points)
+    frame = np.zeros((64, 80), np.float32)
+    frame[3, 4] = np.nan
+    with pytest.raises(mrml.MRMLBridgeError, match="1 NaN or infinite pixels"):
+        mrml.add_carm_geometry_to_scene(scene, geometry, images=[frame, None], image_display="texture")
+    seg = scene.AddNewNodeByClass("vtkMRMLSegmentationNode", "not an image")
+    before_seg = snapshot(scene)
+    with pytest.raises(mrml.MRMLBridgeError, match="the image of view 1 is a vtkMRMLSegmentationNode"):
+        mrml.add_carm_geometry_to_scene(scene, geometry, images=[seg, None])
+    assert snapshot(scene) == before_seg
+    scene.RemoveNode(seg)
+    assert snapshot(scene) == before
+    with pytest.raises(mrml.MRMLBridgeError, match="grey levels were said to be 'linear'"):
+        mrml.say_frame_intensity(mrml.add_frame_volume_node(scene, np.ones((4, 4)), "f"), "linear")

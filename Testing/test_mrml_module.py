@@ -78,8 +78,19 @@ def test_values_are_checked_like_the_wrapper_fields(scene):
         pv.set_view_value(node, 3, "angle", 1.0)
     outside = slicer.vtkMRMLScalarVolumeNode()
     outside.SetName("not added")
-    with pytest.raises(mrml.MRMLBridgeError, match="not in the scene"):
+    with pytest.raises(mrml.MRMLBridgeError, match="not in the parameter node.s scene"):
         pv.set_view_value(node, 3, "frame", outside)
+    # a node of another scene has an ID that names another node here
+    other_scene = mrml.new_scene()
+    foreign = _frame(other_scene, "foreign")
+    with pytest.raises(mrml.MRMLBridgeError, match="'foreign' is not in the parameter node.s scene"):
+        pv.set_view_value(node, 3, "frame", foreign)
+    # numpy's numbers are numbers (a value read off an array), a view number is whole
+    pv.set_view_value(node, 3, "frameIndex", np.int64(2))
+    pv.set_view_value(node, 3, "sid", np.float32(1100.0))
+    assert pv.get_view(node, 3).frameIndex == 2 and pv.get_view(node, 3).sid == 1100.0
+    with pytest.raises(mrml.MRMLBridgeError, match="a view number is a whole number"):
+        pv.get_view(node, 3.7)
     # A failed add leaves the node as it was.
     before = pv.view_count(node)
     with pytest.raises(mrml.MRMLBridgeError):

@@ -78,6 +78,9 @@ def detector_image_polydata(view: CArmView, image: Optional[np.ndarray] = None, 
     image = np.asarray(image, dtype=np.float32)
     if image.shape != (rows, cols):
         raise MRMLBridgeError(f"image shape {image.shape} differs from the detector shape {(rows, cols)} of the view")
+    if not np.all(np.isfinite(image)):
+        raise MRMLBridgeError(f"the image of view {view.describe()} has {int(np.count_nonzero(~np.isfinite(image)))} NaN or "
+                              "infinite pixels; give the frame or mask with a number in every pixel")
     factor = max(1, int(math.ceil(max(rows, cols) / float(max_points_per_side))))
     pooled = _pooled(image, factor)
     n_r, n_c = pooled.shape
@@ -149,6 +152,9 @@ def add_carm_geometry_to_scene(
     """
     if image_display not in ("scalars", "texture"):
         raise MRMLBridgeError(f"image_display must be 'scalars' or 'texture', got {image_display!r}")
+    if isinstance(max_points_per_side, bool) or not isinstance(max_points_per_side, int) or max_points_per_side < 2:
+        raise MRMLBridgeError(f"max_points_per_side must be a whole number of 2 or more (points along a detector "
+                              f"side), got {max_points_per_side!r}")
     views = list(geometry.views)
     images = list(images) if images is not None else [None] * len(views)
     if len(images) != len(views):
@@ -166,6 +172,9 @@ def add_carm_geometry_to_scene(
             array = None
             texture_connection = None
             if image is not None:
+                if not hasattr(image, "GetImageData") and hasattr(image, "GetClassName"):
+                    raise MRMLBridgeError(f"the image of view {n} is a {image.GetClassName()}; give the frame's volume node "
+                                          "or a 2D array (None for none)")
                 if hasattr(image, "GetImageData"):
                     array = frame_from_volume_node(image)
                     texture_connection = image.GetImageDataConnection() if hasattr(image, "GetImageDataConnection") else None

@@ -362,14 +362,14 @@ def _intensity_value_problem(node, value) -> str:
 
 def frame_intensity_said(node) -> Optional[str]:
     """What the user said of a frame node's grey levels: one of ``FRAME_INTENSITY_VALUES``, or None where
-    nothing was said. Any other value is refused (ValueError naming the fix): a typo must not silently
+    nothing was said. Any other value is refused (MRMLBridgeError, a ValueError, naming the fix): a typo must not silently
     fall back to the file's tags."""
     said = node.GetAttribute(FRAME_INTENSITY_ATTRIBUTE) if node is not None else None
     if not said:
         return None
     value = said.strip().upper()
     if value not in FRAME_INTENSITY_VALUES:
-        raise ValueError(_intensity_value_problem(node, said))
+        raise MRMLBridgeError(_intensity_value_problem(node, said))
     return value
 
 
@@ -383,5 +383,5 @@ def say_frame_intensity(node, relationship: Optional[str]) -> None:
         node.RemoveAttribute(FRAME_INTENSITY_ATTRIBUTE)
         return
     if value not in FRAME_INTENSITY_VALUES:
-        raise ValueError(_intensity_value_problem(node, relationship))
+        raise MRMLBridgeError(_intensity_value_problem(node, relationship))
     node.SetAttribute(FRAME_INTENSITY_ATTRIBUTE, value)

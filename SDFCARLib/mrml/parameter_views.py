@@ -25,8 +25,11 @@ node, on slicer-core's and on a test double alike.
 
 from __future__ import annotations
 
+import numbers
 from dataclasses import dataclass
 from typing import Any, Dict, Mapping, Optional, Tuple
+
+import numpy as np
 
 from .scene import MRMLBridgeError
 
@@ -99,6 +102,8 @@ def view_count(node) -> int:
 
 
 def _check_stored(node, view_number: int) -> int:
+    if isinstance(view_number, bool) or not isinstance(view_number, numbers.Integral):
+        raise MRMLBridgeError(f"a view number is a whole number (3, 4, …), got {view_number!r}")
     n = int(view_number)
     if n < FIRST_STORED_VIEW:
         raise MRMLBridgeError(f"view {n} is one of the module's first two views, which the parameter node wrapper "
@@ -111,7 +116,7 @@ def _check_stored(node, view_number: int) -> int:
 
 def _check_value(field: str, value: Any, view_number: int) -> Any:
     kind, low, high, _ = VIEW_VALUE_FIELDS[field]
-    if isinstance(value, bool) or not isinstance(value, (int, float)):
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, numbers.Real):  # numpy's numbers are Real
         raise MRMLBridgeError(f"view {view_number}: {field} must be a number, got {value!r}")
     if kind is int:
         if int(value) != value:
@@ -126,15 +131,16 @@ def _check_value(field: str, value: Any, view_number: int) -> Any:
     return value
 
 
-def _check_node(field: str, value: Any, view_number: int) -> Any:
+def _check_node(field: str, value: Any, view_number: int, scene=None) -> Any:
     if value is None:
         return None
     classes = VIEW_NODE_FIELDS[field]
     if not hasattr(value, "IsA") or not any(value.IsA(c) for c in classes):
         got = value.GetClassName() if hasattr(value, "GetClassName") else type(value).__name__
         raise MRMLBridgeError(f"view {view_number}: the {field} must be a {' or a '.join(classes)}, got a {got}")
-    if value.GetID() is None:
-        raise MRMLBridgeError(f"view {view_number}: the {field} node {value.GetName()!r} is not in the scene; add it first")
+    if value.GetID() is None or (scene is not None and value.GetScene() is not scene):
+        raise MRMLBridgeError(f"view {view_number}: the {field} node {value.GetName()!r} is not in the parameter node's "
+                              "scene; add it to that scene first")
     return value
 
 
@@ -185,7 +191,7 @@ def set_view_value(node, view_number: int, field: str, value: Any) -> None:
     """Set one field of stored view ``view_number`` (checked as the wrapper checks views 1 and 2)."""
     n = _check_stored(node, view_number)
     parameter_name(field, n)  # names the fields when ``field`` is unknown
-    value = _check_node(field, value, n) if field in VIEW_NODE_FIELDS else _check_value(field, value, n)
+    value = _check_node(field, value, n, node.GetScene()) if field in VIEW_NODE_FIELDS else _check_value(field, value, n)
     _write(node, n, field, value)
 
 
@@ -200,7 +206,8 @@ def add_view(node, values: Optional[Mapping[str, Any]] = None) -> int:
         raise MRMLBridgeError(f"a view has no field {', '.join(unknown)}; the fields are {', '.join(VIEW_FIELDS)}")
     record = ViewParameters().values()
     record.update(values or {})
-    checked = {f: (_check_node(f, v, n) if f in VIEW_NODE_FIELDS else _check_value(f, v, n)) for f, v in record.items()}
+    checked = {f: (_check_node(f, v, n, node.GetScene()) if f in VIEW_NODE_FIELDS else _check_value(f, v, n))
+               for f, v in record.items()}
     modified = node.StartModify()
     try:
         for field, value in checked.items():

@@ -65,6 +65,12 @@ def add_segmentation_node(scene, mask_ijk: np.ndarray, grid: VolumeGrid, name: s
     mask_ijk = np.asarray(mask_ijk)
     if mask_ijk.shape != tuple(grid.shape):
         raise MRMLBridgeError(f"segmentation {name!r}: mask shape {mask_ijk.shape} differs from the grid shape {tuple(grid.shape)}")
+    if mask_ijk.dtype != bool:
+        values = np.unique(mask_ijk) if np.issubdtype(mask_ijk.dtype, np.number) else np.array([np.nan])
+        if not (np.all(np.isfinite(values)) and np.isin(values, (0, 1)).all()):
+            shown = ", ".join(f"{v:g}" for v in values[:5].astype(float)) + (", …" if values.size > 5 else "")
+            raise MRMLBridgeError(f"segmentation {name!r}: the mask must be boolean (or 0 and 1), got values {shown}; "
+                                  "threshold an occupancy first (e.g. occupancy >= 0.5)")
     if not mask_ijk.any():
         raise MRMLBridgeError(
             f"segmentation {name!r}: the mask has no voxel, there is nothing to show; "
@@ -131,10 +137,19 @@ class ResultNodes:
 
 def _result_files(source: Union[PathLike, Mapping[str, PathLike]]) -> Dict[str, Path]:
     if isinstance(source, Mapping):
+        # the files a result folder holds (``write_reconstruction``'s keys, the QA overlays among them): a typo is named
+        unknown = sorted(str(k) for k in source if k not in RESULT_FILES and not str(k).startswith("qa_view"))
+        if unknown:
+            raise MRMLBridgeError(f"unknown result file key(s) {', '.join(unknown)}; the keys are {', '.join(_RESULT_KEYS)}")
         files = {k: Path(v) for k, v in source.items() if v is not None and k in _RESULT_KEYS}
         base = None
     else:
+        if source is None:
+            raise MRMLBridgeError("no result given; give a Reconstruction, a result folder or a mapping of its files")
         base = Path(source)
+        if base.is_file():
+            raise MRMLBridgeError(f"{base} is a file; give the reconstruction's output folder (the one holding "
+                                  f"{RESULT_FILES['segmentation']})")
         if not base.is_dir():
             raise MRMLBridgeError(f"result folder {base} does not exist; give the output folder of a reconstruction")
         files = {k: base / RESULT_FILES[k] for k in _RESULT_KEYS if (base / RESULT_FILES[k]).exists()}
@@ -184,7 +199,7 @@ def add_reconstruction_to_scene(
     with scene_transaction(scene):
         if hasattr(result, "segmentation") and hasattr(result, "geometry"):
             nodes = _add_result_arrays(scene, result, name, include_occupancy, surface_from)
-            report = dict(getattr(result, "report", {}) or {})
+            report = getattr(result, "report", None) or {}
         else:
             nodes, report = _add_result_files(scene, _result_files(result), name, include_occupancy, surface_from)
         provenance = provenance_attributes(report)
@@ -201,7 +216,7 @@ def _add_result_arrays(scene, result, name: str, include_occupancy: bool, surfac
     if surface_from == "file":
         raise MRMLBridgeError("surface_from='file' needs result files; a Reconstruction object has no surface file")
     grid = result.geometry.volume
-    segmentation = add_segmentation_node(scene, np.asarray(result.segmentation, dtype=bool), grid, name)
+    segmentation = add_segmentation_node(scene, result.segmentation, grid, name)
     segment_id = _segment_ids(segmentation)[0]
     model = add_model_node(scene, segmentation_surface(segmentation, segment_id), f"{name} surface")
     occupancy = None
@@ -215,7 +230,7 @@ def _add_result_files(scene, files: Dict[str, Path], name: str, include_occupanc
     if "report" in files:
         try:
             report = json.loads(files["report"].read_text(encoding="utf-8"))
-        except (OSError, json.JSONDecodeError) as exc:
+        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
             raise MRMLBridgeError(f"cannot read the report {files['report']}: {exc}") from exc
     segmentation = scene.AddNewNodeByClass("vtkMRMLSegmentationNode", name)
     _read_into(scene, segmentation, "vtkMRMLSegmentationStorageNode", files["segmentation"], "segmentation")
@@ -223,7 +238,8 @@ def _add_result_files(scene, files: Dict[str, Path], name: str, include_occupanc
     ids = _segment_ids(segmentation)
     if not ids:
         raise MRMLBridgeError(f"the segmentation file {files['segmentation']} holds no segment")
-    segment_id = ids[0]
+    # a segment added or emptied by hand in Slicer: the result is the first segment with voxels
+    segment_id = next((i for i in ids if _segment_labelmap(segmentation, i)[0].any()), ids[0])
     if not _segment_labelmap(segmentation, segment_id)[0].any():
         raise MRMLBridgeError(
             f"the segmentation {files['segmentation']} has no voxel, there is nothing to show; "

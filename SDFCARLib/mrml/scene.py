@@ -215,15 +215,25 @@ def _attribute_text(value: Any) -> str:
 
 
 def provenance_attributes(report: Mapping[str, Any]) -> Dict[str, str]:
-    """``SDFCAR.*`` node attributes from a reconstruction report (``Reconstruction.report``/report.json)."""
-    settings = report.get("settings", {}) or {}
-    losses = report.get("final_losses", {}) or {}
+    """``SDFCAR.*`` node attributes from a reconstruction report (``Reconstruction.report``/report.json).
+
+    A section of another kind than SDFCAR writes (a hand-edited or older report) is left out, not failed on."""
+    if not isinstance(report, Mapping):
+        raise MRMLBridgeError(f"the reconstruction report must be a JSON object, got {type(report).__name__}; give the "
+                              "report.json SDFCAR wrote")
+
+    def section(key: str) -> Mapping[str, Any]:
+        value = report.get(key)
+        return value if isinstance(value, Mapping) else {}
+
+    settings = section("settings")
+    losses = section("final_losses")
     out: Dict[str, Any] = {
         "preset": settings.get("preset"),
         "mode": settings.get("mode"),
         "seed": report.get("seed", settings.get("seed")),
         # of an ensemble kept whole (ensemble_combine "best_reprojection"): the seed of the fit that was kept
-        "keptFitSeed": (report.get("ensemble_choice") or {}).get("chosen_seed"),
+        "keptFitSeed": section("ensemble_choice").get("chosen_seed"),
         "steps": settings.get("steps"),
         "threshold": settings.get("threshold"),
         "method": report.get("method"),
@@ -235,7 +245,7 @@ def provenance_attributes(report: Mapping[str, Any]) -> Dict[str, str]:
         "reprojectionDice": report.get("reprojection_dice"),
         "segmentedVoxels": report.get("segmented_voxels"),
         "versions": report.get("versions"),
-        "sdfcarVersion": (report.get("versions") or {}).get("sdfcar"),
+        "sdfcarVersion": section("versions").get("sdfcar"),
         "geometryDigest": report.get("geometry_digest"),
         "geometry": report.get("geometry"),
         "settings": settings or None,
