@@ -102,6 +102,18 @@ def test_sample_case_asks_for_its_dependencies(sdfcar, monkeypatch):
     assert sdfcar.recorder.pipInstalls == []
 
 
+def test_declining_the_sample_cases_install_from_the_console_asks_once(sdfcar, monkeypatch):
+    """SampleData.downloadSample retries a load that returned False up to three times, at once."""
+    asked = []
+    monkeypatch.setattr(sdfcar, "loadSampleCaseAsking", lambda: asked.append(1) or [])
+    monkeypatch.setattr(sdfcar.SDFCARFileReader, "refusedAt", None)
+    reader = sdfcar.SDFCARFileReader(parent=None)
+    assert [reader.load({}) for _ in range(3)] == [False, False, False]
+    assert asked == [1]
+    monkeypatch.setattr(sdfcar.SDFCARFileReader, "refusedAt", sdfcar.time.monotonic() - 10.0)  # a later, new request
+    assert reader.load({}) is False and asked == [1, 1]
+
+
 def test_self_test_skips_without_dependencies(sdfcar, monkeypatch):
     """The py_SDFCAR ctest on a build machine without torch: skipped, not failed."""
     monkeypatch.setitem(sdfcar.REQUIREMENTS, "sdfcar_absent_module", "sdfcar-absent-package")
@@ -576,7 +588,7 @@ def test_finished_reconstruction_selects_its_result_and_analyses_it(sdfcar, tmp_
     analysis = _FinishedJob({"folder": str(tmp_path / "result" / "analysis")})
     analysis.state = "running"
     monkeypatch.setattr(sdfcar.SDFCARLogic, "startAnalysis", staticmethod(
-        lambda node, *a, **k: analysed.append(node) or (analysis, {"name": node.GetName(), "resultNodeID": node.GetID()})))
+        lambda node, *a, **k: analysed.append(node) or (analysis, {"name": node.GetName(), "resultNode": node})))
     loaded = []
     monkeypatch.setattr(sdfcar.SDFCARLogic, "addAnalysis", lambda self, files, context: loaded.append(files))
     widget._job = _FinishedJob({"report": str(tmp_path / "result" / "report.json")})
@@ -588,3 +600,68 @@ def test_finished_reconstruction_selects_its_result_and_analyses_it(sdfcar, tmp_
     widget.onPollJob()
     assert loaded and widget._analysisJob is None and widget.ui.analyseButton.enabled
     assert "3D-QCA of 'Tree' done" in widget.ui.statusLabel.text
+
+
+def test_results_that_cannot_be_loaded_are_said_and_the_reports_warnings_still_shown(sdfcar, tmp_path, monkeypatch):
+    """The error wrapper re-raises: the failure must not leave the timer's slot as a traceback before the
+    report's warnings (which often say why) are shown."""
+    import json
+
+    widget = _widget(sdfcar)
+    widget.initializeParameterNode()
+    report = tmp_path / "report.json"
+    report.write_text(json.dumps({"warnings": ["view 1: the mask covers 0.001 % of the image"]}))
+
+    def failing(self, files, context):
+        raise ValueError("the segmentation has no voxel")
+
+    monkeypatch.setattr(sdfcar.SDFCARLogic, "addResults", failing)
+    widget._job = _FinishedJob({"report": str(report)})
+    widget._jobContext = {"name": "Tree", "jobDir": str(tmp_path), "analyse": True}
+    widget.onPollJob()  # no exception leaves the slot
+    assert "could not be loaded" in sdfcar.recorder.errors[-1] and "no voxel" in sdfcar.recorder.errors[-1]
+    assert "covers 0.001 %" in sdfcar.recorder.warnings[-1]
+    assert "could not be loaded" in widget.ui.statusLabel.text and widget._analysisJob is None
+
+
+def test_an_analysis_running_is_not_replaced_by_the_next_results_analysis(sdfcar, tmp_path, monkeypatch):
+    widget = _widget(sdfcar)
+    widget.initializeParameterNode()
+    result = _result_node(tmp_path)
+    monkeypatch.setattr(sdfcar.SDFCARLogic, "addResults", lambda self, files, context:
+                        types.SimpleNamespace(segmentation=result))
+    started = []
+    monkeypatch.setattr(sdfcar.SDFCARLogic, "startAnalysis", staticmethod(lambda node, *a, **k: started.append(node)))
+    running = _FinishedJob({})
+    running.state = "running"
+    widget._analysisJob, widget._analysisContext = running, {"name": "earlier"}
+    widget._job = _FinishedJob({"report": str(tmp_path / "result" / "report.json")})
+    widget._jobContext = {"name": "Tree", "jobDir": str(tmp_path), "analyse": True}
+    widget.onPollJob()
+    assert started == [] and widget._analysisJob is running
+    assert "Another analysis is running" in widget.ui.statusLabel.text
+
+
+def test_the_c_arm_sources_are_no_segment_to_measure(sdfcar):
+    sources = _node("vtkMRMLMarkupsFiducialNode", "C-arm sources")
+    sources.SetAttribute("SDFCAR.role", "carm-sources")  # as SDFCARLib.mrml.add_carm_geometry_to_scene marks it
+    with pytest.raises(ValueError, match="holds the C-arm's X-ray sources"):
+        sdfcar.SDFCARLogic.segmentFromPoints(sources)
+
+
+def test_reading_the_geometry_from_dicom_changes_no_view_when_one_fails(sdfcar, monkeypatch):
+    from SDFCARLib import dicom, mrml
+    from SDFCARLib.geometry import CArmView
+
+    uids = iter(["1.2.3.1", "1.2.3.2"])
+    monkeypatch.setattr(mrml, "dicom_frame_reference", lambda scene, node, index: (next(uids), None))
+    monkeypatch.setattr(sys.modules["slicer"], "dicomDatabase", types.SimpleNamespace(
+        fileForInstance=lambda uid: "/data/run1.dcm" if uid == "1.2.3.1" else ""), raising=False)
+    monkeypatch.setattr(dicom, "view_from_dicom", lambda path, frame=None, view_number=None: (
+        CArmView(44.0, -11.0, 1111.0, 777.0, (0.2, 0.2), (512, 512)), {"notes": []}))
+    logic = sdfcar.SDFCARLogic()
+    p = logic.getParameterNode()
+    before = [logic.viewValue(p, 1, field) for field in sdfcar.GEOMETRY_VIEW_FIELDS]
+    with pytest.raises(ValueError, match="frame 2 was not loaded from the DICOM database"):
+        logic.readGeometryFromDicom(p)
+    assert [logic.viewValue(p, 1, field) for field in sdfcar.GEOMETRY_VIEW_FIELDS] == before  # view 1 as it was

@@ -200,6 +200,20 @@ def test_node_selectors_get_the_scene():
     assert selectors and selectors <= receivers, f"node selectors without the scene: {sorted(selectors - receivers)}"
 
 
+def test_frame_selectors_list_colour_frames_but_no_labelmaps():
+    """An RGB export of a frame loads as a vector volume, a child class of the scalar volume (Slicer's
+    vtkSlicerVolumesLogic tries the vector reader first): the frame selectors show child classes but labelmaps and
+    diffusion volumes, in the .ui (views 1 and 2) as in the Python-built rows (views 3, …)."""
+    hidden = ast.literal_eval(re.search(r"^FRAME_HIDDEN_NODE_TYPES = (\[.*\])$", source(SCRIPT), re.M).group(1))
+    assert "vtkMRMLLabelMapVolumeNode" in hidden
+    widgets = ui_widgets()
+    for name in ("frame1Selector", "frame2Selector"):
+        properties = {p.get("name"): p for p in widgets[name][2].findall("property")}
+        assert properties["showChildNodeTypes"].find("bool").text == "true", name
+        assert [s.text for s in properties["hideChildNodeTypes"].iter("string")] == hidden, name
+    assert "FRAME_HIDDEN_NODE_TYPES)" in source(SCRIPT)  # the Python-built frame selector gets the same list
+
+
 def test_widget_names_are_unique_and_custom_widgets_declared():
     root = ET.parse(UI).getroot()
     names = [w.get("name") for w in root.iter("widget")]
@@ -401,13 +415,14 @@ VERIFIED_MODULE_NAMES = {
     "slicer.mrmlScene.EndCloseEvent": "vtkMRMLScene::SceneEventType",
     "slicer.mrmlScene.StartCloseEvent": "vtkMRMLScene::SceneEventType",
     "slicer.mrmlScene.GetFirstNodeByName": "vtkMRMLScene",
-    "slicer.mrmlScene.GetNodeByID": "vtkMRMLScene",
+    "slicer.mrmlScene.IsNodePresent": "vtkMRMLScene (vtkCollection::IsItemPresent: 1-based position, 0 when absent)",
     "slicer.mrmlScene.RemoveNode": "vtkMRMLScene",
     "slicer.qMRMLNodeComboBox": "Libs/MRML/Widgets/qMRMLNodeComboBox.h; created from Python in "
                                 "Modules/Scripted/CropVolumeSequence/CropVolumeSequence.py at every tag",
     "slicer.util": "Base/Python/slicer/util.py",
     "slicer.util.childWidgetVariables": "util.py", "slicer.util.confirmOkCancelDisplay": "util.py",
     "slicer.util.errorDisplay": "util.py", "slicer.util.warningDisplay": "util.py",
+    "slicer.util.infoDisplay": "Base/Python/slicer/util.py (text, windowTitle=…) at every tag",
     "slicer.util.getModuleWidget": "util.py", "slicer.util.getModuleWidget().editor": "Segment Editor widget",
     "slicer.util.getNodesByClass": "util.py", "slicer.util.loadUI": "util.py", "slicer.util.pip_install": "util.py",
     "slicer.util.selectModule": "util.py", "slicer.util.setSliceViewerLayers": "util.py (fit= at every tag)",
@@ -423,7 +438,8 @@ VERIFIED_MRML_METHODS = {
     "AddEmptySegment": "vtkSegmentation", "AddNewNodeByClass": "vtkMRMLScene", "Clear": "vtkMRMLScene",
     "CreateDefaultDisplayNodes": "vtkMRMLDisplayableNode", "GetAttribute": "vtkMRMLNode", "SetAttribute": "vtkMRMLNode",
     "GetDisplayNode": "vtkMRMLDisplayableNode", "GetFirstNodeByName": "vtkMRMLScene", "GetID": "vtkMRMLNode",
-    "GetName": "vtkMRMLNode", "GetNodeByID": "vtkMRMLScene", "GetSegmentation": "vtkMRMLSegmentationNode",
+    "GetName": "vtkMRMLNode", "GetSegmentation": "vtkMRMLSegmentationNode",
+    "IsNodePresent": "vtkMRMLScene (int IsNodePresent(vtkMRMLNode*) at every tag)",
     "IsA": "vtkObject", "RemoveNode": "vtkMRMLScene", "SetVisibility": "vtkMRMLDisplayNode",
     "SetReferenceImageGeometryParameterFromVolumeNode": "vtkMRMLSegmentationNode",
     "SetSelectedItemNumber": "vtkMRMLSequenceBrowserNode",
@@ -448,7 +464,7 @@ VERIFIED_WIDGET_METHODS = {
 # Properties set on widgets the module builds in Python (Qt properties, or qMRMLNodeComboBox's Q_PROPERTYs).
 VERIFIED_WIDGET_PROPERTIES = {
     "specialValueText", "toolTip", "decimals", "singleStep", "suffix", "value", "enabled", "maximum", "text",
-    "nodeTypes", "showChildNodeTypes", "noneEnabled", "addEnabled", "removeEnabled", "renameEnabled",
+    "nodeTypes", "showChildNodeTypes", "hideChildNodeTypes", "noneEnabled", "addEnabled", "removeEnabled", "renameEnabled",
     "currentIndex",  # QComboBox (DICOM.py, DICOMScalarVolumePlugin.py set it at every tag)
 }
 VERIFIED_SIGNALS = {"clicked(bool)", "currentNodeChanged(vtkMRMLNode*)", "valueChanged(int)", "valueChanged(double)",
