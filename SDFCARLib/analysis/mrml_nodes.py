@@ -60,19 +60,43 @@ QCA_TABLE_COLUMNS = ("branch", "parent", "length_mm", "mean_diameter_mm", "mld_m
 FRAME_COLUMNS = ("diameter_frames_mm", "diameter_frames_density_mm")
 
 
+#: the profile columns every ``analyse`` writes, and the ones that place the curve (finite in every row)
+PROFILE_COLUMNS = ("arc_mm", "diameter_3d_mm", "diameter_masks_mm", "reference_mm", "excluded", "x_mm", "y_mm", "z_mm")
+_PLACING_COLUMNS = ("arc_mm", "x_mm", "y_mm", "z_mm")
+
+
 def _read_profile(path: Path) -> Dict[str, np.ndarray]:
-    with open(path, newline="", encoding="utf-8") as f:
-        rows = list(csv.DictReader(f))
+    if not path.is_file():
+        raise FileNotFoundError(f"{path} not found: the analysis folder is incomplete; re-run analyse")
+    with open(path, newline="", encoding="utf-8-sig") as f:
+        reader = csv.DictReader(f)
+        rows = list(reader)
+        header = reader.fieldnames or []
     if not rows:
         raise ValueError(f"{path} holds no profile rows; re-run analyse")
+    missing = [k for k in PROFILE_COLUMNS if k not in header and k != "excluded"]  # older files had no "excluded"
+    if missing:
+        raise ValueError(f"{path} lacks the column(s) {', '.join(missing)}: it is not a profile analyse wrote; re-run analyse")
 
     def col(name):
-        return np.array([float(r[name]) if r.get(name) not in (None, "") else np.nan for r in rows])
+        values = []
+        for n, r in enumerate(rows, start=2):  # line 1 is the header
+            text = r.get(name)
+            try:
+                values.append(float(text) if text not in (None, "") else np.nan)
+            except ValueError:
+                raise ValueError(f"{path}, line {n}: {name} = {text!r} is not a number; re-run analyse") from None
+        return np.array(values)
 
     # The frame columns exist only where analyse was given the frames.
-    keys = ["arc_mm", "diameter_3d_mm", "diameter_masks_mm", "reference_mm", "x_mm", "y_mm", "z_mm"]
-    keys += [k for k in FRAME_COLUMNS if k in rows[0]]
-    return {k: col(k) for k in keys}
+    keys = [k for k in PROFILE_COLUMNS if k in header] + [k for k in FRAME_COLUMNS if k in header]
+    profile = {k: col(k) for k in keys}
+    for k in _PLACING_COLUMNS:
+        if not np.all(np.isfinite(profile[k])):
+            line = int(np.flatnonzero(~np.isfinite(profile[k]))[0]) + 2
+            raise ValueError(f"{path}, line {line}: {k} is missing (a cut or edited file); re-run analyse")
+    profile["excluded"] = profile.get("excluded", np.zeros(len(rows))) > 0
+    return profile
 
 
 def _double_array(name: str, values: Sequence[float]):
@@ -100,7 +124,9 @@ def _add_curve(scene, name: str, profile: Dict[str, np.ndarray], point_step_mm: 
     node.SetCurveTypeToLinear()
     for p in ras:
         node.AddControlPoint(float(p[0]), float(p[1]), float(p[2]))
-    diameter = np.nan_to_num(profile["diameter_3d_mm"][take], nan=0.0)
+    # A section not measured, or a junction's or an end's (excluded from the lesion search: another vessel's lumen or
+    # a cut end), shows no diameter rather than a number that reads as the vessel's.
+    diameter = np.where(profile["excluded"][take], np.nan, profile["diameter_3d_mm"][take])
     for measure, values in (("Diameter", diameter), ("Radius", diameter / 2)):
         m = slicer.vtkMRMLStaticMeasurement()
         m.SetName(measure)
@@ -134,17 +160,101 @@ def _add_table(scene, name: str, columns: Dict[str, Sequence[Any]]):
     return node
 
 
-def add_analysis_nodes(scene, analysis_dir: PathLike, name: str = "SDFCAR", point_step_mm: float = 2.0) -> Dict[str, Any]:
-    """Add the QCA nodes of an ``analyse`` output folder to ``scene`` (module docstring); return them."""
-    slicer = _slicer_module()
-    folder = Path(analysis_dir)
+def _finite_or_least(value: Any) -> float:
+    return float(value) if isinstance(value, (int, float)) and math.isfinite(value) else -math.inf
+
+
+def analysis_folder(path: PathLike) -> Path:
+    """The folder ``analyse`` wrote, from itself, its analysis.json, or the result folder holding it (``analysis/``)."""
+    folder = Path(path).absolute()
+    if folder.name == "analysis.json" and folder.is_file():
+        folder = folder.parent
     if not (folder / "analysis.json").is_file() and (folder / "analysis" / "analysis.json").is_file():
         folder = folder / "analysis"  # the result folder given: analyse writes into its analysis/ by default
+    if not (folder / "analysis.json").is_file():
+        raise FileNotFoundError(f"{folder / 'analysis.json'} not found: run `python -m SDFCARLib analyse RESULT_DIR` first")
+    return folder
+
+
+def _read_json(path: Path) -> Any:
+    try:
+        return json.loads(path.read_text(encoding="utf-8-sig"))  # -sig: a file saved by an editor that writes a BOM
+    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise ValueError(f"{path} is not a readable analysis ({exc}); re-run analyse") from None
+
+
+def _number(value: Any) -> bool:
+    return value is None or (isinstance(value, (int, float)) and not isinstance(value, bool))
+
+
+def _checked_summary(data: Any, path: Path) -> Dict[str, Any]:
+    """analysis.json as this module reads it; one of another shape (hand-edited, or not analyse's) is refused
+    naming the key, before any node is made. Keys analyse added later (grades, view maps) may be absent."""
+    def bad(where: str, what: str) -> ValueError:
+        return ValueError(f"{path}: {where} {what}; it is not an analysis analyse wrote (or was edited): re-run analyse")
+
+    if not isinstance(data, dict):
+        raise bad("the file", f"holds a {type(data).__name__}, not an object")
+    branches = data.get("branches")
+    if not isinstance(branches, list):
+        raise bad("'branches'", "is missing or not a list")
+    for n, b in enumerate(branches):
+        where = f"branches[{n}]"
+        if not isinstance(b, dict):
+            raise bad(where, "is not an object")
+        if isinstance(b.get("branch_id"), bool) or not isinstance(b.get("branch_id"), int):
+            raise bad(f"{where}.branch_id", f"is {b.get('branch_id')!r}, not a whole number")
+        if "parent_id" not in b or not (b["parent_id"] is None or (isinstance(b["parent_id"], int)
+                                                                   and not isinstance(b["parent_id"], bool))):
+            raise bad(f"{where}.parent_id", "is missing or not a whole number (null for a root)")
+        if "length_mm" not in b or not _number(b["length_mm"]):
+            raise bad(f"{where}.length_mm", "is missing or not a number")
+        if not isinstance(b.get("lesions"), list):
+            raise bad(f"{where}.lesions", "is missing or not a list")
+        for m, lesion in enumerate(b["lesions"]):
+            grade = lesion.get("grade") if isinstance(lesion, dict) else None
+            measures = [("", lesion)] + ([(".grade", grade)] if grade is not None else [])
+            for suffix, entry in measures:
+                lw = f"{where}.lesions[{m}]{suffix}"
+                if not isinstance(entry, dict):
+                    raise bad(lw, "is not an object")
+                for key in ("diameter_stenosis_pct", "mld_mm", "length_mm"):
+                    if key not in entry or not _number(entry[key]):
+                        raise bad(f"{lw}.{key}", "is missing or not a number")
+            if grade is not None and not isinstance(grade.get("source"), str):
+                raise bad(f"{where}.lesions[{m}].grade.source", "is missing or not a text")
+    view_map = data.get("view_map")
+    if view_map:
+        try:
+            a, c = (np.asarray(view_map[k], float) for k in ("primary_deg", "secondary_deg"))
+            shape = (c.size, a.size)
+            ok = a.ndim == c.ndim == 1 and a.size > 0 and c.size > 0 and all(
+                np.asarray(view_map[k], float).shape == shape for k in ("foreshortening", "overlap"))
+        except (KeyError, TypeError, ValueError):
+            ok = False
+        if not ok:
+            raise bad("'view_map'", "does not hold primary_deg, secondary_deg and foreshortening and overlap of "
+                      "(secondary × primary) values")
+    return data
+
+
+def add_analysis_nodes(scene, analysis_dir: PathLike, name: str = "SDFCAR", point_step_mm: float = 2.0) -> Dict[str, Any]:
+    """Add the QCA nodes of an ``analyse`` output folder to ``scene`` (module docstring); return them. The files are
+    read and checked first; on error the scene is left as it was."""
+    from ..mrml import scene_transaction
+
+    slicer = _slicer_module()
+    if isinstance(point_step_mm, bool) or not isinstance(point_step_mm, (int, float)) or not 0 < point_step_mm < 1e3:
+        raise ValueError(f"point_step_mm must be a positive number of mm (the control points' spacing), got {point_step_mm!r}")
+    folder = analysis_folder(analysis_dir)
     summary_path = folder / "analysis.json"
-    if not summary_path.is_file():
-        raise FileNotFoundError(f"{summary_path} not found: run `python -m SDFCARLib analyse RESULT_DIR` first")
-    data = json.loads(summary_path.read_text(encoding="utf-8"))
+    data = _checked_summary(_read_json(summary_path), summary_path)
     profiles = {b["branch_id"]: _read_profile(folder / f"profile_branch{b['branch_id']:02d}.csv") for b in data["branches"]}
+    with scene_transaction(scene):
+        return _add_nodes(scene, slicer, data, profiles, name, point_step_mm)
+
+
+def _add_nodes(scene, slicer, data, profiles, name: str, point_step_mm: float) -> Dict[str, Any]:
     curves, series = [], []
     chart = scene.AddNewNodeByClass("vtkMRMLPlotChartNode", f"{name} diameters")
     chart.SetTitle("Lumen diameter along each branch")
@@ -157,8 +267,10 @@ def add_analysis_nodes(scene, analysis_dir: PathLike, name: str = "SDFCAR", poin
                  "SDFCAR.coordinateSystem": "RAS (from LPS files)"}
         curves.append(_add_curve(scene, f"{name} branch {bid}", prof, point_step_mm, attrs))
         columns = ["arc_mm", "diameter_3d_mm", "diameter_masks_mm"] + [k for k in FRAME_COLUMNS if k in prof] + ["reference_mm"]
-        table = _add_table(scene, f"{name} branch {bid} profile", {k: list(prof[k]) for k in columns})
-        ps = scene.AddNewNodeByClass("vtkMRMLPlotSeriesNode", f"{name} branch {bid}")
+        profile_columns = {k: list(prof[k]) for k in columns}
+        profile_columns["excluded"] = [float(v) for v in prof["excluded"]]  # 1: a junction or an end, not graded
+        table = _add_table(scene, f"{name} branch {bid} profile", profile_columns)
+        ps = scene.AddNewNodeByClass("vtkMRMLPlotSeriesNode", f"{name} branch {bid} diameter")
         ps.SetAndObserveTableNodeID(table.GetID())
         ps.SetXColumnName("arc_mm")
         ps.SetYColumnName("diameter_3d_mm")
@@ -171,7 +283,7 @@ def add_analysis_nodes(scene, analysis_dir: PathLike, name: str = "SDFCAR", poin
         # The worst lesion by its grade (pipeline's "Grade of a lesion"); analysis.json from before grades
         # carries the 3D measures only, which were its grade.
         graded = [(x.get("grade") or dict(x, source="3D sections"), x) for x in b["lesions"]]  # pipeline.GRADED_ON_3D
-        grade, worst = max(graded, key=lambda gx: gx[0]["diameter_stenosis_pct"]) if graded else (None, None)
+        grade, worst = max(graded, key=lambda gx: _finite_or_least(gx[0]["diameter_stenosis_pct"])) if graded else (None, None)
         rows["branch"].append(str(b["branch_id"]))
         rows["parent"].append("" if b["parent_id"] is None else str(b["parent_id"]))
         rows["length_mm"].append(b["length_mm"])
@@ -241,9 +353,19 @@ def camera_for_angles(primary_deg: float, secondary_deg: float, distance_mm: flo
 
 def set_camera_to_angles(camera_node, primary_deg: float, secondary_deg: float, distance_mm: Optional[float] = None) -> None:
     """Point a ``vtkMRMLCameraNode`` (a 3D view's camera) along the C-arm view (α, β)."""
+    if camera_node is None or not hasattr(camera_node, "GetFocalPoint"):
+        raise ValueError("no camera node: give a 3D view's vtkMRMLCameraNode (threeDView().cameraNode())")
+    for what, value in (("primary_deg", primary_deg), ("secondary_deg", secondary_deg)) + (
+            (("distance_mm", distance_mm),) if distance_mm is not None else ()):
+        if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)) or not math.isfinite(value):
+            raise ValueError(f"{what} must be a finite number, got {value!r}")
+    if distance_mm is not None and not distance_mm > 0:
+        raise ValueError(f"distance_mm must be positive (the camera's distance from its focal point), got {distance_mm!r}")
     if distance_mm is None:
         fp, pos = np.array(camera_node.GetFocalPoint()), np.array(camera_node.GetPosition())
-        distance_mm = float(np.linalg.norm(pos - fp)) or 800.0
+        distance_mm = float(np.linalg.norm(pos - fp))
+        if not distance_mm > 1e-3:  # a collapsed camera (VTK nudges its focal point by 1e-20)
+            distance_mm = 800.0
     from ..mrml import ras_to_lps
 
     cam = camera_for_angles(primary_deg, secondary_deg, distance_mm, ras_to_lps(np.array(camera_node.GetFocalPoint())))
@@ -257,8 +379,14 @@ def read_best_view(analysis_dir: PathLike) -> Optional[Dict[str, Any]]:
     path = Path(analysis_dir) / "analysis.json"
     if not path.is_file():
         raise FileNotFoundError(f"{path} not found: the analysis folder was moved or deleted; run the analysis again")
-    best = json.loads(path.read_text(encoding="utf-8")).get("best_view")
-    return best if isinstance(best, dict) and "primary_deg" in best and "secondary_deg" in best else None
+    data = _read_json(path)
+    best = data.get("best_view") if isinstance(data, dict) else None
+    if not (isinstance(best, dict) and "primary_deg" in best and "secondary_deg" in best):
+        return None
+    if not all(_number(best[k]) and best[k] is not None and math.isfinite(best[k]) for k in ("primary_deg", "secondary_deg")):
+        raise ValueError(f"{path}: the suggested view ({best.get('primary_deg')!r}, {best.get('secondary_deg')!r}) is not "
+                         "a pair of angles; re-run analyse")
+    return best
 
 
 def add_analysis_to_scene(scene, analysis_dir: PathLike, name: str = "SDFCAR", result_node=None,
@@ -274,7 +402,12 @@ def add_analysis_to_scene(scene, analysis_dir: PathLike, name: str = "SDFCAR", r
     from ..mrml import prepare_scene, scene_transaction
 
     slicer = _slicer_module()
-    folder = Path(analysis_dir).absolute()
+    if result_node is not None and (not hasattr(result_node, "IsA") or not result_node.IsA("vtkMRMLSegmentationNode")
+                                    or not scene.IsNodePresent(result_node)):
+        got = result_node.GetName() if hasattr(result_node, "GetName") else repr(result_node)
+        raise ValueError(f"the result node {got} is not a segmentation in this scene; give the result's segmentation "
+                         "node (or None)")
+    folder = analysis_folder(analysis_dir)  # the folder read, which suggested_view_of reads again
     prepare_scene(scene)
     with scene_transaction(scene):
         nodes = add_analysis_nodes(scene, folder, name=name, point_step_mm=point_step_mm)
