@@ -35,6 +35,8 @@ roughly 20–50 %).
 
 from __future__ import annotations
 
+import math
+
 import inspect
 from dataclasses import asdict, dataclass
 from typing import Any, Dict, Optional, Sequence, Tuple, Union
@@ -105,6 +107,9 @@ def _background(shape: Tuple[int, int], spacing: Tuple[float, float], s: Angiogr
     x = (np.arange(cols) - cols / 2.0)[None, :] * spacing[1]
     sigma_px = [s.background_scale_mm / spacing[0], s.background_scale_mm / spacing[1]]
     field = ndimage.gaussian_filter(rng.standard_normal(shape), sigma_px, mode="reflect")
+    # centred before it is scaled: on a field of view a few correlation lengths wide or less the smoothed noise is
+    # nearly flat, and its mean, scaled with its small spread, would overflow exp(−B) (the level is set by i0 anyway)
+    field -= field.mean()
     field *= s.background_amplitude / max(float(field.std()), 1e-12)
     structures = np.zeros(shape)
     extent = max(rows * spacing[0], cols * spacing[1])
@@ -174,7 +179,11 @@ def simulate_angiogram(
     top = 2**s.bits_stored - 1
     relative = np.exp(-s.mu_per_mm * line_integral - background) * transmission
     open_background = np.exp(-background)[~covered] if (~covered).any() else np.exp(-background).ravel()
-    i0 = s.background_level * top / float(np.median(open_background))
+    median = float(np.median(open_background))
+    if not (math.isfinite(median) and median > 0):
+        raise ValueError(f"the simulated background transmits nothing (median {median:g}): the background settings "
+                         "(amplitude, ribs, diaphragm attenuation) are too strong for this field of view")
+    i0 = s.background_level * top / median
     psf_px = [s.psf_sigma_mm / spacing[0], s.psf_sigma_mm / spacing[1]]
     noiseless = ndimage.gaussian_filter(i0 * relative, psf_px, mode="nearest") if s.psf_sigma_mm > 0 else i0 * relative
     reference = s.background_level * top

@@ -26,6 +26,7 @@ clDice against the true silhouettes (line integral > ``settings.MASK_THRESHOLD_M
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from typing import Any, Dict, List, Optional
 
@@ -53,8 +54,12 @@ class RealisticOptions:
     display: bool = False  # frames processed for display (DISP) before they are segmented and handed over
 
     def check(self) -> None:
-        if self.max_shift_mm < 0 or self.max_rotation_deg < 0 or not self.snr > 0:
-            raise ValueError("max_shift_mm and max_rotation_deg must not be negative and snr must be positive")
+        for name in ("max_shift_mm", "max_rotation_deg"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value >= 0):
+                raise ValueError(f"{name} must be a finite number, 0 or more, got {value!r}")
+        if not (math.isfinite(self.snr) and self.snr > 0):
+            raise ValueError(f"snr must be a positive finite number (the frames' background signal-to-noise), got {self.snr!r}")
 
 
 @dataclass
@@ -82,6 +87,8 @@ def realistic_input(label: np.ndarray, geometry: Geometry, seed: int,
                     options: RealisticOptions = RealisticOptions()) -> RealisticInput:
     """Frames and image-segmented masks of ``label`` (on ``geometry.volume``) with motion between views."""
     options.check()
+    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
+        raise ValueError(f"seed must be a whole number, 0 or more, got {seed!r}")
     rng = np.random.default_rng([int(seed), 12])  # its own stream: the tree's seed is used elsewhere
     true_views = [geometry.views[0]]
     motions = [{"rotation_deg": [0.0] * 3, "translation_mm": [0.0] * 3}]

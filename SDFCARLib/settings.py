@@ -346,6 +346,14 @@ class Settings:
             raise ReconstructionError(f"support must be 'hull' or 'full', got {r.support!r}")
         if o.steps < 1:
             raise ReconstructionError(f"steps must be at least 1, got {o.steps}")
+        for name, value, low, high in (("levels", f.levels, 1, 64), ("features_per_level", f.features_per_level, 1, 64),
+                                       ("log2_table_size", f.log2_table_size, 1, 30),
+                                       ("base_resolution", f.base_resolution, 1, 1 << 16),
+                                       ("max_resolution", f.max_resolution, f.base_resolution, 1 << 16),
+                                       ("width", f.width, 1, 1 << 14), ("depth", f.depth, 1, 256)):
+            if not low <= value <= high:
+                raise ReconstructionError(f"{name} is a size of the field's network, a whole number from {low} to {high}, "
+                                          f"got {value}")
         for name, value in (("learning_rate", o.learning_rate), ("alpha", f.alpha),
                             ("silhouette_length_mm", l.silhouette_length_mm)):
             if not value > 0:

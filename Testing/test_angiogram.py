@@ -79,3 +79,16 @@ def test_bad_arguments():
         simulate_angiogram(np.zeros((8, 8)), 0.0)
     with pytest.raises(ValueError, match="snr must be positive"):
         simulate_angiogram(np.zeros((8, 8)), 0.3, settings=AngiogramSettings(snr=0.0))
+
+
+@pytest.mark.parametrize("shape, spacing_mm", [((64, 64), 0.278), ((96, 96), 0.278), ((64, 64), 0.3)])
+def test_a_small_field_of_view_gives_an_angiogram_not_an_overflow(shape, spacing_mm):
+    """A detector a few background scales (25 mm) wide or less: the smoothed field is nearly flat; its mean, scaled
+    with its small spread, overflowed exp(−B) (all-zero frames, or a ZeroDivisionError)."""
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # no overflow in exp
+        for line_integral in (np.zeros(shape), np.ones(shape)):
+            frame, info = simulate_angiogram(line_integral, spacing_mm, 0)
+            assert 0.2 * 4095 < float(np.median(frame)) < 0.8 * 4095  # about the background level, not 0

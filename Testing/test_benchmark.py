@@ -398,6 +398,8 @@ def test_retuned_preset_changes_the_configuration(monkeypatch):
     (["--suite", "721a", "--centreline", "{tmp}/missing.vtk"], "--centreline"),
     (["--suite", "folder:{tmp}/nowhere"], "no such folder"),
     (["--suite", "folder:{tmp}"], "no label volume"),
+    (["--suite", "rca", "--set", "width=0"], "width is a size of the field's network"),
+    (["--suite", "rca", "--set", "levels=-1"], "levels is a size of the field's network"),
 ])
 def test_bad_input_exits_2_and_writes_nothing(tmp_path, capsys, argv, message):
     out = tmp_path / "out"
@@ -449,5 +451,25 @@ def test_summary_table_means_bold_and_ordering():
     assert "Dice (%): sdfcar better (90.00 vs 60.00; sdfcar better in 3/3 cases)" in ordering
     assert "Chamfer-ℓ2 (mm): sdfcar better (1.00 vs 2.00; sdfcar better in 2/2 cases)" in ordering
     assert "reproduces on 6 of 6 metrics — it reproduces." in ordering
+    side = "\n".join(bm.side_by_side_lines(table))
+    assert "`sdfcar` against the visual hull on 3 cases: clDice 0.900 vs 0.300 (×3.00, +0.600; higher in 3/3)" in side
+    assert "`neca` against the visual hull on 3 cases: clDice 0.600 vs 0.300 (×2.00, +0.300" in side
+    assert "wall time 10.0 s per case" in side and "Empty reconstructions" not in side
+    one = bm.summary_tables([_row("RCA-0", "hull", 0.3, 3.0), dict(_row("RCA-0", "sdfcar", 0.0, math.nan),
+                                                                  voxels_predicted="0")], ["sdfcar"])[0]
+    assert "30.00 ± n/a" in bm._table_markdown(one)  # one case has no spread, not a spread of 0
+    assert "Empty reconstructions (no voxel predicted" in "\n".join(bm.side_by_side_lines(one))
     swapped = [dict(r, mode={"sdfcar": "neca", "neca": "sdfcar"}.get(r["mode"], r["mode"])) for r in rows if r["status"] == "ok"]
     assert "it does not fully reproduce" in "\n".join(bm.ordering_lines(bm.summary_tables(swapped, ["sdfcar", "neca"])[0]))
+
+
+def test_a_negative_seed_and_cuda_without_a_gpu_are_refused_before_any_work(tmp_path, capsys, monkeypatch):
+    import torch
+
+    with pytest.raises(SystemExit):  # argparse: numpy's generators take no negative seed
+        _parser().parse_args(["benchmark", "--suite", "rca", "--seed", "-1", "--out", str(tmp_path / "out")])
+    assert "must be a whole number, 0 or more" in capsys.readouterr().err
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)  # as on the CI machine, whatever this one has
+    code, _, err = run_cli(capsys, "--suite", "rca", "--cases", "1", "--set", "device=cuda", "--out", tmp_path / "gpu")
+    assert code == 2 and "--set device=cuda: this machine has no CUDA GPU" in err and "--set device=cpu" in err
+    assert not (tmp_path / "gpu").exists()

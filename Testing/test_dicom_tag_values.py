@@ -152,3 +152,13 @@ def test_a_file_with_no_sop_class_and_an_output_that_is_a_folder(tmp_path, capsy
     err = capsys.readouterr().err
     assert "a folder of that name exists; give a file name" in err and ".tmp" not in err
     assert folder.is_dir() and not list(folder.iterdir()) and not list(tmp_path.glob(".G.json.*"))
+
+
+def test_a_file_meta_without_a_transfer_syntax_is_read_as_its_reader_found_it(tmp_path):
+    path = xa(tmp_path)
+    ds = pydicom.dcmread(str(path))
+    del ds.file_meta.TransferSyntaxUID
+    no_syntax = tmp_path / "no_syntax.dcm"
+    pydicom.dcmwrite(str(no_syntax), ds, enforce_file_format=False, implicit_vr=False, little_endian=True)
+    assert "TransferSyntaxUID" not in pydicom.dcmread(str(no_syntax)).file_meta
+    np.testing.assert_array_equal(dicom.load_xa(no_syntax).frames, dicom.load_xa(path).frames)

@@ -274,3 +274,47 @@ def test_depth_aligned_metrics_reject_a_bad_search(axis, search, step, words):
     grid = VolumeGrid(SHAPE, (0.8, 0.8, 0.8), (0.0, 0.0, 0.0))
     with pytest.raises(ValueError, match=words):
         depth_aligned_metrics(tube((12, 12), 2), tube((12, 12), 2), grid, axis, search, step)
+
+
+# --- pieces scikit-image's skeletonize erases, and volumes that are no masks -------------------------------------
+@pytest.mark.parametrize("width", [1, 2, 3, 4])
+def test_a_tube_of_any_width_is_in_its_skeleton_and_scores_itself_perfectly(width):
+    tube_ = np.zeros(SHAPE, bool)
+    tube_[4:28, 10:10 + width, 10:10 + width] = True  # skimage's skeletonize erases the even widths whole
+    assert skeleton(tube_).sum() >= 18  # its axis, less a voxel or two at the ends
+    assert cldice(tube_, tube_) == 1.0
+
+
+def test_an_erased_ghost_costs_precision():
+    label = tube((6, 6), 3)
+    ghost = np.zeros(SHAPE, bool)
+    ghost[4:28, 16:18, 16:18] = True  # two voxels across, away from the label
+    t = volume_metrics(label | ghost, label, (1.0, 1.0, 1.0))
+    assert t["tprec"] < 0.6 and t["tsens"] == 1.0  # the ghost's axis counts (it counted for nothing before)
+    everything = np.ones((10, 10, 10), bool)
+    assert cldice(everything, everything) == 1.0
+    empty = np.zeros(SHAPE, bool)
+    assert cldice(empty, empty) == 1.0 == dice(empty, empty)  # one convention for an empty pair
+
+
+@pytest.mark.parametrize("volume, words", [
+    (lambda l: l * 0.3 + 0.01, "must be binary"),
+    (lambda l: np.where(l, np.nan, 0.0), "NaN or infinite"),
+    (lambda l: -l.astype(float), "must be binary"),
+    (lambda l: l.astype(str), "must hold numbers"),
+])
+def test_a_volume_that_is_no_mask_is_refused(volume, words):
+    label = tube((10, 10), 3)
+    with pytest.raises(ValueError, match=words):
+        dice(volume(label), label)
+    with pytest.raises(ValueError, match=words):
+        volume_metrics(volume(label), label, (1.0, 1.0, 1.0))
+
+
+def test_the_volume_metrics_name_a_2d_input_and_a_bad_spacing():
+    label = tube((10, 10), 3)
+    with pytest.raises(ValueError, match="score 3-D volumes"):
+        volume_metrics(label[:, :, 10], label[:, :, 10], (1.0, 1.0))
+    for spacing in ((0.0, 0.0, 0.0), (-1.0, 1.0, 1.0), (1.0, 1.0)):
+        with pytest.raises(ValueError, match="spacing_mm must be 3 positive numbers"):
+            chamfer_l2_mm(label, label, spacing)

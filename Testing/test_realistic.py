@@ -44,8 +44,15 @@ def test_same_seed_same_input_and_static_has_no_motion(case):
     assert all(np.array_equal(x, y) for x, y in zip(a.masks, b.masks))
     static = realistic_input(label, geometry, seed=1, options=RealisticOptions(0.0, 0.0))
     assert not static.true_views[1].has_object_motion
-    with pytest.raises(ValueError, match="must not be negative"):
-        RealisticOptions(-1.0).check()
+    for options, words in ((RealisticOptions(-1.0), "max_shift_mm must be a finite number, 0 or more, got -1.0"),
+                           (RealisticOptions(float("nan")), "max_shift_mm must be a finite number"),
+                           (RealisticOptions(max_rotation_deg=float("inf")), "max_rotation_deg must be a finite number"),
+                           (RealisticOptions(snr=float("inf")), "snr must be a positive finite number")):
+        with pytest.raises(ValueError, match=words):
+            options.check()
+    for seed in (-1, 1.7, None):
+        with pytest.raises(ValueError, match="seed must be a whole number, 0 or more"):
+            realistic_input(label, geometry, seed=seed)
 
 
 def test_realistic_protocols_are_registered():

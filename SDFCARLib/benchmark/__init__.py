@@ -64,7 +64,8 @@ from .registry import HULL, METRIC_COLUMNS, MODE_NAMES, TABLE_METRICS, mode_titl
 from ..settings import (PAPER_DETECTOR_SHAPE, PAPER_DETECTOR_SPACING_MM, PAPER_METRICS, PAPER_SPACING_MM,
                         PAPER_VOLUME_SHAPE, PROTOCOLS)
 from .report import _table_markdown  # noqa: F401 (used by the tests)
-from .report import all_versions, machine_info, ordering_lines, summary_tables, write_box_plots, write_summary
+from .report import (all_versions, machine_info, ordering_lines, side_by_side_lines, summary_tables, write_box_plots,
+                     write_summary)
 from .run import BenchmarkOutcome, prepare_task, run_benchmark, run_task, task_options
 from .store import COLUMNS, IDENTITY_COLUMNS, ResultsFile, latest_rows
 
@@ -74,7 +75,7 @@ __all__ = [
     "PAPER_DETECTOR_SPACING_MM", "PAPER_METRICS", "PAPER_SPACING_MM", "PAPER_VOLUME_SHAPE", "PROCEDURAL_SUITES",
     "PROTOCOLS", "PathLike", "PreparedCase", "ResultsFile", "SUITE_HELP", "TABLE_METRICS", "VOLUME_SUFFIXES",
     "add_benchmark_command", "all_versions", "build_cases", "check_config", "cmd_benchmark", "config_from_args",
-    "default_centreline", "latest_rows", "machine_info", "mode_title", "ordering_lines", "parse_overrides",
+    "default_centreline", "latest_rows", "machine_info", "mode_title", "ordering_lines", "parse_overrides", "side_by_side_lines",
     "parse_suite", "prepare_case", "prepare_task", "preprocess_label_file", "preprocess_label_volume",
     "protocol_geometry", "run_benchmark", "run_task", "summary_tables", "task_options", "write_box_plots",
     "write_summary",

@@ -7,7 +7,7 @@ import sys
 import traceback
 from pathlib import Path
 
-from ..cli_types import positive_float, positive_int
+from ..cli_types import non_negative_int, positive_float, positive_int
 from .cases import SUITE_HELP, GridOptions
 from .config import DEFAULT_MODES, BenchmarkConfig, parse_overrides
 from .errors import BenchmarkError
@@ -33,7 +33,7 @@ def add_benchmark_command(commands, common: argparse.ArgumentParser) -> argparse
     p.add_argument("--cases", type=positive_int, default=None,
                    help="number of cases (default: 10 procedural, 1 for 721a, every file of a folder ×2 trees)")
     p.add_argument("--out", required=True, help="results folder (created; rows already there are kept and skipped)")
-    p.add_argument("--seed", type=int, default=0, help="first case seed (case i uses seed+i for its tree and optimiser)")
+    p.add_argument("--seed", type=non_negative_int, default=0, help="first case seed (case i uses seed+i for its tree and optimiser)")
     p.add_argument("--steps", type=positive_int, default=None, help="optimisation steps (default: the preset's)")
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                    help="optimiser override, repeatable (e.g. --set learning_rate=1e-3 --set device=cuda)")

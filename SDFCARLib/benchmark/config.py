@@ -153,6 +153,13 @@ def check_config(config: BenchmarkConfig) -> List[CaseSpec]:
                 make_settings(config.preset, mode=mode, steps=config.steps, **config.overrides)
             except (ValueError, TypeError) as exc:
                 raise BenchmarkError(f"the optimiser settings are invalid: {exc}") from None
+    device = str(config.overrides.get("device", "auto"))
+    if device.startswith("cuda") and config.scheduler is None:  # a --scheduler's workers may have a GPU this one lacks
+        import torch
+
+        if not torch.cuda.is_available():
+            raise BenchmarkError(f"--set device={device}: this machine has no CUDA GPU for the local cluster's workers; "
+                                 "use --set device=cpu (or auto), or a --scheduler whose workers have one")
     kind, _ = parse_suite(config.suite)
     try:
         protocol_geometry(config.protocol, kind, config.grid)

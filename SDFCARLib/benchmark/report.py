@@ -75,7 +75,7 @@ def _table_markdown(table: Dict[str, Any]) -> str:
             if not math.isfinite(mean):
                 cells.append("n/a")
                 continue
-            text = f"{mean:.{decimals}f} ± {std:.{decimals}f}"
+            text = f"{mean:.{decimals}f} ± {std:.{decimals}f}" if n > 1 else f"{mean:.{decimals}f} ± n/a"  # one case: no spread
             if n < method["ok"]:
                 text += f" (n={n})"  # some cases undefined, e.g. Chamfer distance of an empty prediction
             is_best = key in best and round(mean, decimals) == round(best[key], decimals)
@@ -83,6 +83,41 @@ def _table_markdown(table: Dict[str, Any]) -> str:
         cells.append(f"{method['ok']}/{method['failed']}")
         lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines)
+
+
+def side_by_side_lines(table: Dict[str, Any]) -> List[str]:
+    """Each mode against the visual hull on the cases both finished: clDice and Dice as ratios and differences,
+    case by case, and the wall time per case of each (one run, one machine: the ratios are comparable)."""
+    methods = {m["mode"]: m for m in table["methods"]}
+    hull = methods.get(HULL)
+    lines = []
+    for mode, method in methods.items():
+        if mode == HULL or hull is None:
+            continue
+        cases = [c for c in method["per_case"] if c in hull["per_case"]]
+        parts = []
+        for key, name in (("cldice", "clDice"), ("dice", "Dice")):
+            pairs = [(_float(method["per_case"][c].get(key)), _float(hull["per_case"][c].get(key))) for c in cases]
+            pairs = [(x, y) for x, y in pairs if math.isfinite(x) and math.isfinite(y)]
+            if not pairs:
+                continue
+            x, y = (float(np.mean(v)) for v in zip(*pairs))
+            ratio = f"×{x / y:.2f}" if y > 0 else "× n/a"
+            better = sum(1 for a, b in pairs if a > b)
+            parts.append(f"{name} {x:.3f} vs {y:.3f} ({ratio}, {x - y:+.3f}; higher in {better}/{len(pairs)})")
+        times = [_float(method["per_case"][c].get("wall_s")) for c in cases]
+        times = [t for t in times if math.isfinite(t)]
+        if times:
+            parts.append(f"wall time {float(np.mean(times)):.1f} s per case")
+        if parts:
+            lines.append(f"- `{mode}` against the visual hull on {len(cases)} case{'s' if len(cases) != 1 else ''}: "
+                         + "; ".join(parts))
+    empty = sorted(f"`{c}` × `{m['mode']}`" for m in table["methods"] if m["mode"] != HULL
+                   for c, r in m["per_case"].items() if _float(r.get("voxels_predicted")) == 0)
+    if empty:
+        lines.append(f"- Empty reconstructions (no voxel predicted; their Chamfer is undefined, their 0 components no "
+                     f"merit): {', '.join(empty)}")
+    return (["Side by side (the same cases, one run):"] + lines) if lines else []
 
 
 def ordering_lines(table: Dict[str, Any], first: str = "sdfcar", second: str = "neca") -> List[str]:
@@ -170,7 +205,10 @@ def write_summary(out: Path, config: BenchmarkConfig, rows: Sequence[Dict[str, s
     if not tables:
         lines += ["No finished rows yet.", ""]
     for table in tables:
-        lines += [f"## {table['title']}", "", f"{len(table['cases'])} cases.", "", _table_markdown(table), ""]
+        count = len(table["cases"])
+        lines += [f"## {table['title']}", "", f"{count} case{'s' if count != 1 else ''}.", "", _table_markdown(table), ""]
+        side = side_by_side_lines(table)
+        lines += side + ([""] if side else [])
         lines += ordering_lines(table) + [""]
     failed = [r for r in rows if r["status"] != "ok"]
     if failed:
