@@ -102,6 +102,18 @@ def widened_mask(mask: np.ndarray, pixels: int) -> np.ndarray:
     return ndimage.binary_dilation(inside, iterations=int(pixels)) if pixels > 0 else inside
 
 
+def binary_values_problem(array: np.ndarray) -> Optional[str]:
+    """What keeps a numeric array from being a binary mask (0 for background, one other value for vessel), to follow
+    "the mask …" in a message: NaN or infinite values, a negative value, several non-zero values; None when it is one."""
+    if np.issubdtype(array.dtype, np.floating) and not np.all(np.isfinite(array)):
+        return "contains NaN or infinite values"
+    present = np.unique(array)
+    if np.count_nonzero(present) > 1 or np.any(present < 0):
+        shown = ", ".join(f"{v:g}" for v in present[:6].astype(float)) + (", …" if present.size > 6 else "")
+        return f"is not binary (values {shown})"
+    return None
+
+
 def binarise_mask(
     array: Any,
     detector_shape: Optional[Sequence[int]] = None,
@@ -125,8 +137,8 @@ def binarise_mask(
                             f"{hint}; the mask must be drawn on the frame of that view, pixel for pixel")
     if np.issubdtype(a.dtype, np.floating) and not np.all(np.isfinite(a)):
         raise MaskError(f"{source}: the mask contains NaN or infinite values; fix the image")
-    present = np.unique(a)
     if label is not None:
+        present = np.unique(a)
         if not np.any(present == label):
             shown = ", ".join(f"{v:g}" for v in present[:10].astype(float)) + ("…" if present.size > 10 else "")
             raise MaskError(f"{source}: label {label:g} does not occur in the image (values present: {shown}); "
@@ -135,9 +147,9 @@ def binarise_mask(
     else:
         # Without a label only 0 and one other value are unambiguous: a grey frame or a label image
         # of several structures given by mistake would otherwise pass as a mask.
-        if np.count_nonzero(present) > 1 or np.any(present < 0):
-            shown = ", ".join(f"{v:g}" for v in present[:6].astype(float)) + (", …" if present.size > 6 else "")
-            raise MaskError(f"{source}: the mask is not binary (values {shown}); give a mask with 0 for background and "
+        problem = binary_values_problem(a)
+        if problem:
+            raise MaskError(f"{source}: the mask {problem}; give a mask with 0 for background and "
                             "one non-zero value (e.g. 1 or 255) for vessel, threshold it first, or choose the vessel "
                             "label of a label image")
         mask = a != 0

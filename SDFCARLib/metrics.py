@@ -4,11 +4,13 @@ Volume metrics (binary prediction P and label L on the same grid):
 
 * ``dice``  = 2|P∩L| / (|P| + |L|);  ``iou`` = |P∩L| / |P∪L|.
 * ``cldice`` — centreline Dice of Shit et al. (CVPR 2021): with S(·) the skeleton
-  (``skimage.morphology.skeletonize``), topology precision Tprec = |S(P)∩L| / |S(P)|, topology
-  sensitivity Tsens = |S(L)∩P| / |S(L)|, clDice = 2·Tprec·Tsens / (Tprec + Tsens).
+  (``skimage.morphology.skeletonize``, plus the connected pieces it erases whole — even widths, solid
+  blocks — thinned again: ``skeleton``; the public code takes skimage's alone), topology precision
+  Tprec = |S(P)∩L| / |S(P)|, topology sensitivity Tsens = |S(L)∩P| / |S(L)|,
+  clDice = 2·Tprec·Tsens / (Tprec + Tsens); 1 for two empty volumes, as Dice.
 * ``skeleton_dice`` — Dice of the two skeletons, 2|S(P)∩S(L)| / (|S(P)| + |S(L)|): what the public
-  NeCA/SDF-CAR evaluation code reports under the name "clDice"; much stricter, as skeletons of
-  slightly shifted tubes rarely share voxels.
+  NeCA/SDF-CAR evaluation code reports under the name "clDice" (with skimage's skeleton alone); much
+  stricter, as skeletons of slightly shifted tubes rarely share voxels.
 * ``components`` — the number of 26-connected components, and ``largest_component_fraction`` the
   share of the voxels in the largest one (1 for a single piece; a coronary tree is one piece per
   ostium); ``components_label`` is the same count for the label.
@@ -42,6 +44,7 @@ import numpy as np
 from scipy import ndimage
 
 from .geometry import CArmView, VolumeGrid
+from .masks import binary_values_problem
 from .settings import MASK_THRESHOLD_MM
 
 NAN = float("nan")
@@ -55,13 +58,10 @@ def _bool(a: np.ndarray) -> np.ndarray:
         return a
     if not (np.issubdtype(a.dtype, np.integer) or np.issubdtype(a.dtype, np.floating)):
         raise ValueError(f"a volume to score must hold numbers (0 and one vessel value), got data type {a.dtype}")
-    if np.issubdtype(a.dtype, np.floating) and not np.all(np.isfinite(a)):
-        raise ValueError("a volume to score contains NaN or infinite values; threshold or fix it first")
-    values = np.unique(a)
-    if values[0] < 0 or np.count_nonzero(values) > 1:
-        shown = ", ".join(f"{v:g}" for v in values[:5].astype(float)) + (", …" if values.size > 5 else "")
-        raise ValueError(f"a volume to score must be binary (0 and one vessel value), got values {shown}; threshold it "
-                         "first (e.g. occupancy >= 0.5)")
+    problem = binary_values_problem(a)
+    if problem:
+        raise ValueError(f"a volume to score {problem}: it must be binary (0 and one vessel value); threshold or fix "
+                         "it first (e.g. occupancy >= 0.5)")
     return a != 0
 
 
@@ -277,6 +277,12 @@ def reprojection_metrics(
         if masks is None:
             masks = [l > mask_threshold_mm for l in label_proj]
     if masks is not None:
+        if len(masks) != len(views):
+            raise ValueError(f"{len(masks)} mask(s) for {len(views)} view(s); give one per view")
+        for n, (m, view) in enumerate(zip(masks, views), start=1):
+            if np.shape(m) != tuple(view.detector_shape):
+                raise ValueError(f"the mask of view {n} has shape {np.shape(m)}, not the detector shape "
+                                 f"{tuple(view.detector_shape)} of that view; give the mask drawn on that view's frame")
         out["reprojection_dice"] = [mask_dice(p > mask_threshold_mm, m) for p, m in zip(pred_proj, masks)]
     return out
 

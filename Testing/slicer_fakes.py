@@ -391,6 +391,14 @@ class ScriptedLoadableModule:
     def __init__(self, parent):
         self.parent = parent
 
+    def runTest(self, msec=100, **kwargs):
+        # as Slicer's (Base/Python/slicer/ScriptedLoadableModule.py, every tag): the <Module>Test case's runTest,
+        # called directly, not through a unittest runner (Reload and Test)
+        # (Slicer imports the module by name; the tests load SDFCAR.py unregistered: its namespace is the module's)
+        test_case = type(self).__init__.__globals__[type(self).__name__ + "Test"]()
+        test_case.messageDelay = msec
+        test_case.runTest(**kwargs)
+
 
 class ScriptedLoadableModuleWidget:
     def __init__(self, parent=None):
@@ -434,6 +442,7 @@ class _Recorder:
     def __init__(self):
         self.errors = []
         self.warnings = []
+        self.infos = []
         self.sliceLayers = []
         self.confirm = True
         self.pipInstalls = []
@@ -443,6 +452,9 @@ class _Recorder:
 
     def warningDisplay(self, text, **kwargs):
         self.warnings.append(text)
+
+    def infoDisplay(self, text, **kwargs):
+        self.infos.append(text)
 
     def setSliceViewerLayers(self, background="keep-current", **kwargs):
         self.sliceLayers.append(dict(kwargs, background=background))
@@ -523,7 +535,7 @@ def install(monkeypatch, real_mrml=False):
     SCENE.clear()
     OBSERVERS.clear()
     util = _module("slicer.util", VTKObservationMixin=VTKObservationMixin, tryWithErrorDisplay=tryWithErrorDisplay,
-                   errorDisplay=recorder.errorDisplay, warningDisplay=recorder.warningDisplay,
+                   errorDisplay=recorder.errorDisplay, warningDisplay=recorder.warningDisplay, infoDisplay=recorder.infoDisplay,
                    setSliceViewerLayers=recorder.setSliceViewerLayers,
                    confirmOkCancelDisplay=recorder.confirmOkCancelDisplay,
                    pip_install=recorder.pip_install)

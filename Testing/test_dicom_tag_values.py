@@ -162,3 +162,12 @@ def test_a_file_meta_without_a_transfer_syntax_is_read_as_its_reader_found_it(tm
     pydicom.dcmwrite(str(no_syntax), ds, enforce_file_format=False, implicit_vr=False, little_endian=True)
     assert "TransferSyntaxUID" not in pydicom.dcmread(str(no_syntax)).file_meta
     np.testing.assert_array_equal(dicom.load_xa(no_syntax).frames, dicom.load_xa(path).frames)
+
+
+def test_an_angle_increment_that_is_no_number_is_named(tmp_path):
+    path = xa(tmp_path, angle_increments_deg=([1.2345, 1.2345], [0.0, 0.0]))
+    data = path.read_bytes()
+    comma = tmp_path / "comma.dcm"
+    comma.write_bytes(data.replace(b"1.2345", b"1,2345"))
+    with pytest.raises(DicomInputError, match=r"PositionerPrimaryAngleIncrement = .*is not a list of numbers.*primary_deg"):
+        dicom.view_from_dicom(comma, 1)

@@ -221,6 +221,10 @@ def test_reprojection_dice_against_given_masks(projection_case):
     masks = [np.zeros(v.detector_shape, bool) for v in views]
     m = reprojection_metrics(label, None, grid, views, masks=masks)
     assert set(m) == {"reprojection_dice"} and m["reprojection_dice"] == [0.0, 0.0]
+    with pytest.raises(ValueError, match=r"the mask of view 2 has shape \(10, 10\), not the detector shape"):
+        reprojection_metrics(label, None, grid, views, masks=[masks[0], np.zeros((10, 10), bool)])
+    with pytest.raises(ValueError, match="1 mask\\(s\\) for 2 view\\(s\\)"):
+        reprojection_metrics(label, None, grid, views, masks=masks[:1])
 
 
 def test_evaluate_reports_every_metric_as_strict_json(projection_case):

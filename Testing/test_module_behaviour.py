@@ -123,6 +123,17 @@ def test_self_test_skips_without_dependencies(sdfcar, monkeypatch):
         assert (len(result.skipped), result.failures, result.errors) == (1, [], []), name
 
 
+def test_reload_and_test_says_a_skipped_self_test_rather_than_failing(sdfcar, monkeypatch):
+    """Reload and Test calls the test case directly: its SkipTest (no torch) would show as a failure dialog."""
+    monkeypatch.setitem(sdfcar.REQUIREMENTS, "sdfcar_absent_module", "sdfcar-absent-package")
+    try:
+        sdfcar.SDFCAR(types.SimpleNamespace()).runTest()
+    except unittest.SkipTest as exc:  # pytest would count it a skip, the application shows a failure
+        pytest.fail(f"the skip reached Reload and Test: {exc}")
+    assert sdfcar.recorder.infos and "self-test was skipped" in sdfcar.recorder.infos[-1]
+    assert "sdfcar-absent-package" in sdfcar.recorder.infos[-1]
+
+
 # --- DICOM module disabled ---------------------------------------------------------------------------------
 def test_read_geometry_without_the_dicom_module(sdfcar, monkeypatch):
     from SDFCARLib import mrml
@@ -665,3 +676,16 @@ def test_reading_the_geometry_from_dicom_changes_no_view_when_one_fails(sdfcar, 
     with pytest.raises(ValueError, match="frame 2 was not loaded from the DICOM database"):
         logic.readGeometryFromDicom(p)
     assert [logic.viewValue(p, 1, field) for field in sdfcar.GEOMETRY_VIEW_FIELDS] == before  # view 1 as it was
+    # both views read, view 2's values refused by the fields: view 1, already set, is put back
+    uids = iter(["1.2.3.1", "1.2.3.1"])
+    set_view = sdfcar.SDFCARLogic.setViewParameters
+
+    def refuse_view_2(self, p, n, view):
+        if n == 2:
+            raise ValueError("secondaryAngle is outside its range")
+        set_view(self, p, n, view)
+
+    monkeypatch.setattr(sdfcar.SDFCARLogic, "setViewParameters", refuse_view_2)
+    with pytest.raises(ValueError, match="outside its range"):
+        logic.readGeometryFromDicom(p)
+    assert [logic.viewValue(p, 1, field) for field in sdfcar.GEOMETRY_VIEW_FIELDS] == before

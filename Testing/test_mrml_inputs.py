@@ -172,7 +172,7 @@ def test_a_result_of_the_wrong_kind_is_refused_and_a_report_of_another_shape_rea
                                                                                       1.0, np.nan)):
         result = blob_result(geometry)
         result.segmentation = values
-        with pytest.raises(mrml.MRMLBridgeError, match="the mask must be boolean"):
+        with pytest.raises(mrml.MRMLBridgeError, match="the mask (is not binary|contains NaN)"):
             mrml.add_reconstruction_to_scene(scene, result, "Probabilities")
         assert snapshot(scene) == before
     listed = blob_result(geometry, report=[1, 2])
@@ -255,3 +255,62 @@ def test_result_sources_and_c_arm_options_of_the_wrong_kind_are_named(scene, tmp
     assert snapshot(scene) == before
     with pytest.raises(mrml.MRMLBridgeError, match="grey levels were said to be 'linear'"):
         mrml.say_frame_intensity(mrml.add_frame_volume_node(scene, np.ones((4, 4)), "f"), "linear")
+
+
+def test_an_occupancy_asked_of_a_folder_without_one_is_named(scene, tmp_path):
+    from test_mrml import blob_result, small_geometry, snapshot, write_result_files
+
+    geometry = small_geometry()
+    write_result_files(tmp_path, geometry, blob_result(geometry))
+    (tmp_path / "occupancy.nrrd").unlink()
+    before = snapshot(scene)
+    with pytest.raises(mrml.MRMLBridgeError, match="the occupancy was asked for but the result has no occupancy.nrrd"):
+        mrml.add_reconstruction_to_scene(scene, tmp_path, "No occupancy", include_occupancy=True)
+    assert snapshot(scene) == before
+    assert mrml.add_reconstruction_to_scene(scene, tmp_path, "Without", include_occupancy=False).occupancy is None
+
+
+def test_a_damaged_bundle_and_a_full_size_mask_on_a_warped_frame(scene, tmp_path):
+    import vtk
+
+    bundle = tmp_path / "bundle.mrb"
+    with zipfile.ZipFile(bundle, "w", zipfile.ZIP_DEFLATED) as z:  # a deflated scene: damage is a zlib error
+        z.writestr("bundle/bundle.mrml", '<MRML version="Slicer 5.0.0 1">' + '<Selection id="s"/>' * 200 + "</MRML>")
+    data = bytearray(bundle.read_bytes())
+    with zipfile.ZipFile(bundle) as z:
+        info = z.infolist()[0]
+    start = info.header_offset + 30 + len(info.filename.encode()) + len(info.extra)
+    for k in range(start, start + 20):  # the compressed scene's first bytes; the zip's directory kept
+        data[k] ^= 0x5A
+    damaged = tmp_path / "damaged.mrb"
+    damaged.write_bytes(bytes(data))
+    before = node_names(scene)
+    with pytest.raises(mrml.MRMLBridgeError, match="the bundle is damaged: its scene cannot be unpacked"):
+        mrml.load_scene(scene, damaged)
+    assert node_names(scene) == before
+    # a mask of the frame's size is the frame's pixel for pixel, whatever transform the frame is under
+    frame = mrml.add_frame_volume_node(scene, np.zeros((10, 12)), "frame")
+    warp = scene.AddNewNodeByClass("vtkMRMLTransformNode", "warp")
+    spline = vtk.vtkThinPlateSplineTransform()
+    source, target = vtk.vtkPoints(), vtk.vtkPoints()
+    for p in ((0, 0, 0), (10, 0, 0), (0, 10, 0), (0, 0, 10)):
+        source.InsertNextPoint(p)
+        target.InsertNextPoint(p[0] + 1.0, p[1], p[2])
+    spline.SetSourceLandmarks(source)
+    spline.SetTargetLandmarks(target)
+    spline.SetBasisToR()
+    warp.SetAndObserveTransformToParent(spline)
+    frame.SetAndObserveTransformNodeID(warp.GetID())
+    label = mrml.add_frame_volume_node(scene, l_mask(), "mask", class_name="vtkMRMLLabelMapVolumeNode")
+    np.testing.assert_array_equal(mrml.mask_from_volume_node(label, reference_volume_node=frame), l_mask())
+    with pytest.raises(mrml.MRMLBridgeError, match="non-linear transform 'warp'.*Harden transform"):
+        mrml.add_mask_segmentation_node(scene, l_mask(), frame, "seg")
+
+
+def test_a_0_255_result_segmentation_is_a_segmentation(scene):
+    from test_mrml import blob_result, small_geometry
+
+    result = blob_result(small_geometry())
+    result.segmentation = result.segmentation.astype(np.uint8) * 255
+    nodes = mrml.add_reconstruction_to_scene(scene, result, "0-255")
+    assert mrml.segmentation_mask_lps(nodes.segmentation, small_geometry().volume).sum() == 27

@@ -244,7 +244,8 @@ def add_analysis_nodes(scene, analysis_dir: PathLike, name: str = "SDFCAR", poin
     from ..mrml import scene_transaction
 
     slicer = _slicer_module()
-    if isinstance(point_step_mm, bool) or not isinstance(point_step_mm, (int, float)) or not 0 < point_step_mm < 1e3:
+    if (isinstance(point_step_mm, bool) or not isinstance(point_step_mm, (int, float, np.integer, np.floating))
+            or not 0 < point_step_mm < 1e3):
         raise ValueError(f"point_step_mm must be a positive number of mm (the control points' spacing), got {point_step_mm!r}")
     folder = analysis_folder(analysis_dir)
     summary_path = folder / "analysis.json"

@@ -199,7 +199,8 @@ def write_summary(out: Path, config: BenchmarkConfig, rows: Sequence[Dict[str, s
         "",
         "Mean ± sample standard deviation over the finished cases (failed runs excluded and listed below); "
         "best value per column in **bold**. clDice is Shit et al.'s centreline Dice, skeleton-Dice the Dice of the "
-        "two skeletons (what the public NeCA/SDF-CAR code reports as clDice); see `SDFCARLib/metrics.py`.",
+        "two skeletons (what the public NeCA/SDF-CAR code reports as clDice); every connected piece is in the skeleton, "
+        "also the pieces scikit-image's skeletonize erases whole; see `SDFCARLib/metrics.py`.",
         "",
     ]
     if not tables:

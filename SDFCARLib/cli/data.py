@@ -31,7 +31,7 @@ def cmd_segment(args: argparse.Namespace) -> int:
                          "is read from its tags: remove --image-intensity")
     segmentation_paths(args.out)  # a wrong --out fails before the work
     if args.dicom:
-        from ..dicom import DicomInputError, choose_frame, load_xa, view_from_dicom
+        from ..dicom import choose_frame, load_xa
 
         run = load_xa(args.dicom)
         choice = choose_frame(run, args.frame)
@@ -40,7 +40,7 @@ def cmd_segment(args: argparse.Namespace) -> int:
         relationship = run.frames_relationship
         if relationship:
             source["pixel_intensity_relationship"] = relationship
-        tag_spacing, tag_magnification, problems = _scale_from_tags(run, choice.index, view_from_dicom, DicomInputError)
+        tag_spacing, tag_magnification, problems = _scale_from_tags(run, choice.index)
         if not spacing and tag_spacing:
             spacing, spacing_source = tag_spacing, "the DICOM tags"
         if not magnification and tag_magnification:
@@ -92,32 +92,33 @@ def cmd_segment(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
-def _scale_from_tags(run, frame: int, view_from_dicom, error_type):
+def _scale_from_tags(run, frame: int):
     """(detector pixel spacing (row, col) or None, SID/SOD or None, {"spacing"/"magnification": why not}) of a
     run's frame: each read from the tags on its own, so that one missing tag does not lose the other (the
     angles do not matter for a mask and are not read)."""
+    from ..dicom import DicomInputError, view_from_dicom
+
     angles = {"primary_deg": 0.0, "secondary_deg": 0.0}
-    stand_in_distances = {"sid_mm": 1000.0, "sod_mm": 750.0}
-    stand_in_spacing = {"pixel_spacing_mm": [1.0, 1.0]}
     try:
         view, _ = view_from_dicom(run, frame, angles)
         return list(view.pixel_spacing_mm), view.sid_mm / view.sod_mm, {}
-    except error_type:
+    except DicomInputError:
         pass
     spacing = magnification = None
     problems = {}
-    try:  # the distances stood in for: what fails is the spacing (one calibrated at the patient needs them)
-        view, provenance = view_from_dicom(run, frame, {**angles, **stand_in_distances})
-        if "calibrated at the patient" in provenance["fields"]["pixel_spacing_mm"]["source"]:
-            problems["spacing"] = "the spacing is calibrated at the patient and needs the distances"
+    try:  # the distances stood in for, twice: a spacing that follows them is one calibrated at the patient
+        spacings = [list(view_from_dicom(run, frame, {**angles, "sid_mm": 1000.0, "sod_mm": sod})[0].pixel_spacing_mm)
+                    for sod in (750.0, 600.0)]
+        if spacings[0] == spacings[1]:
+            spacing = spacings[0]
         else:
-            spacing = list(view.pixel_spacing_mm)
-    except error_type as exc:
+            problems["spacing"] = "the tags give the spacing at the patient, which needs the missing distances"
+    except DicomInputError as exc:
         problems["spacing"] = str(exc)
     try:  # the spacing stood in for: what fails is the distances
-        view, _ = view_from_dicom(run, frame, {**angles, **stand_in_spacing})
+        view, _ = view_from_dicom(run, frame, {**angles, "pixel_spacing_mm": [1.0, 1.0]})
         magnification = view.sid_mm / view.sod_mm
-    except error_type as exc:
+    except DicomInputError as exc:
         problems["magnification"] = str(exc)
     return spacing, magnification, problems
 

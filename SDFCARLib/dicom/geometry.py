@@ -130,10 +130,16 @@ def _wrap_angle(angle: float) -> float:
 
 def _frame_angle(run: XARun, keyword: str, increment_keyword: str, frame: int,
                  start: float, start_source: str) -> Tuple[float, str]:
-    increments, _ = run.lookup(increment_keyword)
+    increments, where = run.lookup(increment_keyword)
     if increments is None or run.enhanced:
         return start, start_source
-    values = tag_floats(increments)
+    try:
+        values = tag_floats(increments)
+    except (TypeError, ValueError):
+        raise DicomInputError(
+            f"{run.path}: {run.source(increment_keyword, where)} = {str(increments).strip()!r} is not a list of numbers; "
+            f"give the angle by hand with {'primary_deg' if 'Primary' in keyword else 'secondary_deg'} in the "
+            "overrides") from None
     n = run.num_frames
     if len(values) == 1:
         angle = start + frame * values[0]

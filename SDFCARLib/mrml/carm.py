@@ -8,6 +8,7 @@ mask as point scalars or as a texture), beams as lines from the source to the de
 from __future__ import annotations
 
 import math
+import numbers
 from dataclasses import dataclass, field
 from typing import Any, List, Optional, Sequence
 
@@ -152,7 +153,8 @@ def add_carm_geometry_to_scene(
     """
     if image_display not in ("scalars", "texture"):
         raise MRMLBridgeError(f"image_display must be 'scalars' or 'texture', got {image_display!r}")
-    if isinstance(max_points_per_side, bool) or not isinstance(max_points_per_side, int) or max_points_per_side < 2:
+    if (isinstance(max_points_per_side, bool) or not isinstance(max_points_per_side, numbers.Integral)
+            or max_points_per_side < 2):
         raise MRMLBridgeError(f"max_points_per_side must be a whole number of 2 or more (points along a detector "
                               f"side), got {max_points_per_side!r}")
     views = list(geometry.views)

@@ -98,9 +98,9 @@ def _mask_on_reference_pixels(node, slice_index: Optional[int], values: np.ndarr
     from a file has a spacing of 1 and no origin). A mask of another size must lie on the frame's pixels
     (a labelmap exported cropped to the vessels): it is taken where it lies, or refused."""
     name, frame_name = node.GetName(), reference.GetName()
+    if values.shape == frame_from_volume_node(reference, reference_slice_index).shape:
+        return values  # before any geometry: a transform of either node (even a non-linear one) does not matter
     rows, cols, points = _pixel_centres(reference, reference_slice_index, into_node=node)
-    if values.shape == (rows, cols):
-        return values
     ras_to_ijk = np.linalg.inv(_ijk_to_ras(node))
     ijk = points @ ras_to_ijk[:3, :3].T + ras_to_ijk[:3, 3]
     own_k = 0 if node.GetImageData().GetDimensions()[2] == 1 else int(slice_index)

@@ -15,6 +15,7 @@ from typing import Any, Dict, List, Mapping, Optional, Sequence, Tuple, Union
 import numpy as np
 
 from ..geometry import Geometry, VolumeGrid
+from ..masks import binary_values_problem
 from ..outputs import RESULT_FILES
 from .scene import (ATTRIBUTE_PREFIX, SCENE_FILE_VERSION, MRMLBridgeError, PathLike, _attribute_text, _image_data,
                     _numpy_matrix, _set_attributes, _slicer, _vtk_matrix, ijk_to_ras_matrix, lps_to_ras, prepare_scene,
@@ -66,11 +67,11 @@ def add_segmentation_node(scene, mask_ijk: np.ndarray, grid: VolumeGrid, name: s
     if mask_ijk.shape != tuple(grid.shape):
         raise MRMLBridgeError(f"segmentation {name!r}: mask shape {mask_ijk.shape} differs from the grid shape {tuple(grid.shape)}")
     if mask_ijk.dtype != bool:
-        values = np.unique(mask_ijk) if np.issubdtype(mask_ijk.dtype, np.number) else np.array([np.nan])
-        if not (np.all(np.isfinite(values)) and np.isin(values, (0, 1)).all()):
-            shown = ", ".join(f"{v:g}" for v in values[:5].astype(float)) + (", …" if values.size > 5 else "")
-            raise MRMLBridgeError(f"segmentation {name!r}: the mask must be boolean (or 0 and 1), got values {shown}; "
-                                  "threshold an occupancy first (e.g. occupancy >= 0.5)")
+        problem = (binary_values_problem(mask_ijk) if np.issubdtype(mask_ijk.dtype, np.number)
+                   else f"holds {mask_ijk.dtype} values, not numbers")
+        if problem:
+            raise MRMLBridgeError(f"segmentation {name!r}: the mask {problem}: it must be binary (0 and one vessel "
+                                  "value); threshold an occupancy first (e.g. occupancy >= 0.5)")
     if not mask_ijk.any():
         raise MRMLBridgeError(
             f"segmentation {name!r}: the mask has no voxel, there is nothing to show; "
@@ -258,7 +259,10 @@ def _add_result_files(scene, files: Dict[str, Path], name: str, include_occupanc
     else:
         model = add_model_node(scene, segmentation_surface(segmentation, segment_id), f"{name} surface")
     occupancy = None
-    if include_occupancy and "occupancy" in files:
+    if include_occupancy and "occupancy" not in files:
+        raise MRMLBridgeError(f"the occupancy was asked for but the result has no {RESULT_FILES['occupancy']} (every "
+                              "reconstruction writes one: the folder is incomplete); load it without the occupancy")
+    if include_occupancy:
         occupancy = scene.AddNewNodeByClass("vtkMRMLScalarVolumeNode", f"{name} occupancy")
         _read_into(scene, occupancy, "vtkMRMLVolumeArchetypeStorageNode", files["occupancy"], "occupancy volume")
         occupancy.CreateDefaultDisplayNodes()

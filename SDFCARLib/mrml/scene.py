@@ -23,6 +23,7 @@ import math
 import tempfile
 import xml.etree.ElementTree as ET
 import zipfile
+import zlib
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Any, Dict, Iterator, List, Mapping, Optional, Sequence, Union
@@ -352,6 +353,8 @@ def _bundle_scene_problem(path: Path) -> Optional[str]:
             return _scene_text_problem(bundle.read(inside[0]))
     except (zipfile.BadZipFile, OSError) as exc:
         return f"it is not a Slicer scene bundle (a zip file): {exc}"
+    except (zlib.error, EOFError, RuntimeError, NotImplementedError) as exc:  # damaged, encrypted, unknown compression
+        return f"the bundle is damaged: its scene cannot be unpacked ({exc})"
 
 
 def load_scene(scene, path: PathLike, clear: bool = True):
