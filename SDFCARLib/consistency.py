@@ -105,7 +105,8 @@ def consistency_warnings(consistency: Sequence[float], options: ConsistencyOptio
             warnings.append(
                 f"view {n}: only {100 * value:.0f} % of its vessel centreline has a partner in the other view(s) "
                 "along the epipolar lines; check the angle signs (LAO +, RAO −, CRA +, CAU −), that each mask "
-                "belongs to its view and to the same cardiac phase, and the SID/SOD values")
+                "belongs to its view and to the same cardiac phase and is not transposed or flipped, and the SID/SOD "
+                "values")
     return warnings
 
 

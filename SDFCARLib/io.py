@@ -163,10 +163,13 @@ def read_image(path: PathLike, what: str = "image") -> np.ndarray:
 
 def _check_shape(data: np.ndarray, path: Path, detector_shape: Optional[Sequence[int]], what: str) -> None:
     if detector_shape is not None and tuple(data.shape) != tuple(int(s) for s in detector_shape):
+        expected = tuple(int(s) for s in detector_shape)
+        if tuple(data.shape) == expected[::-1]:
+            raise InputError(f"{path}: {what} shape {tuple(data.shape)} (rows, cols) is the detector shape {expected} "
+                             "with rows and columns swapped: transpose the image (it was saved columns first)")
         raise InputError(
             f"{path}: {what} shape {tuple(data.shape)} (rows, cols) differs from the detector shape "
-            f"{tuple(int(s) for s in detector_shape)} in the geometry; use the {what} of that view or fix "
-            "detector_shape in GEOM.json")
+            f"{expected} in the geometry; use the {what} of that view or fix detector_shape in GEOM.json")
 
 
 def read_mask(path: PathLike, detector_shape: Optional[Sequence[int]] = None, what: str = "mask",
@@ -279,7 +282,7 @@ def _nrrd_volume(path: Path, collapse_layers: bool) -> Tuple[np.ndarray, VolumeG
     directions = header.get("space directions")
     if directions is None:
         raise InputError(
-            f"{path} has no 'space directions' (only {'spacings' if 'spacings' in header else 'no spacing'}); "
+            f"{path} has no 'space directions' ({'only spacings' if 'spacings' in header else 'nor spacings'}); "
             "SDFCAR needs to know where the volume lies: save it with its spacing and origin "
             "(e.g. from Slicer), space 'left-posterior-superior'")
     directions = np.asarray(directions, dtype=float)
@@ -290,6 +293,10 @@ def _nrrd_volume(path: Path, collapse_layers: bool) -> Tuple[np.ndarray, VolumeG
         directions = directions[1:]
     elif data.ndim != 3 or not np.all(spatial):
         raise InputError(f"{path} holds {data.ndim}-D data of shape {data.shape}; a volume must be 3D")
+    units = [str(u).strip().lower() for u in header.get("space units", [])]
+    if any(u not in ("mm", "millimeter", "millimeters", "millimetre", "millimetres") for u in units):
+        raise InputError(f"{path}: its space units are {units}, not mm; SDFCAR places volumes in mm: save it in mm "
+                         "(e.g. resample or rescale it in Slicer)")
     space = str(header.get("space", "left-posterior-superior")).lower()
     if space not in _SPACE_TO_LPS:
         raise InputError(
@@ -315,7 +322,9 @@ def _nifti_volume(path: Path) -> Tuple[np.ndarray, VolumeGrid]:
         data = data[..., 0]
     if data.ndim != 3:
         raise InputError(f"{path} holds {data.ndim}-D data of shape {data.shape}; a volume must be 3D")
-    affine = np.diag([-1.0, -1.0, 1.0, 1.0]) @ np.asarray(image.affine, float)  # NIfTI world is RAS
+    unit = image.header.get_xyzt_units()[0] if hasattr(image.header, "get_xyzt_units") else "unknown"
+    scale = {"mm": 1.0, "meter": 1000.0, "micron": 1e-3}.get(unit, 1.0)  # "unknown" (unset): taken as mm, as is usual
+    affine = np.diag([-scale, -scale, scale, 1.0]) @ np.asarray(image.affine, float)  # NIfTI world is RAS
     return _axis_aligned(np.asarray(data), affine[:3, :3], affine[:3, 3], path)
 
 

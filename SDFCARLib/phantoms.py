@@ -102,6 +102,8 @@ def voxelize(tree: CentrelineTree, grid: VolumeGrid) -> np.ndarray:
 
 # --- centreline files ------------------------------------------------------------------------------
 RADIUS_ARRAY_NAMES = ("radii", "radius", "Radius", "MaximumInscribedSphereRadius", "RADIUS")
+#: the range a coronary tree's median radius lies in (mm): a file's outside it is in other units
+CORONARY_RADIUS_MM = (0.2, 5.0)
 
 
 def load_centreline_vtk(path: PathLike, name: Optional[str] = None) -> CentrelineTree:
@@ -124,15 +126,31 @@ def load_centreline_vtk(path: PathLike, name: Optional[str] = None) -> Centrelin
     if poly is None or poly.GetNumberOfPoints() == 0:
         raise ValueError(f"{path} holds no polydata points; expected a centreline polydata file")
     points = vtk_to_numpy(poly.GetPoints().GetData()).astype(float)
+    header = reader.GetHeader() if hasattr(reader, "GetHeader") else ""
+    if "SPACE=RAS" in str(header or "").upper():  # Slicer's marker (write_surface_vtk writes SPACE=LPS): SDFCAR is LPS
+        points = points * np.array([-1.0, -1.0, 1.0])
     pd = poly.GetPointData()
     radius = None
     for array_name in RADIUS_ARRAY_NAMES:
-        if pd.GetArray(array_name) is not None:
-            radius = vtk_to_numpy(pd.GetArray(array_name)).astype(float).reshape(-1)
+        array = pd.GetArray(array_name)
+        if array is not None:
+            if array.GetNumberOfComponents() != 1:
+                raise ValueError(f"{path}: its radius array {array_name!r} has {array.GetNumberOfComponents()} components "
+                                 "per point; a radius is one number per point")
+            radius = vtk_to_numpy(array).astype(float).reshape(-1)
             break
     if radius is None:
         names = [pd.GetArrayName(i) for i in range(pd.GetNumberOfArrays())]
         raise ValueError(f"{path} has no radius point array (looked for {', '.join(RADIUS_ARRAY_NAMES)}; found {names or 'none'})")
+    bad = ~(np.isfinite(radius) & (radius > 0))
+    if bad.any():
+        raise ValueError(f"{path}: {int(bad.sum())} of its {radius.size} radii are not positive numbers (the first at "
+                         f"point {int(np.flatnonzero(bad)[0])}: {float(radius[bad][0])!r}); give every centreline point its radius in mm")
+    median = float(np.median(radius))
+    if not CORONARY_RADIUS_MM[0] <= median <= CORONARY_RADIUS_MM[1]:
+        raise ValueError(f"{path}: its median radius is {median:g}, outside the {CORONARY_RADIUS_MM[0]:g}–"
+                         f"{CORONARY_RADIUS_MM[1]:g} mm of coronary arteries: are the radii (and points) in cm or µm? "
+                         "SDFCAR reads centrelines in mm")
     branches = []
     lines = poly.GetLines()
     lines.InitTraversal()

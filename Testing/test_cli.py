@@ -539,3 +539,14 @@ def test_reconstruct_takes_any_number_of_views(tiny_case, tmp_path, capsys):
     code, _, err = run(capsys, "reconstruct", "--geometry", geometry_json, "--mask", *masks, "--mask1", masks[0],
                        "--out", tmp_path / "r3")
     _assert_bad_input(code, err, "either as --mask A B … or as --mask1/--mask2")
+
+
+def test_geometry_template_warns_of_views_along_one_line(tmp_path, capsys):
+    from SDFCARLib.cli import main
+
+    assert main(["geometry-template", "--view", "30", "0", "--view", "30", "0", "--out", str(tmp_path / "g.json")]) == 0
+    assert "warning: views 1 and 2 look along the same line" in capsys.readouterr().err
+    assert main(["geometry-template", "--view", "0", "0", "--view", "180", "0", "--out", str(tmp_path / "h.json")]) == 0
+    assert "look along the same line" in capsys.readouterr().err
+    assert main(["geometry-template", "--view", "30", "0", "--view", "-30", "0", "--out", str(tmp_path / "i.json")]) == 0
+    assert "warning" not in capsys.readouterr().err

@@ -376,3 +376,28 @@ def test_json_files_get_the_mode_of_a_new_file_or_keep_the_one_they_had(tmp_path
     write_json(new, {"a": 2})
     assert new.stat().st_mode & 0o777 == 0o640
     assert new.read_text() == '{\n  "a": 2\n}\n'
+
+
+def test_volume_units_other_than_mm_are_read_as_such_or_refused(tmp_path):
+    import nibabel
+    import nrrd
+
+    data = np.zeros((4, 5, 6), np.int16)
+    data[1, 2, 3] = 1
+    image = nibabel.Nifti1Image(data, np.diag([0.002, 0.002, 0.002, 1.0]))  # 2 mm voxels, in metres
+    image.header.set_xyzt_units("meter")
+    nibabel.save(image, str(tmp_path / "metres.nii.gz"))
+    _, grid = read_volume(tmp_path / "metres.nii.gz")
+    np.testing.assert_allclose(grid.spacing_mm, (2.0, 2.0, 2.0))
+    nrrd.write(str(tmp_path / "cm.nrrd"), data, {"space": "left-posterior-superior", "space directions": np.eye(3) * 0.2,
+                                                "space units": ["cm", "cm", "cm"], "space origin": np.zeros(3)})
+    with pytest.raises(InputError, match=r"space units are \['cm', 'cm', 'cm'\], not mm"):
+        read_volume(tmp_path / "cm.nrrd")
+
+
+def test_a_transposed_mask_is_named_as_such(tmp_path):
+    mask = np.zeros((40, 30), bool)
+    mask[5:10, 3:20] = True
+    path = write_mask_png(tmp_path / "m.png", mask)
+    with pytest.raises(InputError, match=r"the detector shape \(30, 40\) with rows and columns swapped: transpose"):
+        read_mask(path, detector_shape=(30, 40))

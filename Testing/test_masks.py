@@ -70,8 +70,10 @@ def test_read_mask_takes_one_label_of_a_label_image(tmp_path):
     path = tmp_path / "labels.png"
     imageio.imwrite(path, labels)
     assert np.array_equal(read_mask(path, (9, 11), label=2), labels == 2)
-    with pytest.raises(InputError, match="differs from the detector shape"):
+    with pytest.raises(InputError, match="is the detector shape .* with rows and columns swapped"):
         read_mask(path, (11, 9))
+    with pytest.raises(InputError, match="differs from the detector shape"):
+        read_mask(path, (9, 12))
     with pytest.raises(InputError, match="labels.png: the mask is not binary"):
         read_mask(path, (9, 11))
 

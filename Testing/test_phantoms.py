@@ -238,3 +238,31 @@ def test_simulation_errors(small_case):
     far_away = tree.translated((200.0, 0.0, 0.0))
     with pytest.raises(ValueError, match="does not intersect"):
         make_case(far_away, Geometry(grid, views))
+
+
+@pytest.mark.parametrize("radii, words", [
+    ("1.5 nan 1.0", "of its 3 radii are not positive numbers"),  # VTK's ASCII reader reads what follows a nan as 0 or not
+    ("1.5 -1.2 1.0", "1 of its 3 radii are not positive numbers"),
+    ("0 0 0", "3 of its 3 radii are not positive numbers"),
+    ("0.15 0.12 0.10", r"median radius is 0.12, outside the 0.2–5 mm of coronary arteries: are the radii .* in cm"),
+    ("1500 1200 1000", r"median radius is 1200"),
+])
+def test_centreline_radii_that_are_no_coronary_radii_in_mm_are_named(tmp_path, radii, words):
+    pytest.importorskip("vtk", reason="the vtk package (extra 'headless', or Slicer) is not installed")
+    path = tmp_path / "c.vtk"
+    path.write_text(VTK_HEADER + f"LINES 1 4\n3 0 1 2\nPOINT_DATA 3\nSCALARS radii float 1\nLOOKUP_TABLE default\n{radii}\n")
+    with pytest.raises(ValueError, match=words):
+        load_centreline_vtk(path)
+
+
+def test_a_centreline_marked_ras_is_read_in_lps_and_a_vector_radius_refused(tmp_path):
+    pytest.importorskip("vtk", reason="the vtk package (extra 'headless', or Slicer) is not installed")
+    ras = tmp_path / "ras.vtk"
+    ras.write_text(VTK_HEADER.replace("\ntest\n", "\nvtk output SPACE=RAS\n")
+                   + "LINES 1 4\n3 0 1 2\nPOINT_DATA 3\nSCALARS radii float 1\nLOOKUP_TABLE default\n1.5 1.2 1.0\n")
+    np.testing.assert_allclose(load_centreline_vtk(ras).branches[0].points[2], [-10, 0, 0])  # RAS x 10 = LPS x −10
+    vector = tmp_path / "vector.vtk"
+    vector.write_text(VTK_HEADER + "LINES 1 4\n3 0 1 2\nPOINT_DATA 3\nSCALARS radii float 3\nLOOKUP_TABLE default\n"
+                      + "1 1 1 1 1 1 1 1 1\n")
+    with pytest.raises(ValueError, match="has 3 components per point"):
+        load_centreline_vtk(vector)

@@ -222,6 +222,10 @@ def cmd_geometry_template(args: argparse.Namespace) -> int:
                            "PositionerSecondaryAngle, DistanceSourceToDetector, DistanceSourceToPatient, ImagerPixelSpacing)",
             **geometry.to_dict()}
     text = json.dumps(data, indent=2) + "\n"
+    from ..consistency import view_separation_warnings
+
+    for warning in view_separation_warnings(geometry):
+        print(f"warning: {warning}", file=sys.stderr)
     if not args.out:
         sys.stdout.write(text)
         return EXIT_OK
