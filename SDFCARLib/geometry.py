@@ -351,6 +351,15 @@ class VolumeGrid:
         half = np.asarray(self.spacing_mm, float) / 2
         return self.origin - half, self.origin + (np.asarray(self.shape) - 1) * np.asarray(self.spacing_mm) + half
 
+    def grown_to_hold(self, low_mm: Sequence[float], high_mm: Sequence[float]) -> "VolumeGrid":
+        """This grid grown, on its own voxel lattice, until its voxel centres span [low_mm, high_mm] (LPS) as well."""
+        first = np.minimum(np.floor(self.world_to_index(low_mm)), 0).astype(int)
+        last = np.maximum(np.ceil(self.world_to_index(high_mm)), np.asarray(self.shape) - 1).astype(int)
+        if np.all(first == 0) and np.all(last == np.asarray(self.shape) - 1):
+            return self
+        centre = self.index_to_world((first + last) / 2.0)
+        return VolumeGrid(tuple(int(n) for n in last - first + 1), tuple(self.spacing_mm), tuple(float(c) for c in centre))
+
     def corners(self) -> np.ndarray:
         lo, hi = self.bounds()
         return np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])

@@ -550,3 +550,25 @@ def test_geometry_template_warns_of_views_along_one_line(tmp_path, capsys):
     assert "look along the same line" in capsys.readouterr().err
     assert main(["geometry-template", "--view", "30", "0", "--view", "-30", "0", "--out", str(tmp_path / "i.json")]) == 0
     assert "warning" not in capsys.readouterr().err
+
+
+def test_simulate_projects_the_whole_centreline_and_warns_of_the_part_outside_the_volume(tmp_path, capsys, geometry_file):
+    pytest.importorskip("vtk", reason="the vtk package (extra 'headless', or Slicer) is not installed")
+    from SDFCARLib.geometry import Geometry
+
+    geometry = Geometry.load(geometry_file)
+    lo, hi = geometry.volume.bounds()
+    # a tube along x from the middle of the volume to 10 mm beyond its +x face
+    start, end = (lo + hi) / 2, np.array([hi[0] + 10.0, (lo[1] + hi[1]) / 2, (lo[2] + hi[2]) / 2])
+    path = tmp_path / "tube.vtk"
+    path.write_text("# vtk DataFile Version 3.0\ntube\nASCII\nDATASET POLYDATA\nPOINTS 2 float\n"
+                    f"{start[0]} {start[1]} {start[2]} {end[0]} {end[1]} {end[2]}\nLINES 1 3\n2 0 1\n"
+                    "POINT_DATA 2\nSCALARS radii float 1\nLOOKUP_TABLE default\n1.5 1.5\n")
+    code, _, err = run(capsys, "simulate", "--label", path, "--geometry", geometry_file, "--out", tmp_path / "out")
+    assert code == 0 and "part of the label lies outside the geometry's volume" in err
+    from SDFCARLib.io import read_image
+    from SDFCARLib.phantoms import load_centreline_vtk, simulate_views, voxelize
+
+    tree = load_centreline_vtk(path)
+    clipped = simulate_views(voxelize(tree, geometry.volume), geometry.volume, geometry.views, 0.2)[1][0]
+    assert (read_image(tmp_path / "out" / "view1_mask.png") > 0).sum() > clipped.sum()  # the views see all of it

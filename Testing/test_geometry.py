@@ -494,3 +494,14 @@ def test_description_and_provenance_survive_a_load_and_save_but_are_no_part_of_t
     assert json.loads((tmp_path / "out.json").read_text()) == data
     geometry.save(tmp_path / "plain.json")  # none given, none written
     assert set(json.loads((tmp_path / "plain.json").read_text())) == {"volume", "views"}
+
+
+def test_a_grid_grown_to_hold_a_box_keeps_its_lattice():
+    grid = VolumeGrid((4, 4, 4), (1.0, 2.0, 0.5), (0.0, 0.0, 0.0))  # origin (-1.5, -3, -0.75)
+    assert grid.grown_to_hold([-1.0, -1.0, 0.0], [1.0, 1.0, 0.5]) is grid  # inside: the grid itself
+    grown = grid.grown_to_hold([-1.0, -1.0, 0.0], [5.2, 1.0, 0.5])  # x to 5.2: index (5.2 + 1.5) / 1 = 6.7 → 7
+    assert grown.shape == (8, 4, 4) and grown.spacing_mm == grid.spacing_mm
+    np.testing.assert_allclose(grown.origin, grid.origin)  # the same voxel centres, more of them
+    lower = grid.grown_to_hold([-1.0, -7.5, 0.0], [1.0, 1.0, 0.5])  # y to −7.5: index −2.25 → −3
+    assert lower.shape == (4, 7, 4)
+    np.testing.assert_allclose(lower.origin, grid.origin - [0.0, 6.0, 0.0])

@@ -133,7 +133,8 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         raise ValueError(f"--mask-threshold-mm must be positive, got {args.mask_threshold_mm}")
     names = [f"view{n}_{kind}" for n in range(1, len(geometry.views) + 1) for kind in ("mask.png", "lineint.nrrd")]
     check_destination(args.out, names, args.overwrite)
-    label, label_grid = read_label(args.label, grid=geometry.volume, what="label")
+    # a centreline is voxelised on the volume's lattice grown to hold the whole tree: the views see all of it
+    label, label_grid = read_label(args.label, grid=_grid_holding_centreline(args.label, geometry.volume), what="label")
     if not label.any():
         raise ValueError(f"{args.label}: the label is empty (no vessel voxel); nothing to project")
     _warn_outside(label, label_grid, geometry.volume)
@@ -154,6 +155,19 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         print(f"view {n}: {int(mask.sum())} vessel pixels, longest path {float(li.max()):.2f} mm")
     print(f"wrote {', '.join(names)} in {args.out}")
     return EXIT_OK
+
+
+def _grid_holding_centreline(path, grid):
+    """``grid``, grown to hold the tree when ``path`` is a centreline (other labels carry their own grid)."""
+    if Path(path).suffix.lower() not in (".vtk", ".vtp"):
+        return grid
+    from ..phantoms import load_centreline_vtk
+
+    try:
+        tree = load_centreline_vtk(path)
+    except (ValueError, OSError):
+        return grid  # read_label names what is wrong with the file
+    return grid.grown_to_hold(*tree.bounds())
 
 
 def _warn_outside(label: np.ndarray, label_grid, grid) -> None:
