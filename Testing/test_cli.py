@@ -572,3 +572,12 @@ def test_simulate_projects_the_whole_centreline_and_warns_of_the_part_outside_th
     tree = load_centreline_vtk(path)
     clipped = simulate_views(voxelize(tree, geometry.volume), geometry.volume, geometry.views, 0.2)[1][0]
     assert (read_image(tmp_path / "out" / "view1_mask.png") > 0).sum() > clipped.sum()  # the views see all of it
+
+
+def test_simulate_does_not_grow_the_grid_to_a_tree_far_from_the_volume(tmp_path, capsys, geometry_file):
+    pytest.importorskip("vtk", reason="the vtk package (extra 'headless', or Slicer) is not installed")
+    path = tmp_path / "far.vtk"  # 1 m from the isocenter, as in another frame's coordinates
+    path.write_text("# vtk DataFile Version 3.0\nfar\nASCII\nDATASET POLYDATA\nPOINTS 2 float\n1000 0 0 1040 0 0\n"
+                    "LINES 1 3\n2 0 1\nPOINT_DATA 2\nSCALARS radii float 1\nLOOKUP_TABLE default\n1.5 1.5\n")
+    code, _, err = run(capsys, "simulate", "--label", path, "--geometry", geometry_file, "--out", tmp_path / "out")
+    assert code == 2 and "do not reach the volume grid" in err and not (tmp_path / "out").exists()

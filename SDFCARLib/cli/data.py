@@ -157,6 +157,10 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+#: how many times the volume's voxels ``simulate`` takes to hold a centreline that reaches beyond the volume
+MAX_GROWN_GRID_FACTOR = 8
+
+
 def _grid_holding_centreline(path, grid):
     """``grid``, grown to hold the tree when ``path`` is a centreline (other labels carry their own grid)."""
     if Path(path).suffix.lower() not in (".vtk", ".vtp"):
@@ -167,7 +171,9 @@ def _grid_holding_centreline(path, grid):
         tree = load_centreline_vtk(path)
     except (ValueError, OSError):
         return grid  # read_label names what is wrong with the file
-    return grid.grown_to_hold(*tree.bounds())
+    grown = grid.grown_to_hold(*tree.bounds())
+    # a tree far from the volume (another frame's coordinates) is not worth gigabytes: read_label then says it misses
+    return grown if grown.num_voxels <= MAX_GROWN_GRID_FACTOR * grid.num_voxels else grid
 
 
 def _warn_outside(label: np.ndarray, label_grid, grid) -> None:
