@@ -30,7 +30,7 @@ import os
 import tempfile
 from collections import OrderedDict
 from pathlib import Path
-from typing import Any, Callable, Optional, Sequence, Tuple, Union
+from typing import Any, Callable, List, Optional, Sequence, Tuple, Union
 
 import numpy as np
 
@@ -337,6 +337,43 @@ def read_volume(path: PathLike, what: str = "volume") -> Tuple[np.ndarray, Volum
     if suffix in (".nii", ".nii.gz"):
         return _nifti_volume(path)
     raise InputError(f"{path}: unsupported {what} format {suffix or '(no extension)'!r}; use {VOLUME_FORMATS}")
+
+
+def label_file_warnings(path: PathLike, what: str = "label") -> List[str]:
+    """What ``read_label`` takes from the file at ``path`` that a user may not expect, read from its header:
+    the segments of a segmentation merged into one vessel label, and a NIfTI file whose two placements
+    (sform and qform) disagree. Empty for files it cannot read (``read_label`` names what is wrong)."""
+    path = Path(path)
+    suffix = _suffix(path)
+    warnings = []
+    if suffix in (".nrrd", ".nhdr", ".seg.nrrd"):
+        import nrrd
+
+        try:
+            header = nrrd.read_header(str(path))
+        except Exception:
+            return []
+        names = [str(header[f"Segment{n}_Name"]) for n in range(len(header)) if f"Segment{n}_Name" in header]
+        if len(names) > 1:
+            warnings.append(f"{path.name}: its {len(names)} segments ({', '.join(names)}) are merged into one {what}: "
+                            "every segment counts as vessel (export the vessel segment alone to score only it)")
+    elif suffix in (".nii", ".nii.gz"):
+        import nibabel
+
+        try:
+            header = nibabel.load(str(path)).header
+            sform, qform = header.get_sform(coded=True)[0], header.get_qform(coded=True)[0]
+        except Exception:
+            return []
+        if sform is not None and qform is not None:
+            corners = np.array([[i, j, k, 1.0] for i in (0, 1) for j in (0, 1) for k in (0, 1)]) \
+                * np.r_[np.asarray(header.get_data_shape()[:3], float) - 1, 1.0]
+            disagreement_mm = float(np.max(np.linalg.norm(corners @ (sform - qform)[:3].T, axis=1)))
+            if disagreement_mm > 0.01:
+                warnings.append(f"{path.name}: its sform and qform place the volume up to {disagreement_mm:.2f} mm apart; "
+                                "SDFCAR places it by the sform (as nibabel does); a tool that reads the qform puts it "
+                                "elsewhere: check where the volume lies, and save it with one placement")
+    return warnings
 
 
 def read_label(path: PathLike, grid: Optional[VolumeGrid] = None, threshold: Optional[float] = None,

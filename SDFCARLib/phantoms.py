@@ -71,6 +71,22 @@ class CentrelineTree:
     def total_length_mm(self) -> float:
         return float(sum(np.linalg.norm(np.diff(b.points, axis=0), axis=1).sum() for b in self.branches))
 
+    def length_outside_mm(self, low_mm: Sequence[float], high_mm: Sequence[float]) -> float:
+        """Centreline length outside the box [low_mm, high_mm] (LPS), each segment clipped to the box exactly."""
+        lo, hi = np.asarray(low_mm, float), np.asarray(high_mm, float)
+        outside = 0.0
+        for b in self.branches:
+            start, step = b.points[:-1], np.diff(b.points, axis=0)
+            with np.errstate(divide="ignore", invalid="ignore"):  # a segment parallel to a face: that slab is all or nothing
+                t_lo, t_hi = (lo - start) / step, (hi - start) / step
+            parallel = step == 0
+            inside_slab = (start >= lo) & (start <= hi)
+            t_enter = np.where(parallel, np.where(inside_slab, -np.inf, np.inf), np.minimum(t_lo, t_hi))
+            t_leave = np.where(parallel, np.where(inside_slab, np.inf, -np.inf), np.maximum(t_lo, t_hi))
+            inside_share = np.clip(np.min(t_leave, axis=1), 0, 1) - np.clip(np.max(t_enter, axis=1), 0, 1)
+            outside += float((np.linalg.norm(step, axis=1) * (1 - np.maximum(inside_share, 0))).sum())
+        return outside
+
 
 # --- voxelisation --------------------------------------------------------------------------------
 def voxelize(tree: CentrelineTree, grid: VolumeGrid) -> np.ndarray:

@@ -581,3 +581,44 @@ def test_simulate_does_not_grow_the_grid_to_a_tree_far_from_the_volume(tmp_path,
                     "LINES 1 3\n2 0 1\nPOINT_DATA 2\nSCALARS radii float 1\nLOOKUP_TABLE default\n1.5 1.5\n")
     code, _, err = run(capsys, "simulate", "--label", path, "--geometry", geometry_file, "--out", tmp_path / "out")
     assert code == 2 and "do not reach the volume grid" in err and not (tmp_path / "out").exists()
+
+
+def test_evaluate_and_reconstruct_say_when_a_centreline_label_reaches_beyond_the_volume(tmp_path, capsys, geometry_file):
+    pytest.importorskip("vtk", reason="the vtk package (extra 'headless', or Slicer) is not installed")
+    from SDFCARLib.geometry import Geometry
+    from SDFCARLib.io import write_volume_nrrd
+    from SDFCARLib.phantoms import load_centreline_vtk, voxelize
+
+    volume = Geometry.load(geometry_file).volume
+    lo, hi = volume.bounds()
+    middle = (lo + hi) / 2
+
+    def tube(name, end_x):  # along x from the middle of the volume, radius 1.5 mm
+        path = tmp_path / name
+        path.write_text("# vtk DataFile Version 3.0\ntube\nASCII\nDATASET POLYDATA\nPOINTS 2 float\n"
+                        f"{middle[0]} {middle[1]} {middle[2]} {end_x} {middle[1]} {middle[2]}\nLINES 1 3\n2 0 1\n"
+                        "POINT_DATA 2\nSCALARS radii float 1\nLOOKUP_TABLE default\n1.5 1.5\n")
+        return path
+
+    inside, beyond = tube("inside.vtk", middle[0] + 0.4 * (hi[0] - middle[0])), tube("beyond.vtk", hi[0] + 10.0)
+    length = hi[0] + 10.0 - middle[0]
+    for path in (inside, beyond):
+        prediction = write_volume_nrrd(tmp_path / f"{path.stem}.nrrd", voxelize(load_centreline_vtk(path), volume), volume)
+        code, _, err = run(capsys, "evaluate", "--prediction", prediction, "--label", path, "--geometry", geometry_file,
+                           "--json", tmp_path / f"{path.stem}.json")
+        warnings = json.loads((tmp_path / f"{path.stem}.json").read_text())["warnings"]
+        assert code == 0, err
+        if path == inside:
+            assert "warning" not in err and warnings == []
+        else:  # 10 mm of the tube's length lie beyond the +x face
+            assert f"10.0 mm of the label centreline's {length:.1f} mm" in err and "score the part inside only" in err
+            assert len(warnings) == 1 and warnings[0] in err
+    code, _, err = run(capsys, "simulate", "--label", beyond, "--geometry", geometry_file, "--out", tmp_path / "views")
+    assert code == 0, err
+    code, _, err = run(capsys, "reconstruct", "--geometry", geometry_file, "--mask1", tmp_path / "views" / "view1_mask.png",
+                       "--mask2", tmp_path / "views" / "view2_mask.png", "--label", beyond, "--out", tmp_path / "result",
+                       "--steps", 2, "--no-progress")
+    assert code == 0, err
+    assert "10.0 mm of the ground-truth label centreline's" in err
+    report = json.loads((tmp_path / "result" / "report.json").read_text())
+    assert any("10.0 mm of the ground-truth label centreline's" in w for w in report["warnings"])

@@ -401,3 +401,34 @@ def test_a_transposed_mask_is_named_as_such(tmp_path):
     path = write_mask_png(tmp_path / "m.png", mask)
     with pytest.raises(InputError, match=r"the detector shape \(30, 40\) with rows and columns swapped: transpose"):
         read_mask(path, detector_shape=(30, 40))
+
+
+def test_label_file_warnings_name_merged_segments_and_disagreeing_nifti_placements(tmp_path):
+    import nibabel
+    import nrrd
+
+    from SDFCARLib.io import label_file_warnings
+
+    write_segmentation_nrrd(tmp_path / "one.seg.nrrd", _volume() > 0, GRID, name="Coronary tree")
+    assert label_file_warnings(tmp_path / "one.seg.nrrd") == []
+    data, header = nrrd.read(str(tmp_path / "one.seg.nrrd"))
+    header.update({"Segment1_Name": "Catheter", "Segment1_Layer": "0", "Segment1_LabelValue": "2"})
+    nrrd.write(str(tmp_path / "two.seg.nrrd"), data, header)
+    (warning,) = label_file_warnings(tmp_path / "two.seg.nrrd")
+    assert "2 segments (Coronary tree, Catheter) are merged into one label" in warning
+
+    data = np.zeros((4, 5, 6), np.uint8)
+    data[1, 2, 3] = 1
+    image = nibabel.Nifti1Image(data, np.diag([2.0, 2.0, 2.0, 1.0]))
+    image.set_qform(np.diag([2.0, 2.0, 2.0, 1.0]), code=1)
+    nibabel.save(image, str(tmp_path / "agree.nii"))
+    assert label_file_warnings(tmp_path / "agree.nii") == []
+    shifted = np.diag([2.0, 2.0, 2.0, 1.0])
+    shifted[:3, 3] = (0.0, 3.0, 4.0)  # the qform 5 mm away
+    image.set_qform(shifted, code=1)
+    nibabel.save(image, str(tmp_path / "disagree.nii"))
+    (warning,) = label_file_warnings(tmp_path / "disagree.nii")
+    assert "sform and qform place the volume up to 5.00 mm apart" in warning
+    image.set_qform(shifted, code=0)  # an uncoded qform is no placement
+    nibabel.save(image, str(tmp_path / "uncoded.nii"))
+    assert label_file_warnings(tmp_path / "uncoded.nii") == []

@@ -266,3 +266,15 @@ def test_a_centreline_marked_ras_is_read_in_lps_and_a_vector_radius_refused(tmp_
                       + "1 1 1 1 1 1 1 1 1\n")
     with pytest.raises(ValueError, match="has 3 components per point"):
         load_centreline_vtk(vector)
+
+
+def test_length_outside_a_box_clips_each_segment_exactly():
+    from SDFCARLib.phantoms import Branch, CentrelineTree
+
+    box = (np.zeros(3), np.full(3, 10.0))
+    diagonal = Branch(np.array([[5.0, 5.0, 5.0], [15.0, 15.0, 5.0]]), np.ones(2))  # leaves through the x and y faces at 10
+    along_face = Branch(np.array([[0.0, 2.0, 2.0], [0.0, 8.0, 2.0]]), np.ones(2))  # on the x = 0 face: inside
+    parallel_outside = Branch(np.array([[-1.0, 2.0, 2.0], [-1.0, 8.0, 2.0], [-1.0, 8.0, 9.0]]), np.ones(3))
+    tree = CentrelineTree([diagonal, along_face, parallel_outside])
+    assert tree.length_outside_mm(*box) == pytest.approx(5 * math.sqrt(2) + 6 + 7)
+    assert CentrelineTree([along_face]).length_outside_mm(*box) == 0.0

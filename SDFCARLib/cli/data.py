@@ -7,6 +7,7 @@ import dataclasses
 import json
 import sys
 from pathlib import Path
+from typing import Optional
 
 import numpy as np
 
@@ -124,7 +125,7 @@ def _scale_from_tags(run, frame: int):
 
 
 def cmd_simulate(args: argparse.Namespace) -> int:
-    from ..io import read_label, write_image_nrrd, write_mask_png
+    from ..io import label_file_warnings, read_label, write_image_nrrd, write_mask_png
     from ..outputs import check_destination, staged_directory
     from ..phantoms import simulate_views
 
@@ -138,6 +139,8 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     if not label.any():
         raise ValueError(f"{args.label}: the label is empty (no vessel voxel); nothing to project")
     _warn_outside(label, label_grid, geometry.volume)
+    for warning in label_file_warnings(args.label):  # the part beyond the volume is warned of just above
+        print(f"warning: {warning}", file=sys.stderr)
     line_integrals, masks = simulate_views(label, label_grid, geometry.views, args.mask_threshold_mm)
     for n, (mask, view) in enumerate(zip(masks, geometry.views), start=1):
         if not mask.any():
@@ -184,6 +187,33 @@ def _warn_outside(label: np.ndarray, label_grid, grid) -> None:
               "cannot recover it (check volume.center_mm and volume.shape)", file=sys.stderr)
 
 
+def centreline_outside_warning(path, grid, what: str = "label") -> Optional[str]:
+    """A warning when the centreline at ``path`` reaches beyond ``grid``: it is voxelised on the grid, so
+    the metrics score only the part inside. None for other label files (their own grid is checked when aligned)."""
+    if Path(path).suffix.lower() not in (".vtk", ".vtp"):
+        return None
+    from ..phantoms import load_centreline_vtk
+
+    try:
+        tree = load_centreline_vtk(path)
+    except (ValueError, OSError):
+        return None  # read_label names what is wrong with the file
+    outside_mm, total_mm = tree.length_outside_mm(*grid.bounds()), tree.total_length_mm()
+    if outside_mm <= 0:
+        return None
+    return (f"{outside_mm:.1f} mm of the {what} centreline's {total_mm:.1f} mm ({100 * outside_mm / total_mm:.0f} %) lie "
+            "outside the volume: it is voxelised on the volume, so the metrics score the part inside only "
+            "(enlarge volume.shape or move volume.center_mm to score all of it)")
+
+
+def label_warnings(path, grid, what: str = "label") -> list:
+    """The warnings on a label file as read on ``grid``: its header's surprises and a centreline beyond the grid."""
+    from ..io import label_file_warnings
+
+    outside = centreline_outside_warning(path, grid, what)
+    return label_file_warnings(path, what) + ([outside] if outside else [])
+
+
 def cmd_evaluate(args: argparse.Namespace) -> int:
     from ..io import align_to_grid, read_label
     from ..io import json_compatible
@@ -199,13 +229,16 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
               "every overlap metric is 0 (occupancy.nrrd holds values in [0, 1]; its segmentation's level is 0.5)",
               file=sys.stderr)
     label, label_grid = read_label(args.label, grid=geometry.volume if geometry else prediction_grid, what="label")
+    warnings = label_warnings(args.prediction, prediction_grid, "prediction") + label_warnings(args.label, label_grid)
+    for warning in warnings:
+        print(f"warning: {warning}", file=sys.stderr)
     prediction = align_to_grid(prediction, prediction_grid, label_grid, what="prediction")
     metrics = ground_truth_metrics(prediction, label, label_grid, geometry.views if geometry else None)
     print_metrics(metrics)
     if args.json:
         out = {"prediction_file": absolute_path(args.prediction), "label_file": absolute_path(args.label),
                "geometry_file": absolute_path(args.geometry),
-               "grid": label_grid.to_dict(), "metrics": metrics}
+               "grid": label_grid.to_dict(), "metrics": metrics, "warnings": warnings}
         write_text_atomically(Path(args.json), json.dumps(json_compatible(out), indent=2, allow_nan=False) + "\n")
         print(f"wrote {args.json}")
     return EXIT_OK

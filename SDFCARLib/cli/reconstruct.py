@@ -219,6 +219,7 @@ def _dicom_frames(args: argparse.Namespace, provenance, kind: str) -> Tuple[Opti
 def cmd_reconstruct(args: argparse.Namespace) -> int:
     from ..io import align_to_grid, read_label
     from ..outputs import check_destination, result_file_names, write_reconstruction
+    from .data import label_warnings
 
     geometry, provenance, request = _geometry_for_reconstruct(args)
     auto, intensity = _auto_masks(args, geometry, provenance) if args.auto_masks else (None, None)
@@ -236,6 +237,9 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
     if args.label:
         label, label_grid = read_label(args.label, grid=geometry.volume, what="ground-truth label")
         label = align_to_grid(label, label_grid, geometry.volume, what="ground-truth label")
+        for warning in label_warnings(args.label, geometry.volume, what="ground-truth label"):
+            print(f"warning: {warning}", file=sys.stderr)
+            grid_warnings = grid_warnings + [warning]
     settings = settings_from_args(args)
     auto_mask_names = []
     if auto:
