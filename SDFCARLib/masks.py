@@ -114,6 +114,11 @@ def binary_values_problem(array: np.ndarray) -> Optional[str]:
     return None
 
 
+#: a mask marking more of its image than this as vessel is refused: coronary trees cover about 1–15 % of an angiogram,
+#: so a majority is the background (an inverted mask); its support would fill the volume
+MAX_VESSEL_SHARE = 0.5
+
+
 def binarise_mask(
     array: Any,
     detector_shape: Optional[Sequence[int]] = None,
@@ -159,6 +164,10 @@ def binarise_mask(
         raise MaskError(f"{source}: the mask covers the whole image: it marks every pixel as vessel, so it is not a "
                         "vessel segmentation (is it inverted, or was the background saved as non-zero? give the label of "
                         "the vessels)")
+    if mask.mean() > MAX_VESSEL_SHARE:
+        raise MaskError(f"{source}: the mask marks {100 * mask.mean():.1f} % of the image as vessel, more than its "
+                        "background: it is inverted (the background saved as non-zero) or the background was segmented; "
+                        "invert it so that vessel is non-zero and background 0, or give the label of the vessels")
     return mask
 
 

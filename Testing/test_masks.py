@@ -54,6 +54,11 @@ def test_bad_masks_are_refused_with_the_fix():
         binarise_mask(np.zeros((4, 4)))
     with pytest.raises(MaskError, match="covers the whole image"):
         binarise_mask(np.ones((4, 4)))
+    vessel = np.zeros((10, 10), np.uint8)
+    vessel[4:6, :] = 255  # a horizontal vessel: 20 % of the image
+    assert binarise_mask(vessel).sum() == 20
+    with pytest.raises(MaskError, match=r"view 1: the mask marks 80.0 % of the image as vessel.*inverted.*invert it"):
+        binarise_mask(255 - vessel, source="view 1")
     with pytest.raises(MaskError, match="NaN or infinite"):
         binarise_mask(np.array([[0.0, np.nan], [1.0, 0.0]]))
     with pytest.raises(MaskError, match=r"2-D image .* got shape \(2, 5, 6\)"):
