@@ -473,3 +473,27 @@ def test_a_negative_seed_and_cuda_without_a_gpu_are_refused_before_any_work(tmp_
     code, _, err = run_cli(capsys, "--suite", "rca", "--cases", "1", "--set", "device=cuda", "--out", tmp_path / "gpu")
     assert code == 2 and "--set device=cuda: this machine has no CUDA GPU" in err and "--set device=cpu" in err
     assert not (tmp_path / "gpu").exists()
+
+
+def test_an_interrupted_run_is_recorded_as_such_and_each_row_names_its_run(tmp_path, capsys, monkeypatch):
+    pytest.importorskip("distributed", reason="the benchmark harness needs the 'bench' extra (dask[distributed], matplotlib)")
+    pytest.importorskip("matplotlib", reason="the benchmark harness needs the 'bench' extra (dask[distributed], matplotlib)")
+    real_append = bm_run.ResultsFile.append
+    appended = []
+
+    def ctrl_c_after_the_first_row(self, row):
+        if appended:
+            raise KeyboardInterrupt
+        appended.append(row)
+        real_append(self, row)
+
+    monkeypatch.setattr(bm_run.ResultsFile, "append", ctrl_c_after_the_first_row)
+    out = tmp_path / "bench"
+    code, _, err = run_cli(capsys, "--suite", "lad", "--cases", 1, "--modes", "sdfcar", "--steps", 2, "--out", out,
+                           "--no-progress", "--protocol", "clinical-lao30-rao30", "--workers", 1, *TINY)
+    assert code == 130 and "interrupted" in err
+    record = json.loads((out / "run.json").read_text())["runs"][-1]
+    assert record["interrupted"] == "KeyboardInterrupt" and "stopped" in record and "finished" not in record
+    assert record["rows_written"] == 1 and record["rows_failed"] == 0
+    _, rows = read_csv(out / "results.csv")
+    assert len(rows) == 1 and rows[0]["run_id"] == record["run_id"]

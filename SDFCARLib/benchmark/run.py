@@ -279,7 +279,15 @@ def run_benchmark(config: BenchmarkConfig, processes: bool = True, argv: Optiona
     overlay_figures: List[Path] = []
     if n_tasks:
         log(f"benchmark: {len(todo)} case(s), {n_tasks} run(s) to do ({skipped} already in {results.path.name}) → {out}")
-        written, failed, overlay_figures = _execute(config, todo, results, record, processes, log)
+        try:
+            written, failed, overlay_figures = _execute(config, todo, results, record, processes, log)
+        except BaseException as exc:  # Ctrl-C, a lost scheduler: run.json says the run stopped and what it kept
+            kept = [r for r in results.rows() if r.get("run_id") == run_id]
+            record.update(interrupted=one_line(exc, with_type=True),
+                          stopped=datetime.datetime.now().astimezone().isoformat(timespec="seconds"),
+                          rows_written=len(kept), rows_failed=sum(r["status"] != "ok" for r in kept))
+            update_run_record(out, record)
+            raise
     else:
         log(f"benchmark: all {skipped} run(s) already in {results.path} — nothing to run")
 
@@ -341,6 +349,7 @@ def _execute(config: BenchmarkConfig, todo: List[Tuple[CaseSpec, List[str]]], re
             future.release()
             row = outcome["row"]
             row["finished_at"] = datetime.datetime.now().astimezone().isoformat(timespec="seconds")
+            row["run_id"] = token  # the run.json record of this invocation: its machine, workers and command
             if row["status"] != "ok":
                 failed += 1
                 path = errors_dir / f"{safe_name(spec.name)}__{safe_name(mode)}.txt"

@@ -21,7 +21,7 @@ from .registry import METRIC_COLUMNS
 IDENTITY_COLUMNS = ["suite", "tree", "case", "seed", "protocol", "target_kind", "mode", "preset", "steps",
                     "overrides", "config"]
 COLUMNS = IDENTITY_COLUMNS + ["status", "error", "traceback_file"] + METRIC_COLUMNS + [
-    "wall_s", "eval_s", "prepare_s", "device", "worker", "finished_at"]
+    "wall_s", "eval_s", "prepare_s", "device", "worker", "finished_at", "run_id"]  # run_id: its run.json record
 
 
 # --- results.csv ----------------------------------------------------------------------------------
