@@ -51,6 +51,7 @@ class RealisticOptions:
     mask_edge_taper_radius_mm: Optional[float] = AngioMaskSettings.edge_taper_radius_mm
     mask_edge_grow_mm: float = AngioMaskSettings.edge_grow_mm
     mask_edge_max_radius_mm: Optional[float] = AngioMaskSettings.edge_max_radius_mm
+    mask_min_contrast: float = AngioMaskSettings.min_contrast
     display: bool = False  # frames processed for display (DISP) before they are segmented and handed over
 
     def check(self) -> None:
@@ -109,7 +110,8 @@ def realistic_input(label: np.ndarray, geometry: Geometry, seed: int,
                                                    AngioMaskSettings(edge_fraction=options.mask_edge_fraction,
                                                                      edge_taper_radius_mm=options.mask_edge_taper_radius_mm,
                                                                      edge_grow_mm=options.mask_edge_grow_mm,
-                                                                     edge_max_radius_mm=options.mask_edge_max_radius_mm))
+                                                                     edge_max_radius_mm=options.mask_edge_max_radius_mm,
+                                                                     min_contrast=options.mask_min_contrast))
             segmented = segment_angiogram(frame, view.pixel_spacing_mm, view.magnification, settings)
         except MaskError as exc:
             raise MaskError(f"view {n}: the simulated angiogram could not be segmented: {exc}") from None

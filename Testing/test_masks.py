@@ -216,6 +216,31 @@ def test_edge_rule_limited_to_thin_vessels_leaves_the_thick_ones_as_they_were():
         _segment(frame, edge_fraction=0.25, edge_max_radius_mm=0.0)
 
 
+def test_on_a_clean_frame_the_left_over_background_is_not_vessel_and_a_frame_without_contrast_is_refused():
+    tree = _tubes((160, 160), [((20, 20), (140, 140), 1.5, 1.0), ((80, 80), (20, 140), 0.8, 0.6)])
+    silhouette = tree > 0
+    dice = lambda m: 2 * (m & silhouette).sum() / (m.sum() + silhouette.sum())  # noqa: E731
+    usual = _segment(_frame(tree, snr=25.0)[0])
+    assert usual.parameters["strongest_contrast"] > 0.5  # the trunk takes about half the intensity
+    for snr in (1000.0, 1e5):  # a denoised or simulated frame: the ribs' remains stand many noise units high
+        frame, _ = _frame(tree, snr=snr)
+        floored = _segment(frame, min_contrast=0.04)
+        noise_units_only = _segment(frame)  # the default: the floor would cut faint vessels on usual frames
+        assert dice(floored.mask) > dice(usual.mask) - 0.03  # as good as on a frame with the usual noise
+        assert dice(noise_units_only.mask) < dice(floored.mask) - 0.05  # the noise units alone mark background
+        assert int((floored.mask & ~silhouette).sum()) < 0.6 * int((noise_units_only.mask & ~silhouette).sum())
+        assert floored.parameters["components"] == _components(floored.mask) == 1
+        # Without contrast the same clean frame holds only those remains: refused, naming how faint they are,
+        # where the noise units alone drew them as a tree.
+        empty, _ = _frame(np.zeros((160, 160)), snr=snr)
+        with pytest.raises(MaskError, match=r"strongest ridges of the frame dim it by only \d\.\d %.*choose the frame"):
+            _segment(empty)
+        assert _segment(empty, min_vessel_contrast=0.0).mask.sum() > 500
+    for bad in (dict(min_contrast=-0.1), dict(min_contrast=1.0), dict(min_vessel_contrast=-1.0)):
+        with pytest.raises(MaskError, match="min_contrast and min_vessel_contrast are contrasts"):
+            _segment(usual.mask.astype(float), **bad)
+
+
 def test_edge_share_tapers_with_the_radius_so_a_thick_vessel_keeps_its_border():
     line_integral, silhouette, thin, thick = _thin_and_thick_tubes()
     frame, _ = _frame(line_integral)
