@@ -7,8 +7,9 @@ The GUI module, console scripts and tests all use this runner. A job is a folder
     view1.npy …      one float32 image per view (mask or line integrals), detector-shaped
     progress.jsonl   written by the worker: one JSON object per line (phase, step, total,
                      loss, l_occ, l_geo, elapsed_s, eta_s, device)
-    status.json      written last: state finished | failed | cancelled, message, traceback,
-                     output file paths
+    status.json      made at launch (state "running", atomically: a second launch of the folder is
+                     refused), written last: state finished | failed | cancelled, message,
+                     traceback, output file paths
     worker.log       the worker's stdout and stderr
     output/          the engine's output files (``outputs.write_reconstruction``)
     INCOMPLETE       present until the job has finished successfully
@@ -25,6 +26,10 @@ Inputs travel as files, never as pickled objects, so the worker can be any Pytho
     paths = job.result()           # or raises JobFailed with the worker's message and traceback
 
 ``run_job(job_dir)`` runs a prepared folder synchronously in this process (tests, small cases).
+
+A folder is run once: a finished, failed or running folder is refused by ``launch()`` and ``run_job()``
+(prepare a new folder to run again). A worker outlives its parent (Slicer closed mid-run): it runs to the
+end and writes status.json; this API has no way to reattach a handle to a running folder.
 
 The 3D-QCA of a finished result (``analysis.outputs.analyse_result_dir``, several seconds) runs the
 same way, so that the Slicer module stays responsive: ``AnalysisJob.start(job_dir, result_dir)``
@@ -50,6 +55,7 @@ from .io import write_json
 
 PathLike = Union[str, Path]
 JOB_STATES = ("running", "finished", "failed", "cancelled")
+_FINAL_STATES = JOB_STATES[1:]  # status.json says "running" from the launch until the worker writes one of these
 
 
 class JobFailed(RuntimeError):
@@ -80,12 +86,15 @@ def prepare_job(job_dir: PathLike, geometry: Geometry, targets: Sequence[np.ndar
     if (job_dir / "job.json").exists():
         raise JobFolderError(f"{job_dir} already holds a job; choose a new folder for a new job")
     _refuse_used_folder(job_dir)
+    if name is not None and not isinstance(name, str):  # else found only when writing, after the whole fit
+        raise JobFolderError(f"name is the result's name, a text such as 'patient 8 LAD', got {name!r} "
+                             f"({type(name).__name__})")
     given = _check_inputs(geometry, targets, settings if settings is not None else {}, target_kind)[1]
     if frames is not None:
         _check_frames(geometry, frames)
     intensity = _checked_intensity(geometry, frame_intensity)
     notes = _checked_per_view(geometry, frame_notes, "frame_notes", "note on how the view's frame was read (a string)")
-    job_dir.mkdir(parents=True, exist_ok=True)
+    _make_job_folder(job_dir)
     geometry.save(job_dir / "geometry.json")
     for n, target in enumerate(targets, start=1):
         np.save(job_dir / f"view{n}.npy", np.asarray(target, dtype=np.float32))
@@ -113,8 +122,25 @@ def _refuse_used_folder(job_dir: Path) -> None:
                              f"choose a new or empty folder")
 
 
+def _make_job_folder(job_dir: Path) -> None:
+    try:
+        job_dir.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:  # under a file, or in a folder one may not write to
+        raise JobFolderError(f"cannot make the job folder {job_dir} ({exc.strerror or exc}); choose a folder you can "
+                             "write to") from None
+
+
 def _check_inputs(geometry: Geometry, targets: Sequence[np.ndarray], settings: Dict[str, Any], target_kind: str):
     from .optimiser import ReconstructionError, validate_targets
+
+    if not isinstance(geometry, Geometry):
+        raise JobFolderError(f"geometry must be an SDFCARLib.geometry.Geometry, got {type(geometry).__name__}: read a "
+                             "GEOM.json with Geometry.load(path), or make one from a dict with Geometry.from_dict(d)")
+    for n, target in enumerate(targets, start=1):
+        if isinstance(target, (str, Path)):
+            raise JobFolderError(f"view {n}'s image is a path ({target}), not an image: read it first, e.g. with "
+                                 "SDFCARLib.io.read_mask(path, view.detector_shape) (read_line_integral for line "
+                                 "integrals), and pass the arrays")
     from .settings import settings_from_values
 
     try:
@@ -199,16 +225,73 @@ def validate_job_folder(job_dir: PathLike) -> None:
 
 
 # --- worker side ------------------------------------------------------------------------------------
+def _claim(job_dir: Path) -> None:
+    """Mark the folder as taken by one run: status.json made with O_EXCL, so that of two launches (or a launch and a
+    run_job) of one folder the second is refused at once, instead of both workers writing the folder."""
+    try:
+        handle = os.open(job_dir / "status.json", os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)
+    except FileExistsError:
+        raise JobFolderError(_taken_message(job_dir)) from None
+    except OSError as exc:
+        raise JobFolderError(f"cannot write in the job folder {job_dir} ({exc.strerror or exc}); choose a folder you can "
+                             "write to") from None
+    with os.fdopen(handle, "w", encoding="utf-8") as out:
+        out.write(json.dumps({"state": "running", "message": "", "pid": os.getpid()}) + "\n")
+
+
+def _taken_message(job_dir: Path) -> str:
+    try:
+        status = json.loads((job_dir / "status.json").read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        status = {}
+    state = status.get("state") if isinstance(status, dict) else None
+    if state == "finished":
+        return (f"{job_dir} holds a finished job (its results are in {job_dir / 'output'}); to run it again, prepare "
+                "a new job folder")
+    if state == "running":
+        return (f"{job_dir} is already being run (launched by process {status.get('pid', '?')}); wait for that run or "
+                "cancel it, or prepare a new job folder")
+    return f"{job_dir} has already been run{f' ({state})' if state else ''}; prepare a new job folder"
+
+
+def _write_status(job_dir: Path, status: Dict[str, Any]) -> None:
+    """status.json, unless the job folder was deleted meanwhile (writing would make it again, holding only that)."""
+    if job_dir.is_dir():
+        try:
+            write_json(job_dir / "status.json", status)
+        except FileNotFoundError:  # deleted just now
+            pass
+
+
+def _folder_deleted(job_dir: Path) -> JobFolderError:
+    return JobFolderError(f"the job folder {job_dir} was deleted while the job ran; nothing was written: run the job "
+                          "again in a new folder")
+
+
+# Whether a SIGTERM should stop the worker at once (the worker's handler reads it): while the results are written,
+# there is no step at which the cancel file would be seen, and a kill after the grace time would leave them half written.
+_stop_at_once = False
+
+
 def run_job(job_dir: PathLike, progress: Optional[Callable[[Dict[str, Any]], None]] = None) -> Dict[str, str]:
     """Run a prepared job folder in this process; returns the output paths.
 
     Progress lines go to progress.jsonl (and to ``progress``), status.json is written at the
     end whatever happens, and the folder keeps its INCOMPLETE marker unless the job finished.
+    A folder that has been run (or is being run) is refused at once with JobFolderError.
     """
+    job_dir = Path(job_dir)
+    if not (job_dir / "job.json").is_file():  # before the claim: nothing is written in a folder that holds no job
+        _load_job(job_dir)
+    _claim(job_dir)
+    return _run_claimed(job_dir, progress)
+
+
+def _run_claimed(job_dir: Path, progress: Optional[Callable[[Dict[str, Any]], None]] = None) -> Dict[str, str]:
+    global _stop_at_once
     from .optimiser import ReconstructionCancelled, reconstruct
     from .outputs import write_reconstruction
 
-    job_dir = Path(job_dir)
     (job_dir / "INCOMPLETE").touch()
     cancel_flag = job_dir / "cancel"
     progress_file, on_progress = _progress_writer(job_dir, progress)
@@ -216,15 +299,23 @@ def run_job(job_dir: PathLike, progress: Optional[Callable[[Dict[str, Any]], Non
         manifest, geometry, targets, settings, kind, frames = _load_job(job_dir)
         result = reconstruct(geometry, targets, settings, target_kind=kind, progress=on_progress,
                              cancel=cancel_flag.exists, frames=frames, frame_intensity=manifest.get("frame_intensity"))
+        if cancel_flag.exists():
+            raise ReconstructionCancelled("cancelled before writing the results")
+        if not (job_dir / "job.json").is_file():
+            raise _folder_deleted(job_dir)
         on_progress({"phase": "writing", "step": settings.optimisation.total_steps, "total": settings.optimisation.total_steps})
         notes = manifest.get("frame_notes")
-        paths = write_reconstruction(result, job_dir / "output", name=manifest.get("name"),
-                                     extra={"frame_notes": notes} if notes else None)
+        _stop_at_once = True
+        try:
+            paths = write_reconstruction(result, job_dir / "output", name=manifest.get("name"),
+                                         extra={"frame_notes": notes} if notes else None)
+        finally:
+            _stop_at_once = False
         paths = {k: str(v) for k, v in paths.items()}
         _finished(job_dir, paths, on_progress, settings.optimisation.total_steps)
         return paths
     except ReconstructionCancelled as exc:
-        write_json(job_dir / "status.json", {"state": "cancelled", "message": str(exc)})
+        _write_status(job_dir, {"state": "cancelled", "message": str(exc)})
         raise
     except BaseException as exc:  # noqa: BLE001 - the status file must say why, whatever it was
         _failed(job_dir, exc)
@@ -254,21 +345,27 @@ def _finished(job_dir: Path, paths: Dict[str, str], on_progress: Callable[[Dict[
 
 
 def _failed(job_dir: Path, exc: BaseException) -> None:
-    write_json(job_dir / "status.json", {"state": "failed", "message": f"{type(exc).__name__}: {exc}",
-                                         "traceback": traceback.format_exc()})
+    _write_status(job_dir, {"state": "failed", "message": f"{type(exc).__name__}: {exc}",
+                            "traceback": traceback.format_exc()})
 
 
 def _worker_main(job_dir: str) -> int:
     from .optimiser import ReconstructionCancelled
 
-    # A polite SIGTERM becomes a cancellation so the worker can record it.
+    # A polite SIGTERM becomes a cancellation so the worker can record it: at the next step, or at once while the
+    # results are written (the staging folder is then removed) or when the job folder is gone.
     def on_term(signum, frame):  # pragma: no cover - exercised through the parent
-        Path(job_dir, "cancel").touch()
+        try:
+            Path(job_dir, "cancel").touch()
+        except OSError:
+            raise ReconstructionCancelled("cancelled: the job folder was deleted") from None
+        if _stop_at_once:
+            raise ReconstructionCancelled("cancelled while writing the results; nothing was kept")
 
     if hasattr(signal, "SIGTERM"):
         signal.signal(signal.SIGTERM, on_term)
     try:
-        run_job(job_dir)
+        _run_claimed(Path(job_dir))
     except ReconstructionCancelled:
         return 3
     except BaseException:  # noqa: BLE001 - status.json already holds the error
@@ -332,8 +429,9 @@ class ReconstructionJob:
 
     @classmethod
     def _spawn(cls, job_dir: Path, command: str, python: Optional[str]):
-        if (job_dir / "status.json").exists() or (job_dir / "progress.jsonl").exists():
-            raise JobFolderError(f"{job_dir} has already been run; prepare a new job folder")
+        if (job_dir / "progress.jsonl").exists():
+            raise JobFolderError(_taken_message(job_dir))
+        _claim(job_dir)  # before the worker starts: it makes its own files only seconds later
         (job_dir / "INCOMPLETE").touch()
         env = dict(os.environ)
         package_root = str(Path(__file__).resolve().parent.parent)
@@ -342,7 +440,15 @@ class ReconstructionJob:
         log = open(job_dir / "worker.log", "ab")
         kwargs: Dict[str, Any] = {"stdout": log, "stderr": subprocess.STDOUT, "stdin": subprocess.DEVNULL, "env": env}
         kwargs.update(worker_process_options(os.name == "nt"))
-        process = subprocess.Popen([python or sys.executable, "-m", "SDFCARLib.jobs", command, str(job_dir)], **kwargs)
+        try:
+            process = subprocess.Popen([python or sys.executable, "-m", "SDFCARLib.jobs", command, str(job_dir)], **kwargs)
+        except OSError as exc:  # no such interpreter, or not executable: nothing started, the folder can be launched again
+            log.close()
+            for name in ("worker.log", "INCOMPLETE", "status.json"):
+                (job_dir / name).unlink(missing_ok=True)
+            raise JobFolderError(f"cannot start the worker with {python or sys.executable} ({exc.strerror or exc}): give "
+                                 "python= a Python interpreter that has SDFCARLib's requirements (inside Slicer, "
+                                 "PythonSlicer), or leave it out to use this one") from None
         job = cls(job_dir, process)
         job._log = log
         return job
@@ -352,13 +458,27 @@ class ReconstructionJob:
         return self.process.pid
 
     def _status(self) -> Optional[Dict[str, Any]]:
+        """status.json once the worker has written its outcome (finished, failed or cancelled), else None."""
         path = self.job_dir / "status.json"
         if not path.is_file():
             return None
         try:
-            return json.loads(path.read_text(encoding="utf-8"))
+            status = json.loads(path.read_text(encoding="utf-8"))
         except (json.JSONDecodeError, OSError):
             return None
+        return status if isinstance(status, dict) and status.get("state") in _FINAL_STATES else None
+
+    def _staging_folders(self) -> List[Path]:
+        """The staging folders of results being written (``outputs.staged_directory``): a worker killed while writing
+        leaves one behind."""
+        return list(self.job_dir.glob(".output.sdfcar-*")) if self.job_dir.is_dir() else []
+
+    def _clean_up(self) -> None:
+        """After the worker has ended: remove what a killed worker left half written."""
+        import shutil
+
+        for folder in self._staging_folders():
+            shutil.rmtree(folder, ignore_errors=True)
 
     def events(self) -> List[Dict[str, Any]]:
         """Progress events written since the last call (in order); never blocks."""
@@ -399,9 +519,7 @@ class ReconstructionJob:
             return "running"
         self._close_log()
         status = self._status()
-        if status and status.get("state") in JOB_STATES:
-            return status["state"]
-        return "failed"
+        return status["state"] if status else "failed"
 
     def wait(self, timeout: Optional[float] = None) -> str:
         """Wait for the worker to end (or ``timeout`` seconds); returns the state."""
@@ -412,11 +530,18 @@ class ReconstructionJob:
         return self.state
 
     def cancel(self, grace_s: float = 1.0) -> None:
-        """Stop the worker and every process it started; returns within about grace_s + 0.5 s."""
+        """Stop the worker and every process it started; returns within about grace_s + 0.5 s.
+
+        A job that has finished stays finished: its worker may still be exiting when the cancel comes."""
         if self.process.poll() is not None:
+            self._clean_up()
             return
-        (self.job_dir / "cancel").touch()
+        # The signal first: the folder may be gone (deleted by the user), and the worker must stop all the same.
         self._signal_group(signal.SIGTERM if os.name == "posix" else None)
+        try:
+            (self.job_dir / "cancel").touch()
+        except OSError:
+            pass
         try:
             self.process.wait(timeout=grace_s)
         except subprocess.TimeoutExpired:
@@ -424,9 +549,13 @@ class ReconstructionJob:
             self.process.wait(timeout=5)
         if os.name == "posix":  # children that outlived the leader
             self._signal_group(signal.SIGKILL)
+        self._clean_up()
         status = self._status()
-        if not status or status.get("state") != "cancelled":
-            write_json(self.job_dir / "status.json", {"state": "cancelled", "message": "cancelled by the user"})
+        if status and status.get("state") == "finished":
+            for name in ("cancel", "INCOMPLETE"):  # INCOMPLETE: killed between writing status.json and removing it
+                (self.job_dir / name).unlink(missing_ok=True)
+        elif not status or status.get("state") != "cancelled":
+            _write_status(self.job_dir, {"state": "cancelled", "message": "cancelled by the user"})
         self._close_log()
 
     def _signal_group(self, sig) -> None:
@@ -448,6 +577,10 @@ class ReconstructionJob:
         state = self.state
         if state == "running":
             raise JobFailed("the job is still running; wait() for it first")
+        self._clean_up()
+        if not self.job_dir.is_dir():
+            raise JobFailed(f"the job folder {self.job_dir} was deleted while the job ran, and its results with it: run "
+                            "the job again in a new folder")
         status = self._status() or {}
         if state == "finished":
             return dict(status.get("outputs", {}))
@@ -476,6 +609,30 @@ def free_analysis_folder(result_dir: PathLike) -> Path:
         n += 1
         candidate = result_dir / f"analysis-{n}"
     return candidate
+
+
+def _claim_analysis_folder(result_dir: Path) -> Path:
+    """A free analysis folder (``free_analysis_folder``), made now (mkdir is atomic): two analyses of one result
+    started together then get two folders instead of the second failing at its end on the first's files."""
+    while True:
+        candidate = free_analysis_folder(result_dir)
+        try:
+            candidate.mkdir()
+            return candidate
+        except FileExistsError:  # taken between the look and the mkdir
+            continue
+        except OSError as exc:
+            raise JobFolderError(f"cannot make the analysis folder {candidate} ({exc.strerror or exc}): the result folder "
+                                 f"{result_dir} must be writable, or give out_dir a folder you can write to") from None
+
+
+def _release_analysis_folder(manifest: Dict[str, Any]) -> None:
+    """Remove the folder ``_claim_analysis_folder`` made, when the analysis wrote nothing into it."""
+    if manifest.get("out_dir_claimed"):
+        try:
+            Path(manifest["out_dir"]).rmdir()  # only if empty
+        except OSError:
+            pass
 
 
 def job_masks(job_dir: PathLike) -> Optional[List[np.ndarray]]:
@@ -536,8 +693,8 @@ def prepare_analysis_job(job_dir: PathLike, result_dir: PathLike, out_dir: Optio
     if not any((result_dir / f).is_file() for f in ("occupancy.nrrd", "segmentation.seg.nrrd")):
         raise JobFolderError(f"{result_dir} holds neither occupancy.nrrd nor segmentation.seg.nrrd: it is not the "
                              "folder of a reconstruction")
-    out = Path(out_dir).absolute() if out_dir is not None else free_analysis_folder(result_dir)
-    job_dir.mkdir(parents=True, exist_ok=True)
+    _make_job_folder(job_dir)
+    out = Path(out_dir).absolute() if out_dir is not None else _claim_analysis_folder(result_dir)
     mask_files: Optional[List[str]] = None
     if masks is not None:
         mask_files = []
@@ -547,7 +704,7 @@ def prepare_analysis_job(job_dir: PathLike, result_dir: PathLike, out_dir: Optio
             else:
                 mask_files.append(str(write_mask_png(job_dir / f"mask{n}.png", np.asarray(mask))))
     write_json(job_dir / ANALYSIS_MANIFEST, {"result_dir": str(result_dir), "out_dir": str(out), "masks": mask_files,
-                                             "options": dict(options or {})})
+                                             "options": dict(options or {}), "out_dir_claimed": out_dir is None})
     return job_dir
 
 
@@ -566,11 +723,18 @@ def _load_analysis_job(job_dir: Path) -> Dict[str, Any]:
 
 def run_analysis_job(job_dir: PathLike, progress: Optional[Callable[[Dict[str, Any]], None]] = None) -> Dict[str, str]:
     """Run a prepared analysis job folder in this process; returns {file name: path} and "folder"."""
-    from .analysis.outputs import analyse_result_dir
-
     job_dir = Path(job_dir)
+    _claim(job_dir)
+    return _run_analysis_claimed(job_dir, progress)
+
+
+def _run_analysis_claimed(job_dir: Path, progress: Optional[Callable[[Dict[str, Any]], None]] = None) -> Dict[str, str]:
+    from .analysis.outputs import analyse_result_dir
+    from .optimiser import ReconstructionCancelled
+
     (job_dir / "INCOMPLETE").touch()
     progress_file, on_progress = _progress_writer(job_dir, progress)
+    manifest: Dict[str, Any] = {}
     try:
         manifest = _load_analysis_job(job_dir)
         on_progress({"phase": "analyse", "step": 0, "total": 1})
@@ -580,7 +744,12 @@ def run_analysis_job(job_dir: PathLike, progress: Optional[Callable[[Dict[str, A
         paths["folder"] = str(Path(manifest["out_dir"]))
         _finished(job_dir, paths, on_progress, 1)
         return paths
+    except ReconstructionCancelled as exc:
+        _release_analysis_folder(manifest)
+        _write_status(job_dir, {"state": "cancelled", "message": str(exc)})
+        raise
     except BaseException as exc:  # noqa: BLE001 - the status file must say why, whatever it was
+        _release_analysis_folder(manifest)
         _failed(job_dir, exc)
         raise
     finally:
@@ -588,9 +757,17 @@ def run_analysis_job(job_dir: PathLike, progress: Optional[Callable[[Dict[str, A
 
 
 def _analysis_main(job_dir: str) -> int:
-    # No SIGTERM handler: the analysis has no step to stop at, so cancel() simply ends the process.
+    from .optimiser import ReconstructionCancelled
+
+    # The analysis has no step to stop at: a SIGTERM stops it at once, and the staging folder of its files is removed
+    # on the way out (a SIGKILL would leave it beside the result).
+    def on_term(signum, frame):  # pragma: no cover - exercised through the parent
+        raise ReconstructionCancelled("cancelled by the user; the analysis was not written")
+
+    if hasattr(signal, "SIGTERM"):
+        signal.signal(signal.SIGTERM, on_term)
     try:
-        run_analysis_job(job_dir)
+        _run_analysis_claimed(Path(job_dir))
     except BaseException:  # noqa: BLE001 - status.json already holds the error
         return 1
     return 0
@@ -612,6 +789,21 @@ class AnalysisJob(ReconstructionJob):
         job_dir = Path(job_dir).resolve()
         _load_analysis_job(job_dir)
         return cls._spawn(job_dir, "analyse", python)
+
+    def _manifest(self) -> Dict[str, Any]:
+        try:
+            return _load_analysis_job(self.job_dir)
+        except (JobFolderError, OSError):
+            return {}
+
+    def _staging_folders(self) -> List[Path]:
+        out = self._manifest().get("out_dir")
+        return list(Path(out).parent.glob(f".{Path(out).name}.sdfcar-*")) if out and Path(out).parent.is_dir() else []
+
+    def _clean_up(self) -> None:
+        super()._clean_up()
+        if self._status() is None or self._status().get("state") != "finished":
+            _release_analysis_folder(self._manifest())
 
 
 def main(argv: Optional[List[str]] = None) -> int:

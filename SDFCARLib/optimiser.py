@@ -651,6 +651,9 @@ def finish(problem: Problem, model: ImplicitField, history: List[Dict[str, float
     _report(progress, phase="output", step=steps, total=steps, elapsed_s=optimise_s, eta_s=0.0, device=str(problem.device))
     t_out = time.perf_counter()
     occupancy_volume, field_volume = volumes if volumes is not None else evaluate_volume(model, problem)
+    # whatever steps below the settings switch on: a cancel during the evaluation is honoured here
+    if _is_cancelled(cancel):
+        raise ReconstructionCancelled("cancelled after evaluating the field on the grid")
     segmentation = occupancy_volume >= settings.region.threshold
     # The fit's projectors already traced every ray through the support, which holds every voxel the
     # steps below keep; over the whole grid (no support) their matrices are too large to reread.
@@ -704,6 +707,8 @@ def finish(problem: Problem, model: ImplicitField, history: List[Dict[str, float
         segmentation, final_reconnection = join_fragments(segmentation, occupancy_volume, field_volume, geometry, problem.support,
                                                           settings, settings.region.final_reconnect_max_gap_mm)
     projected = reprojected_masks(segmentation, geometry, projectors=traced)
+    if _is_cancelled(cancel):
+        raise ReconstructionCancelled("cancelled after reprojecting the result")
     qa = [reprojection_qa(p, m, v) for p, m, v in zip(projected, references, geometry.views)]
     qa_warned = qa_warnings(qa)
     for message in qa_warned:
