@@ -184,7 +184,10 @@ def calibrate(geometry: Geometry, targets: Sequence[np.ndarray], settings, targe
                 trial = list(views)
                 trial[k] = candidate(value)
                 loss = float(score(Geometry(geometry.volume, trial)))
-                _report(progress, phase="calibrate", step=k, total=len(views) - 1, elapsed_s=time.perf_counter() - t0,
+                # step/total are the run's (a progress bar shows them; the fit starts after this): the calibration's
+                # own progress is calibration_step/calibration_total
+                _report(progress, phase="calibrate", step=0, total=settings.optimisation.total_steps,
+                        calibration_step=k, calibration_total=len(views) - 1, elapsed_s=time.perf_counter() - t0,
                         eta_s=None, device=str(settings.run.device),
                         message=f"view {k + 1}, {name.replace('_', ' ')} {value:+.2f} {unit} → loss {loss:.5f}")
                 return loss
@@ -240,8 +243,10 @@ def calibrate_from_frames(geometry: Geometry, line_integrals: Sequence[np.ndarra
     groups = [used] if jointly and len(used) > 1 else [[0, k] for k in used[1:]]  # none when no view can be matched
 
     def told(step: int, total: int, message: str) -> None:
-        _report(progress, phase="calibrate", step=step, total=total, elapsed_s=time.perf_counter() - t0,
-                eta_s=None, device="cpu", message=message)
+        # step 0 of the run (the fit comes after; its total is not known here): a progress bar showing step/total
+        # would otherwise fill with the search and fall back to 0 when the fit starts
+        _report(progress, phase="calibrate", step=0, calibration_step=step, calibration_total=total,
+                elapsed_s=time.perf_counter() - t0, eta_s=None, device="cpu", message=message)
 
     warnings: List[str] = []
     for group in groups:

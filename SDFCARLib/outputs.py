@@ -149,6 +149,26 @@ def _commit(staging: Path, out_dir: Path, names: Sequence[str], overwrite: bool)
         raise
 
 
+def previous_analyses(out_dir: PathLike) -> List[str]:
+    """The names of the folders in ``out_dir`` that hold an analysis SDFCAR wrote (analysis/, analysis-2/ …:
+    analysis.json and only the files ``analyse`` writes); a folder holding anything else is the user's."""
+    import re
+
+    from .analysis.outputs import ANALYSIS_FILES
+
+    out_dir = Path(out_dir)
+    if not out_dir.is_dir():
+        return []
+    found = []
+    for folder in sorted(out_dir.iterdir()):
+        if not (folder.is_dir() and re.fullmatch(r"analysis(-\d+)?", folder.name) and (folder / "analysis.json").is_file()):
+            continue
+        if all(f.is_file() and (f.name in ANALYSIS_FILES or re.fullmatch(r"profile_branch\d+\.csv", f.name))
+               for f in folder.iterdir()):
+            found.append(folder.name)
+    return found
+
+
 # --- pieces -------------------------------------------------------------------------------------
 def surface_mesh(volume: np.ndarray, grid: VolumeGrid, level: float = 0.5) -> Tuple[np.ndarray, np.ndarray]:
     """Marching-cubes surface of ``volume`` at ``level``: vertices (N, 3) in LPS mm, faces (M, 3).
@@ -240,7 +260,9 @@ def write_reconstruction(
     ``masks``: the views' vessel masks for the visual-hull baseline (default: the label's
     simulated masks); ``extra``: more entries for report.json (e.g. the input files).
     Problems that do not stop the writing (an empty segmentation, no slicer-core for the
-    scene) are listed under ``warnings`` in report.json.
+    scene) are listed under ``warnings`` in report.json. With ``overwrite`` the analyses of the
+    previous result (``analysis/``, ``analysis-2/`` …, as ``analyse`` writes them) are replaced too:
+    they describe a result that is gone. The user's own files and folders stay.
     """
     out_dir = Path(out_dir)
     grid = result.geometry.volume
@@ -251,6 +273,8 @@ def write_reconstruction(
     qa_masks = list(getattr(result, "qa_masks", []))
     names = result_file_names(len(result.geometry.views))
     qa_names = names[len(RESULT_FILES):]
+    if overwrite:
+        names = names + previous_analyses(out_dir)
     qa_numbers = report.get("reprojection_qa") or []
     with staged_directory(out_dir, names, overwrite) as staging:
         write_volume_nrrd(staging / RESULT_FILES["occupancy"], result.occupancy, grid)

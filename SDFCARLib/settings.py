@@ -346,6 +346,7 @@ class Settings:
             raise ReconstructionError(f"support must be 'hull' or 'full', got {r.support!r}")
         if o.steps < 1:
             raise ReconstructionError(f"steps must be at least 1, got {o.steps}")
+        check_seed(run.seed)
         for name, value, low, high in (("levels", f.levels, 1, 64), ("features_per_level", f.features_per_level, 1, 64),
                                        ("log2_table_size", f.log2_table_size, 1, 30),
                                        ("base_resolution", f.base_resolution, 1, 1 << 16),
@@ -584,6 +585,17 @@ def parse_setting_overrides(items: Optional[Sequence[str]], reserved: Optional[M
     return out
 
 
+#: the seeds a run takes: numpy's legacy seeding (np.random.seed, as the fit seeds it) takes no more
+MAX_SEED = 2**32 - 1
+
+
+def check_seed(seed: int) -> None:
+    """Refuse a seed the fit could not use (torch and numpy would fail only in the worker, after the setup)."""
+    if not 0 <= seed <= MAX_SEED:
+        raise ReconstructionError(f"seed must be a whole number from 0 to {MAX_SEED} (2**32 - 1), got {seed}: choose one "
+                                  "in that range")
+
+
 def checked_setting_value(key: str, value: Any, kind: Any) -> Any:
     """``value`` as a Python value of ``kind`` (bool, int, float, str, or Optional of one), from a script, a job's
     settings or a JSON file; anything else is refused by name. Text is not read as a number or a switch here: a
@@ -602,9 +614,17 @@ def checked_setting_value(key: str, value: Any, kind: Any) -> Any:
             return bool(value)
         raise ReconstructionError(f"setting {key} is a switch: give True or False, got {shown}")
     if base is int:
-        if not is_bool and isinstance(value, numbers.Real) and math.isfinite(float(value)) and float(value) == int(value):
-            return int(value)
-        raise ReconstructionError(f"setting {key} takes a whole number, got {shown}")
+        if is_bool:
+            raise ReconstructionError(f"setting {key} takes a whole number, got {shown}")
+        if isinstance(value, numbers.Integral):  # exactly: float() of a large one rounds, and overflows past 1e308
+            number = int(value)
+        elif isinstance(value, numbers.Real) and math.isfinite(float(value)) and float(value) == int(value):
+            number = int(value)
+        else:
+            raise ReconstructionError(f"setting {key} takes a whole number, got {shown}")
+        if key == "seed":
+            check_seed(number)
+        return number
     if base is float:
         if not is_bool and isinstance(value, numbers.Real):
             if not math.isfinite(float(value)):

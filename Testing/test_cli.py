@@ -622,3 +622,123 @@ def test_evaluate_and_reconstruct_say_when_a_centreline_label_reaches_beyond_the
     assert "10.0 mm of the ground-truth label centreline's" in err
     report = json.loads((tmp_path / "result" / "report.json").read_text())
     assert any("10.0 mm of the ground-truth label centreline's" in w for w in report["warnings"])
+
+
+# --- cancel and terminate near the end of a run ------------------------------------------------------
+def _interrupt_when(monkeypatch, phase: str):
+    """reconstruct, sending this process SIGINT (Ctrl-C) at the first progress report of ``phase``."""
+    import SDFCARLib.optimiser as optimiser
+
+    real_reconstruct = optimiser.reconstruct
+
+    def interrupted(*args, progress=None, **kwargs):
+        sent = []
+
+        def report(info):
+            progress(info)
+            if info.get("phase") == phase and not sent:
+                sent.append(True)
+                os.kill(os.getpid(), signal.SIGINT)
+
+        return real_reconstruct(*args, progress=report, **kwargs)
+
+    monkeypatch.setattr(optimiser, "reconstruct", interrupted)
+
+
+def _leftovers(out: Path):
+    return sorted(p.name for p in out.parent.iterdir() if p.name.startswith(f".{out.name}.sdfcar-"))
+
+
+def test_ctrl_c_while_the_field_is_evaluated_is_honoured(tmp_path, capsys, geometry_file, mask_files, monkeypatch):
+    _interrupt_when(monkeypatch, "output")  # "evaluating the field on the grid…"
+    out = tmp_path / "out"
+    code, _, err = run(capsys, "reconstruct", "--geometry", geometry_file, "--mask", *mask_files, "--out", out,
+                       "--steps", 2)
+    assert code == 130 and "cancelled: nothing was written" in err, err
+    assert not out.exists() and not _leftovers(out)
+
+
+def test_ctrl_c_while_the_results_are_written_stops_and_keeps_nothing(tmp_path, capsys, geometry_file, mask_files,
+                                                                      monkeypatch):
+    import SDFCARLib.outputs as outputs
+
+    real_qa = outputs.write_qa_png
+
+    def qa_then_ctrl_c(*args, **kwargs):
+        real_qa(*args, **kwargs)
+        os.kill(os.getpid(), signal.SIGINT)
+
+    monkeypatch.setattr(outputs, "write_qa_png", qa_then_ctrl_c)
+    out = tmp_path / "out"
+    code, _, err = run(capsys, "reconstruct", "--geometry", geometry_file, "--mask", *mask_files, "--out", out,
+                       "--steps", 2, "--no-progress")
+    assert code == 130 and "cancelled: nothing was written" in err, err
+    assert not out.exists() and not _leftovers(out)
+
+
+def test_sigterm_while_the_results_are_written_cleans_up_with_status_143(tmp_path, capsys, geometry_file, mask_files,
+                                                                         monkeypatch):
+    import SDFCARLib.outputs as outputs
+
+    def reached_the_test(signum, frame):  # without the command's own handler the signal lands here
+        raise RuntimeError("SIGTERM was not handled by the command")
+
+    previous = signal.signal(signal.SIGTERM, reached_the_test)
+    real_qa = outputs.write_qa_png
+
+    def qa_then_sigterm(*args, **kwargs):
+        real_qa(*args, **kwargs)
+        os.kill(os.getpid(), signal.SIGTERM)
+
+    monkeypatch.setattr(outputs, "write_qa_png", qa_then_sigterm)
+    out = tmp_path / "out"
+    try:
+        code, _, err = run(capsys, "reconstruct", "--geometry", geometry_file, "--mask", *mask_files, "--out", out,
+                           "--steps", 2, "--no-progress")
+        assert signal.getsignal(signal.SIGTERM) is reached_the_test  # the command's handler is gone again
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+    assert code == 143 and "terminated (SIGTERM): nothing was written" in err, err
+    assert not out.exists() and not _leftovers(out)
+
+
+def test_ctrl_c_during_the_analysis_says_the_reconstruction_was_kept(tmp_path, capsys, geometry_file, mask_files,
+                                                                     monkeypatch):
+    import SDFCARLib.analysis.outputs as analysis_outputs
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(analysis_outputs, "analyse_result_dir", interrupted)
+    out = tmp_path / "out"
+    code, _, err = run(capsys, "reconstruct", "--geometry", geometry_file, "--mask", *mask_files, "--out", out,
+                       "--steps", 2, "--no-progress", "--analyse")
+    assert code == 130, err
+    assert f"cancelled: the reconstruction was written to {out}; the analysis (--analyse) was not written" in err
+    assert "nothing was written" not in err
+    assert (out / "report.json").is_file() and not (out / "analysis").exists()
+
+
+def test_a_seed_out_of_range_is_refused_by_its_range(tmp_path, capsys, geometry_file, mask_files):
+    code, _, err = run(capsys, "reconstruct", "--geometry", geometry_file, "--mask", *mask_files, "--out", tmp_path / "o",
+                       "--seed", "99999999999999999999")
+    _assert_bad_input(code, err, "seed must be a whole number from 0 to 4294967295")
+
+
+def test_overwrite_replaces_the_previous_results_analysis_and_keeps_the_users_files(tmp_path, capsys, geometry_file,
+                                                                                      mask_files):
+    out = tmp_path / "out"
+    args = ["reconstruct", "--geometry", geometry_file, "--mask", *mask_files, "--out", out, "--steps", 2, "--no-progress"]
+    code, _, err = run(capsys, *args)
+    assert code == 0, err
+    for name in ("analysis", "analysis-2", "analysis-3"):  # as `analyse` writes them, of the result about to go
+        (out / name).mkdir()
+        (out / name / "analysis.json").write_text("{}")
+        (out / name / "profile_branch01.csv").write_text("s,d\n")
+    (out / "analysis-3" / "my notes.txt").write_text("mine")  # the user's: the folder is kept
+    (out / "mine.txt").write_text("mine")
+    code, _, err = run(capsys, *args, "--overwrite")
+    assert code == 0, err
+    assert not (out / "analysis").exists() and not (out / "analysis-2").exists()
+    assert (out / "analysis-3" / "my notes.txt").read_text() == "mine" and (out / "mine.txt").read_text() == "mine"
+    assert (out / "report.json").is_file()

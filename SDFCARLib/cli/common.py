@@ -16,6 +16,43 @@ from ..settings import GROUND_TRUTH_METRICS, METRICS, make_settings, parse_setti
 from ..qa import ensemble_choice_line
 
 EXIT_OK, EXIT_FAILURE, EXIT_BAD_INPUT, EXIT_CANCELLED = 0, 1, 2, 130
+EXIT_TERMINATED = 143  # 128 + SIGTERM, as a shell reports a process ended by it
+
+
+class Terminated(KeyboardInterrupt):
+    """SIGTERM (``kill``, a batch system's time limit): raised at once, like a second Ctrl-C, so that the staging
+    folders of unfinished writes are removed on the way out (``outputs.staged_directory``)."""
+
+
+class PartlyWritten(KeyboardInterrupt):
+    """Ctrl-C or SIGTERM after some results were written; ``written`` says what is kept and what is not."""
+
+    def __init__(self, written: str, terminated: bool = False) -> None:
+        super().__init__(written)
+        self.written = written
+        self.terminated = terminated
+
+
+class TerminateOnSigterm:
+    """While active, SIGTERM raises ``Terminated`` in the main thread (the default would end the process at once,
+    leaving half-written staging folders beside the user's output)."""
+
+    def __init__(self) -> None:
+        self._previous: Any = None
+
+    @staticmethod
+    def _handle(signum, frame) -> None:
+        raise Terminated
+
+    def __enter__(self) -> "TerminateOnSigterm":
+        if hasattr(signal, "SIGTERM") and threading.current_thread() is threading.main_thread():
+            self._previous = signal.signal(signal.SIGTERM, self._handle)
+        return self
+
+    def __exit__(self, *exc_info) -> None:
+        if self._previous is not None:
+            signal.signal(signal.SIGTERM, self._previous)
+            self._previous = None
 
 
 METRIC_ROWS = [(key, METRICS[key].title + (f" ({METRICS[key].unit})" if METRICS[key].unit else ""))
@@ -61,17 +98,19 @@ class ProgressBar:
 
 
 class CancelOnInterrupt:
-    """While active, Ctrl-C asks the reconstruction to stop at its next step (a second one aborts)."""
+    """While active, Ctrl-C asks the reconstruction to stop at its next step (a second one aborts). With ``at_once``
+    (set while the results are written: no step there to stop at) the first one aborts."""
 
     def __init__(self) -> None:
         self.requested = False
+        self.at_once = False
         self._previous: Any = None
 
     def __call__(self) -> bool:
         return self.requested
 
     def _handle(self, signum, frame) -> None:
-        if self.requested:
+        if self.requested or self.at_once:
             raise KeyboardInterrupt
         self.requested = True
         print("\ncancelling… (press Ctrl-C again to abort at once)", file=sys.stderr)
@@ -88,11 +127,16 @@ class CancelOnInterrupt:
 
 
 def run_reconstruction(geometry, targets, settings, target_kind: str, show_progress: bool, frames=None,
-                       frame_intensity=None):
+                       frame_intensity=None, cancel: Optional[CancelOnInterrupt] = None):
+    """``reconstruct`` with a progress bar, Ctrl-C asking it to stop; ``cancel``: an active CancelOnInterrupt of the
+    caller's (that then also covers what the caller does after the fit), else one for the fit alone."""
     from ..optimiser import reconstruct
 
     bar = ProgressBar(show_progress)
     try:
+        if cancel is not None:
+            return reconstruct(geometry, targets, settings, target_kind=target_kind, progress=bar, cancel=cancel,
+                               frames=frames, frame_intensity=frame_intensity)
         with CancelOnInterrupt() as cancel:
             return reconstruct(geometry, targets, settings, target_kind=target_kind, progress=bar, cancel=cancel,
                                frames=frames, frame_intensity=frame_intensity)

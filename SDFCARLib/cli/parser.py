@@ -16,7 +16,8 @@ from ..dicom import add_dicom_arguments
 from ..geometry import VIEW_PAIRS
 from ..lumen_profile import MAX_PSF_SIGMA_MM, PSF_BY_FRAMES
 from ..settings import DEFAULT_MODE, MASK_THRESHOLD_MM, MODES, PAPER_DETECTOR_SPACING_MM, setting_help
-from .common import EXIT_BAD_INPUT, EXIT_CANCELLED, EXIT_FAILURE, SETTINGS_SET_BY_FLAGS
+from .common import (EXIT_BAD_INPUT, EXIT_CANCELLED, EXIT_FAILURE, EXIT_TERMINATED, SETTINGS_SET_BY_FLAGS, PartlyWritten,
+                     Terminated, TerminateOnSigterm)
 from .data import DEFAULT_SID_MM, DEFAULT_SOD_MM, cmd_evaluate, cmd_geometry_template, cmd_segment, cmd_simulate
 from .reconstruct import cmd_analyse, cmd_demo, cmd_geometry, cmd_reconstruct
 
@@ -252,10 +253,13 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     try:
         from ..optimiser import ReconstructionCancelled
 
-        return args.func(args)
-    except (KeyboardInterrupt, ReconstructionCancelled):
-        print("cancelled: nothing was written", file=sys.stderr)
-        return EXIT_CANCELLED
+        with TerminateOnSigterm():
+            return args.func(args)
+    except (KeyboardInterrupt, ReconstructionCancelled) as exc:
+        terminated = isinstance(exc, Terminated) or getattr(exc, "terminated", False)
+        written = exc.written if isinstance(exc, PartlyWritten) else "nothing was written"
+        print(f"{'terminated (SIGTERM)' if terminated else 'cancelled'}: {written}", file=sys.stderr)
+        return EXIT_TERMINATED if terminated else EXIT_CANCELLED
     except (ValueError, OSError) as exc:  # GeometryError, ReconstructionError, InputError, OutputError, files
         if verbose:
             traceback.print_exc()

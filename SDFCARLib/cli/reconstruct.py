@@ -13,7 +13,8 @@ import numpy as np
 
 from ..dicom import cli_geometry_from_args, dicom_runs_from_args, write_geometry_json
 from ..settings import MASK_THRESHOLD_MM
-from .common import EXIT_OK, absolute_path, print_provenance, print_summary, run_reconstruction, settings_from_args
+from .common import (EXIT_OK, CancelOnInterrupt, PartlyWritten, Terminated, absolute_path, print_provenance, print_summary,
+                     run_reconstruction, settings_from_args)
 
 def _given(args: argparse.Namespace, flag: str) -> List[Optional[str]]:
     """The paths of ``--mask M1 M2 …`` (any number of views), or of ``--mask1/--mask2`` (two); [] if none."""
@@ -218,7 +219,7 @@ def _dicom_frames(args: argparse.Namespace, provenance, kind: str) -> Tuple[Opti
 
 def cmd_reconstruct(args: argparse.Namespace) -> int:
     from ..io import align_to_grid, read_label
-    from ..outputs import check_destination, result_file_names, write_reconstruction
+    from ..outputs import check_destination, result_file_names
     from .data import label_warnings
 
     geometry, provenance, request = _geometry_for_reconstruct(args)
@@ -258,8 +259,35 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
         frames = [frame for _, frame, _ in auto]
     else:
         frames, intensity = _dicom_frames(args, provenance, kind)
-    result = run_reconstruction(geometry, targets, settings, kind, not args.no_progress, frames=frames,
-                                frame_intensity=intensity)
+    with CancelOnInterrupt() as cancel:  # over the fit and the writing: a Ctrl-C after the fit's last check counts too
+        result = run_reconstruction(geometry, targets, settings, kind, not args.no_progress, frames=frames,
+                                    frame_intensity=intensity, cancel=cancel)
+        if cancel():
+            from ..optimiser import ReconstructionCancelled
+
+            raise ReconstructionCancelled("cancelled before writing the results")
+        # no step to stop at while writing: a Ctrl-C stops at once, and the staging folder goes with it
+        cancel.at_once = True
+        files = _write_result(args, result, kind, grid_warnings, provenance, auto, label, masks, grid_record)
+    pending = (["the auto masks"] if auto else []) + (["the analysis (--analyse)"] if args.analyse else [])
+    try:
+        if auto:
+            _write_auto_masks(args, auto)
+            pending.remove("the auto masks")
+        print_summary(files)
+        if args.analyse:
+            _print_analysis(args.out, None, args.overwrite)
+    except KeyboardInterrupt as exc:  # Ctrl-C, or SIGTERM (Terminated): the reconstruction itself is complete
+        missing = f"; {' and '.join(pending)} {'was' if len(pending) == 1 else 'were'} not written" if pending else ""
+        raise PartlyWritten(f"the reconstruction was written to {args.out}{missing}",
+                            terminated=isinstance(exc, Terminated)) from None
+    return EXIT_OK
+
+
+def _write_result(args: argparse.Namespace, result, kind: str, grid_warnings: List[str], provenance, auto, label, masks,
+                  grid_record: Dict[str, Any]) -> Dict[str, Path]:
+    from ..outputs import write_reconstruction
+
     result.report["warnings"] = grid_warnings + list(result.report.get("warnings", []))
     inputs = {"geometry": absolute_path(args.geometry), "label": absolute_path(args.label),
               "dicom": [absolute_path(run.path) for run in dicom_runs_from_args(args)] or None,
@@ -268,22 +296,20 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
     if auto:
         inputs["targets"] = [f"auto_mask{n}.png" for n in range(1, len(auto) + 1)]
         inputs["auto_masks"] = [dict(a.parameters, frame=f) for f, _, a in auto]
-    files = write_reconstruction(result, args.out, name=args.name, label=label, masks=masks, overwrite=args.overwrite,
-                                 extra={"inputs": inputs, "grid": grid_record})
-    if auto:
-        from ..masks import write_segmentation
+    return write_reconstruction(result, args.out, name=args.name, label=label, masks=masks, overwrite=args.overwrite,
+                                extra={"inputs": inputs, "grid": grid_record})
 
-        names = []
-        for n, (run, (f, frame, a)) in enumerate(zip(dicom_runs_from_args(args), auto), start=1):
-            write_segmentation(Path(args.out) / f"auto_mask{n}.png", frame, a,
-                               {"dicom": absolute_path(run.path), "frame": f}, overwrite=args.overwrite)
-            names.append(f"auto_mask{n}.png")
-        print(f"masks made by the segment pipeline (--auto-masks): {args.out}/{', '.join(names)} "
-              "(overlays beside them; check them by eye)")
-    print_summary(files)
-    if args.analyse:
-        _print_analysis(args.out, None, args.overwrite)
-    return EXIT_OK
+
+def _write_auto_masks(args: argparse.Namespace, auto) -> None:
+    from ..masks import write_segmentation
+
+    names = []
+    for n, (run, (f, frame, a)) in enumerate(zip(dicom_runs_from_args(args), auto), start=1):
+        write_segmentation(Path(args.out) / f"auto_mask{n}.png", frame, a,
+                           {"dicom": absolute_path(run.path), "frame": f}, overwrite=args.overwrite)
+        names.append(f"auto_mask{n}.png")
+    print(f"masks made by the segment pipeline (--auto-masks): {args.out}/{', '.join(names)} "
+          "(overlays beside them; check them by eye)")
 
 
 def _print_analysis(result_dir: str, out: Optional[str], overwrite: bool, **options: Any) -> None:
