@@ -924,6 +924,8 @@ class SDFCARLogic(ScriptedLoadableModuleLogic):
             logging.warning(f"SDFCAR: {note}")
         settings = mask_settings_for_intensity(relationship)
         mask, parameters = angiogram_mask(frame, pixelSpacingMm, magnification, settings)
+        for warning in parameters.get("warnings", []):
+            logging.warning(f"SDFCAR: {frameNode.GetName()}: {warning}")
         if note:
             parameters["pixel_intensity_relationship"] = f"{relationship} (assumed: 8-bit grey levels)"
         with mrml.scene_transaction(slicer.mrmlScene):

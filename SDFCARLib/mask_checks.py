@@ -9,6 +9,9 @@ said why. ``mask_warnings`` names each problem with the number that shows it and
 * border: the share of the image's outermost ``BORDER_PX`` pixels that are vessel. Vessels
   leaving the field cross the border at a few places (a few per cent at most); a collimator edge
   or the frame border segmented as vessel runs along it.
+* straight lines: a component that runs along a row or column over most of the image and is thin
+  across (``LINE_SPAN``, ``LINE_THICKNESS``): a collimator blade's edge inside the image, which the
+  border ring does not see. One joined to the tree is not found.
 * specks: 8-connected components smaller than ``SPECK_MM2`` at the detector (``SPECK_PX`` when
   the pixel spacing is unknown). A vessel mask is a few connected trees; hundreds of specks are
   noise from a vesselness filter or a threshold.
@@ -41,6 +44,8 @@ SPECK_MM2 = 2.0  # components smaller than this (at the detector) are specks: 1 
 SPECK_PX = 15  # the same without a pixel spacing
 MAX_SPECKS = 20
 MAX_COVERAGE = 0.25
+LINE_SPAN = 0.8  # a component this long a share of the image side …
+LINE_THICKNESS = 0.06  # … and at most this share of the other side across is a straight edge, not a vessel
 MIN_COVERAGE = 0.0005
 
 _EIGHT = np.ones((3, 3), dtype=bool)
@@ -51,6 +56,27 @@ def _components(mask: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
     labels, count = ndimage.label(mask, structure=_EIGHT)
     sizes = np.bincount(labels.reshape(-1), minlength=count + 1)[1:]
     return labels, sizes
+
+
+def _straight_lines_across(mask: np.ndarray) -> List[str]:
+    """The components that run nearly straight along a row or a column over ``LINE_SPAN`` of the image or more and
+    are at most ``LINE_THICKNESS`` of it across (a blade's edge, slightly tilted), described for a message; those
+    along the image's edge are the border check's."""
+    labels, _ = _components(mask)
+    rows, cols = mask.shape
+    found = []
+    for box in ndimage.find_objects(labels):
+        if box is None:
+            continue
+        height, width = box[0].stop - box[0].start, box[1].stop - box[1].start
+        if box[0].start < BORDER_PX and width > height or box[0].stop > rows - BORDER_PX and width > height \
+                or box[1].start < BORDER_PX and height > width or box[1].stop > cols - BORDER_PX and height > width:
+            continue
+        if width >= LINE_SPAN * cols and height <= LINE_THICKNESS * rows:
+            found.append(f"across the image near row {(box[0].start + box[0].stop) // 2} ({width} pixels long)")
+        elif height >= LINE_SPAN * rows and width <= LINE_THICKNESS * cols:
+            found.append(f"down the image near column {(box[1].start + box[1].stop) // 2} ({height} pixels long)")
+    return found
 
 
 def speck_area_px(pixel_spacing_mm: Optional[Sequence[float]] = None) -> float:
@@ -91,6 +117,10 @@ def mask_warnings(mask: np.ndarray, pixel_spacing_mm: Optional[Sequence[float]] 
                        "vessel: the collimator's edge or the frame border was segmented (vessels that leave the field "
                        "cross the border at a few places only); erase it from the mask or mask the collimated border")
     if total:
+        for line in _straight_lines_across(m):
+            out.append(f"{source}: a straight line {line} is marked as vessel: a collimator blade's edge or the "
+                       "frame's edge inside the image was segmented (no coronary runs straight across the image); "
+                       "erase it from the mask")
         limit = speck_area_px(pixel_spacing_mm)
         _, sizes = _components(m)
         specks = sizes[sizes < limit]
@@ -99,8 +129,8 @@ def mask_warnings(mask: np.ndarray, pixel_spacing_mm: Optional[Sequence[float]] 
                     else f"{limit:.0f} pixels")
             out.append(f"{source}: the mask has {specks.size} specks (connected pieces smaller than {unit}, "
                        f"{int(specks.sum())} pixels in all, of {sizes.size} pieces): noise of the vesselness filter or "
-                       "threshold; remove small components (e.g. vesselness_mask's min_component_px) or raise the "
-                       "threshold — specks slow the run down and add false branches")
+                       "threshold; remove small components (Slicer's Segment Editor: Islands, "
+                       "minimum size; the segment pipeline: a larger min_length_mm) or raise the threshold — specks slow the run down and add false branches")
     return out
 
 

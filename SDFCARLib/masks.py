@@ -24,6 +24,10 @@ Angiogram masks (``segment_angiogram`` / ``angiogram_mask``), for when no mask e
        its width only); widened, with the image edge, by the filters' reach (2 × the largest σ).
        They are filled with the nearest field values before filtering, and are never vessel.
        A frame whose field is under ``min_field_fraction`` is refused.
+       Polarity, on the field: vessels absorb, so the fine structures of ``−log I`` reach further
+       above its background than below (``dark_vessel_asymmetry``); a frame where the bright ones
+       reach much further shows its vessels bright (an inverted display or export) and is refused,
+       naming ``bright_vessels`` (its grey levels inverted first); a doubtful one gets a warning.
     3. Background: grey opening (a window wider than the widest vessel) of the log image, box
        smoothed and subtracted (a top-hat): soft tissue, ribs, diaphragm and exposure go.
     4. Ridge filter (Sato by default; Frangi and Meijering selectable) at σ = r/√3 for radii
@@ -203,6 +207,7 @@ class AngioMaskSettings:
     min_length_mm: float = 6.0  # a component's centreline must be at least this long
     min_elongation: float = 3.0  # and length / mean width at least this (specks are round)
     min_field_fraction: float = 0.25  # refuse frames whose exposed field is smaller than this
+    bright_vessels: bool = False  # the frame shows vessels bright (an inverted display): its grey levels are inverted first
     edge_fraction: float = 0.25  # >0: a vessel's edge where its contrast falls to this share of its centreline's
     edge_taper_radius_mm: Optional[float] = 1.0  # beyond this mask radius the share falls as (this / radius)²; None: constant
     edge_grow_mm: float = 0.45  # pixels this near the mask that reach the edge level (and the noise level) join; 0: trim only
@@ -350,6 +355,31 @@ def _local_noise(image: np.ndarray, field: np.ndarray, block: int = 32) -> np.nd
     return np.maximum(level, 1e-6 * float(level.max()))
 
 
+#: a frame of fewer grey levels is a mask or label image given as a frame (X-ray frames, even 8-bit exports, hold hundreds)
+MIN_FRAME_GREY_LEVELS = 16
+
+
+#: a frame whose fine structures stand out darker than lighter by less than this (``dark_vessel_asymmetry``) is refused
+#: as showing its vessels bright, and one below ``DOUBTFUL_DARK_VESSEL_ASYMMETRY`` segmented with a warning: frames with
+#: vessels measured 1.06–3.4 (the lowest processed for display), inverted ones 0.34–1.01, frames without vessels
+#: 0.93–1.9 (bench/RESULTS.md §89)
+MIN_DARK_VESSEL_ASYMMETRY = 0.8
+DOUBTFUL_DARK_VESSEL_ASYMMETRY = 1.0
+
+
+def dark_vessel_asymmetry(log_image: np.ndarray, field: np.ndarray, largest_radius_px: float,
+                          tail: float = 1.0) -> float:
+    """How much further the fine structures of ``−log I`` reach above its background than below, over the field:
+    (top ``tail`` % − median) / (median − bottom ``tail`` %) of the image smoothed at 1 pixel less its smoothing at
+    twice the largest vessel radius. Vessels absorb, so a frame with dark vessels has a long upper tail (above 1;
+    noise and soft tissue are about symmetric), a frame showing them bright a long lower one (below 1)."""
+    smooth = ndimage.gaussian_filter(log_image, 1.0)
+    fine = (smooth - ndimage.gaussian_filter(smooth, max(2.0 * float(largest_radius_px), 2.0)))[field]
+    low, median, high = np.percentile(fine, [tail, 50.0, 100.0 - tail])
+    below = float(median - low)
+    return float(high - median) / below if below > 0 else float("inf")
+
+
 def _disk_opening(image: np.ndarray, radius: int) -> np.ndarray:
     """Grey opening by a disk: unlike a square it follows curved edges (diaphragm, heart border)."""
     from skimage.morphology import disk, opening
@@ -462,11 +492,18 @@ def segment_angiogram(
     s.check()
     started = time.perf_counter()
     image = _frame_array(frame)
+    if s.bright_vessels:
+        image = float(image.min()) + float(image.max()) - image
     iso_px_mm, sigmas, geometry = _scales_px(s, pixel_spacing_mm, magnification)
     lo, hi = np.percentile(image, [0.5, 99.5])
     if not hi > lo:
         raise MaskError("the frame is flat (the same value almost everywhere): there is nothing to segment; "
                         "check the frame index and that the run holds images")
+    levels = np.unique(image).size
+    if levels < MIN_FRAME_GREY_LEVELS:
+        raise MaskError(f"the frame holds only {levels} grey levels: it is a mask or a label image, not an X-ray frame "
+                        "(those hold hundreds); give the frame the vessels were seen in, or use the mask as a mask "
+                        "(reconstruct --mask)")
     # Beer–Lambert: −log I is proportional to the path through iodine, and a change of exposure
     # or of the tissue in front only adds to it, which the background removal takes away.
     floor = max(1e-6 * max(abs(hi), 1.0), float(np.percentile(image, 50)) * 1e-3)
@@ -476,6 +513,11 @@ def segment_angiogram(
     border, _, border_info = _border(-log_image, s, max(1, int(round(0.5 * r_max_px))), margin_px,
                                            int(np.ceil(4.0 * r_max_px)))
     field = ~border
+    if field.mean() < s.min_field_fraction and not border_info["shutter_fraction"] > 0:
+        raise MaskError(f"the frame is {image.shape[0]}×{image.shape[1]} pixels: the filters' margin of {margin_px} pixels "
+                        f"along its edges, for vessels up to {s.vessel_radius_mm[1]:g} mm at "
+                        f"{iso_px_mm:.3f} mm per pixel, leaves only {100 * field.mean():.0f}% of it; give the whole frame "
+                        "(not a crop), or check its pixel spacing and magnification")
     if field.mean() < s.min_field_fraction:
         raise MaskError(f"the exposed field is only {100 * field.mean():.0f}% of the frame (the rest is collimator or "
                         f"image edge, less than {100 * s.min_field_fraction:.0f}% is left): open the collimator or "
@@ -483,6 +525,21 @@ def segment_angiogram(
     # Fill the border with the nearest field values so the filters see no shutter edge.
     _, (ri, ci) = ndimage.distance_transform_edt(border, return_indices=True)
     filled = log_image[ri, ci]
+    asymmetry = dark_vessel_asymmetry(filled, field, r_max_px)
+    if asymmetry < MIN_DARK_VESSEL_ASYMMETRY:
+        if s.bright_vessels:
+            raise MaskError("bright_vessels (segment --bright-vessels) was given, but the vessels of this frame are dark "
+                            "already, as in a raw X-ray frame: inverted they look bright; leave it out")
+        raise MaskError(f"the vessels of this frame look bright, not dark: its bright fine structures stand "
+                        f"{1 / max(asymmetry, 1e-6):.1f}× further from the background than its dark ones (an inverted "
+                        "display or export, or a subtracted frame saved with bright vessels?); vessels absorb X-rays and "
+                        "are dark in a raw frame: invert its grey levels (segment --bright-vessels; in Python "
+                        "AngioMaskSettings(bright_vessels=True)), or give the raw frame")
+    warnings = []
+    if asymmetry < DOUBTFUL_DARK_VESSEL_ASYMMETRY and not s.bright_vessels:
+        warnings.append(f"the frame's dark and bright fine structures stand out about as far (asymmetry {asymmetry:.2f}; "
+                        "frames with dark vessels measure above 1): if its vessels look bright in the overlay, segment it "
+                        "with bright_vessels (segment --bright-vessels)")
     # Background: grey opening by a disk wider than the widest vessel (vessels are bright in −log I)
     # of the lightly smoothed image; subtracting it removes tissue, ribs, diaphragm and exposure.
     # Only the opening's blockiness is smoothed away: a window-wide smoothing bends at kinks
@@ -565,11 +622,13 @@ def segment_angiogram(
         "hysteresis_low": median + low * spread,
         "silhouette_level": c_median + s.silhouette_noise_units * c_spread,
         "strongest_contrast": strongest,
+        "dark_vessel_asymmetry": asymmetry,
         "min_length_px": float(min_length_px),
         "components_before_cleaning": int(area.size - 1),
         "components": int(ndimage.label(mask, structure=np.ones((3, 3), bool))[1]),  # 8-connected, as mask_checks counts
         "component_lengths_mm": [round(float(length[k] * iso_px_mm), 1) for k in kept],
         "vessel_fraction": float(mask.mean()),
+        "warnings": warnings,
         "seconds": round(time.perf_counter() - started, 3),
     }
     return AngioMask(mask, border, normalised.astype(np.float32), parameters)

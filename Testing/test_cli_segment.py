@@ -224,3 +224,48 @@ def test_reconstruct_with_auto_masks_keeps_auto_mask_files_the_folder_holds(run,
     assert main(args) == 2
     assert "auto_mask1.png" in capsys.readouterr().err
     assert (out / "auto_mask1.png").read_bytes() == b"the user's file" and not (out / "report.json").exists()
+
+
+def test_segment_an_inverted_image_only_when_told_and_never_over_its_input(tmp_path, capsys):
+    import imageio.v3 as iio
+
+    frame, _ = simulate_angiogram(_vessel_line_integral(), 0.3, 3, AngiogramSettings(ribs=1))
+    inverted = tmp_path / "inverted.png"
+    iio.imwrite(inverted, (4095 - frame).astype(np.uint16))
+    mask = tmp_path / "mask.png"
+    assert main(["segment", "--image", str(inverted), "--out", str(mask)]) == 2
+    assert "look bright, not dark" in capsys.readouterr().err and not mask.exists()
+    assert main(["segment", "--image", str(inverted), "--bright-vessels", "--out", str(mask)]) == 0, capsys.readouterr().err
+    capsys.readouterr()
+    truth = _vessel_line_integral() > 0
+    got = read_image(mask) > 0
+    assert 2 * (got & truth).sum() / (got.sum() + truth.sum()) > 0.75
+    # an --out whose files would include the input frame is refused before anything is written
+    before = inverted.read_bytes()
+    assert main(["segment", "--image", str(inverted), "--bright-vessels", "--overwrite",
+                 "--out", str(tmp_path / "inverted.png")]) == 2
+    assert "the input frame itself" in capsys.readouterr().err and inverted.read_bytes() == before
+
+
+def test_segment_says_what_a_reconstruction_would_warn_of(tmp_path, capsys, monkeypatch):
+    import imageio.v3 as iio
+
+    import SDFCARLib.masks as masks
+
+    frame, _ = simulate_angiogram(_vessel_line_integral(), 0.3, 3, AngiogramSettings(ribs=1))
+    image = tmp_path / "frame.png"
+    iio.imwrite(image, frame.astype(np.uint16))
+    real = masks.segment_angiogram
+
+    def with_specks(*args, **kwargs):  # the pipeline's result with some 60 one-pixel specks
+        result = real(*args, **kwargs)
+        result.mask[100:, :] = False
+        result.mask[104:124:4, 4:124:20] = True
+        result.mask[110:126:5, 2:120:14] = True
+        return result
+
+    monkeypatch.setattr(masks, "segment_angiogram", with_specks)
+    assert main(["segment", "--image", str(image), "--out", str(tmp_path / "m.png")]) == 0
+    err = capsys.readouterr().err
+    assert "warning: mask: the mask has" in err and "specks" in err
+    assert "specks" in json.loads((tmp_path / "m.json").read_text())["parameters"]["warnings"][0]

@@ -47,12 +47,23 @@ def test_border_warning():
     one_vessel_leaving = _vessel()
     one_vessel_leaving[60:66, 0:20] = True  # a vessel crossing the border is normal
     assert mask_warnings(one_vessel_leaving) == []
+    # a blade's edge inside the image, slightly tilted, is not in the border ring but is named
+    blade = _vessel()
+    for c in range(4, 124):
+        blade[10 + c // 40: 12 + c // 40, c] = True
+    (message,) = mask_warnings(blade)
+    assert "straight line across the image near row" in message and "collimator" in message
+    assert "down the image" in mask_warnings(blade.T)[0]
 
 
 def test_speck_warning_counts_the_specks():
     m = _speckle(_vessel(), 60)
     (message,) = mask_warnings(m, pixel_spacing_mm=(0.4, 0.4))
-    assert "60 specks" in message and "2 mm²" in message and "min_component_px" in message
+    assert "60 specks" in message and "2 mm²" in message
+    # the advice names a setting that exists (it once named one that did not)
+    from SDFCARLib.masks import AngioMaskSettings
+
+    assert "min_length_mm" in message and hasattr(AngioMaskSettings(), "min_length_mm")
     assert mask_warnings(_speckle(_vessel(), MAX_SPECKS - 5)) == []
 
 

@@ -241,6 +241,40 @@ def test_on_a_clean_frame_the_left_over_background_is_not_vessel_and_a_frame_wit
             _segment(usual.mask.astype(float), **bad)
 
 
+def test_a_frame_showing_its_vessels_bright_is_refused_and_segmented_when_said_so():
+    tree = _tubes((160, 160), [((20, 20), (140, 140), 1.5, 1.0), ((80, 80), (20, 140), 0.8, 0.6)])
+    frame, _ = _frame(tree)
+    usual = _segment(frame)
+    assert usual.parameters["dark_vessel_asymmetry"] > 1.5  # vessels absorb: a long upper tail of −log I
+    inverted = 4095.0 - frame  # an inverted display's export
+    with pytest.raises(MaskError, match=r"look bright, not dark.*\d\.\d× further.*bright_vessels=True"):
+        _segment(inverted)
+    said = _segment(inverted, bright_vessels=True)
+    silhouette = tree > 0
+    dice = lambda m: 2 * (m & silhouette).sum() / (m.sum() + silhouette.sum())  # noqa: E731
+    assert dice(said.mask) > dice(usual.mask) - 0.02 and dice(said.mask) > 0.8
+    with pytest.raises(MaskError, match="dark already.*leave it out"):
+        _segment(frame, bright_vessels=True)
+    # noise and soft tissue alone are about symmetric: a frame without vessels is not called inverted
+    empty, _ = _frame(np.zeros((160, 160)))
+    with pytest.raises(MaskError, match="no vessel found"):
+        _segment(empty)
+
+
+def test_a_frame_of_doubtful_polarity_is_segmented_with_a_warning(monkeypatch):
+    import SDFCARLib.masks as masks
+
+    frame, _ = _frame(_tubes((160, 160), [((20, 20), (140, 140), 1.5, 1.0)]))
+    assert _segment(frame).parameters["warnings"] == []
+    monkeypatch.setattr(masks, "dark_vessel_asymmetry", lambda *args, **kwargs: 0.9)
+    result = _segment(frame)
+    (warning,) = result.parameters["warnings"]
+    assert "asymmetry 0.90" in warning and "--bright-vessels" in warning and result.mask.any()
+    monkeypatch.setattr(masks, "dark_vessel_asymmetry", lambda *args, **kwargs: 0.7)
+    with pytest.raises(MaskError, match="look bright"):
+        _segment(frame)
+
+
 def test_edge_share_tapers_with_the_radius_so_a_thick_vessel_keeps_its_border():
     line_integral, silhouette, thin, thick = _thin_and_thick_tubes()
     frame, _ = _frame(line_integral)
@@ -318,6 +352,14 @@ def test_bad_frames_are_refused_with_the_problem_named():
         segment_angiogram(frame, -0.3)
     with pytest.raises(MaskError, match="method must be one of"):
         _segment(frame, method="hessian")
+    # a mask given as the frame, 0/255 or boolean, is named as such (it was segmented as if it were one)
+    for mask in ((_segment(frame).mask * 255).astype(np.uint8), _segment(frame).mask):
+        with pytest.raises(MaskError, match=r"only 2 grey levels: it is a mask.*reconstruct --mask"):
+            _segment(mask)
+    # a frame too small for the vessels' filters is told so, not to open a collimator it does not have
+    small, _ = _frame(_tubes((40, 40), [((2, 2), (38, 38), 1.5, 1.0)]))
+    with pytest.raises(MaskError, match=r"40×40 pixels: the filters' margin .* leaves only \d+% of it; give the whole"):
+        _segment(small)
 
 
 def test_frames_processed_for_display_are_segmented_without_the_edge_rule():

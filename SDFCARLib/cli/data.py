@@ -30,7 +30,11 @@ def cmd_segment(args: argparse.Namespace) -> int:
     if args.dicom and getattr(args, "image_intensity", None):
         raise ValueError("--image-intensity says how an --image was made; a --dicom run's Pixel Intensity Relationship "
                          "is read from its tags: remove --image-intensity")
-    segmentation_paths(args.out)  # a wrong --out fails before the work
+    written = segmentation_paths(args.out)  # a wrong --out fails before the work
+    given = Path(args.dicom or args.image)
+    clash = [str(path) for path in written.values() if path.exists() and given.exists() and path.samefile(given)]
+    if clash:
+        raise ValueError(f"--out {args.out} would write {clash[0]}, the input frame itself; choose another --out")
     if args.dicom:
         from ..dicom import choose_frame, load_xa
 
@@ -74,7 +78,8 @@ def cmd_segment(args: argparse.Namespace) -> int:
                 print(f"note: {note}", file=sys.stderr)
     settings = mask_settings_for_intensity(relationship, AngioMaskSettings(
         **({"method": args.method} if args.method else {}),
-        **({"vessel_radius_mm": tuple(args.vessel_radius_mm)} if args.vessel_radius_mm else {})))
+        **({"vessel_radius_mm": tuple(args.vessel_radius_mm)} if args.vessel_radius_mm else {}),
+        bright_vessels=bool(getattr(args, "bright_vessels", False))))
     if frame_processed_for_display(relationship):
         print(f"the run's frames were processed for display (Pixel Intensity Relationship {relationship}): their edges "
               "are enhanced, so the mask's edge rule does not trim them", file=sys.stderr)
@@ -83,7 +88,15 @@ def cmd_segment(args: argparse.Namespace) -> int:
         result.parameters["pixel_spacing_source"] = spacing_source
     if magnification_source:
         result.parameters["magnification_source"] = magnification_source
+    from ..mask_checks import mask_warnings
+
+    # what a reconstruction from this mask would warn of, said now, where the mask can still be redone
+    detector_spacing = None if spacing is None else tuple(float(v) for v in np.broadcast_to(np.asarray(spacing, float), (2,)))
+    warnings = list(result.parameters.get("warnings", [])) + mask_warnings(result.mask, detector_spacing, source="mask")
+    result.parameters["warnings"] = warnings
     paths = write_segmentation(args.out, frame, result, source, overwrite=args.overwrite)
+    for warning in warnings:
+        print(f"warning: {warning}", file=sys.stderr)
     p = result.parameters
     print(f"mask: {p['components']} component(s), {100 * p['vessel_fraction']:.1f}% of the frame, border "
           f"{100 * p['border_fraction']:.0f}% excluded, σ {p['sigmas_px']} px at {p['isocenter_pixel_mm']:.3f} mm/px "

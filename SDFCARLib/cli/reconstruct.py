@@ -200,6 +200,8 @@ def _auto_masks(args: argparse.Namespace, geometry, provenance
               f"{100 * p['vessel_fraction']:.1f}% of the frame"
               + (f" (processed for display, {relationship}: the edge rule's trim off)" if frame_processed_for_display(relationship) else ""),
               file=sys.stderr)
+        for warning in p.get("warnings", []):
+            print(f"warning: view {n}: {warning}", file=sys.stderr)
     return auto, intensity
 
 
