@@ -330,9 +330,16 @@ def _border(log_image: np.ndarray, settings: AngioMaskSettings, opening_px: int,
     return border, shutter, info
 
 
+#: the noise level (−log I) assumed at least, 0.1 % of the intensity (a signal-to-noise ratio of 1000): on a frame
+#: without noise (simulated, subtracted, an 8-bit export of flat background) the measured level is 0 and every
+#: grey-level step stood out by infinitely many noise units (bench/RESULTS.md §89)
+MIN_NOISE_LOG = 1e-3
+
+
 def _local_noise(image: np.ndarray, field: np.ndarray, block: int = 32) -> np.ndarray:
     """Smooth map of the noise standard deviation: robust (median) spread of the fine residual
-    in blocks of the field, interpolated; blocks without field take the nearest block's value."""
+    in blocks of the field, interpolated, ``MIN_NOISE_LOG`` at least; blocks without field or
+    without noise (a flat background) take the nearest block's value."""
     residual = np.abs(image - ndimage.gaussian_filter(image, 1.0)).astype(np.float64)
     residual[~field] = np.nan
     rows, cols = image.shape
@@ -347,13 +354,17 @@ def _local_noise(image: np.ndarray, field: np.ndarray, block: int = 32) -> np.nd
             level = np.nanmedian(padded.reshape(nr, block, nc, block).transpose(0, 2, 1, 3).reshape(nr, nc, -1), axis=2)
     missing = ~np.isfinite(level) | (level <= 0)
     if missing.all():
-        return np.ones_like(image, dtype=np.float64)
+        return np.full(image.shape, MIN_NOISE_LOG)
     if missing.any():
         _, (ri, ci) = ndimage.distance_transform_edt(missing, return_indices=True)
         level = level[ri, ci]
     level = ndimage.zoom(level, (rows / nr, cols / nc), order=1, mode="nearest", grid_mode=True)[:rows, :cols]
-    return np.maximum(level, 1e-6 * float(level.max()))
+    return np.maximum(level, MIN_NOISE_LOG)
 
+
+#: more of the exposed field than this at the frame's highest or lowest value is warned of as clipped (over- or
+#: underexposed); the realistic protocols' simulated frames hold up to 2.1 % at their top value
+MAX_CLIPPED_FIELD_SHARE = 0.05
 
 #: a frame of fewer grey levels is a mask or label image given as a frame (X-ray frames, even 8-bit exports, hold hundreds)
 MIN_FRAME_GREY_LEVELS = 16
@@ -536,6 +547,15 @@ def segment_angiogram(
                         "are dark in a raw frame: invert its grey levels (segment --bright-vessels; in Python "
                         "AngioMaskSettings(bright_vessels=True)), or give the raw frame")
     warnings = []
+    for end, value in (("highest", float(image.max())), ("lowest", float(image.min()))):
+        clipped = float(np.mean(image[field] == value))
+        # most of the field at one value is its background, flat (a frame without noise: simulated, subtracted), not
+        # a part of it over- or underexposed
+        if MAX_CLIPPED_FIELD_SHARE < clipped < 0.5:
+            warnings.append(f"{100 * clipped:.0f} % of the exposed field is clipped at the frame's {end} value "
+                            f"({value:g}): vessels there cannot be seen, so the mask misses them and a reconstruction "
+                            "takes them as absent; choose a frame or run exposed without it, or paint the vessels there by hand "
+                            "where you know them")
     if asymmetry < DOUBTFUL_DARK_VESSEL_ASYMMETRY and not s.bright_vessels:
         warnings.append(f"the frame's dark and bright fine structures stand out about as far (asymmetry {asymmetry:.2f}; "
                         "frames with dark vessels measure above 1): if its vessels look bright in the overlay, segment it "
