@@ -542,9 +542,21 @@ class SDFCARWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
                 return
             p = self._parameterNode
             view = self.logic.viewParameters(p, n)
-            segmentation, parameters = self.logic.vesselnessMask(
-                view.frame, view.frameIndex, view.mask, pixelSpacingMm=(view.pixelSpacingRow, view.pixelSpacingCol),
-                magnification=view.sid / view.sod)
+            from SDFCARLib.masks import BrightVesselsError
+
+            def segment(brightVessels):
+                return self.logic.vesselnessMask(
+                    view.frame, view.frameIndex, view.mask, pixelSpacingMm=(view.pixelSpacingRow, view.pixelSpacingCol),
+                    magnification=view.sid / view.sod, brightVessels=brightVessels)
+
+            try:
+                segmentation, parameters = segment(False)
+            except BrightVesselsError as exc:
+                # an inverted export: offer to read it the right way up rather than leave the user with an error
+                if not slicer.util.confirmYesNoDisplay(f"{exc}\n\nSegment frame {n} with its grey levels inverted?",
+                                                       windowTitle="SDFCAR: vessels look bright"):
+                    return
+                segmentation, parameters = segment(True)
             self.logic.setViewValue(p, n, "mask", segmentation)
             self.ui.statusLabel.text = (f"Vessel mask: {100 * parameters['vessel_fraction']:.1f} % of frame {n} in "
                                         f"{parameters['components']} piece(s), collimator excluded; refine it with Edit.")
@@ -906,13 +918,15 @@ class SDFCARLogic(ScriptedLoadableModuleLogic):
         editor.setSegmentationNode(segmentation)
         editor.setSourceVolumeNode(frameNode)
 
-    def vesselnessMask(self, frameNode, index=-1, maskNode=None, pixelSpacingMm=None, magnification=None):
+    def vesselnessMask(self, frameNode, index=-1, maskNode=None, pixelSpacingMm=None, magnification=None,
+                       brightVessels=False):
         """Seed a frame's vessel segmentation with the angiogram mask pipeline (the command line's
         ``segment``); returns (segmentation, parameters). Pixel spacing (mm) and magnification
-        (SID/SOD) set the physical vessel scales; without them typical values are assumed and reported."""
+        (SID/SOD) set the physical vessel scales; without them typical values are assumed and reported.
+        ``brightVessels``: the frame shows its vessels bright (an inverted export); its grey levels are inverted first."""
         from SDFCARLib import mrml
         from SDFCARLib.evidence import assumed_relationship
-        from SDFCARLib.masks import angiogram_mask, mask_settings_for_intensity
+        from SDFCARLib.masks import AngioMaskSettings, angiogram_mask, mask_settings_for_intensity
 
         # a frame processed for display (its DICOM file says DISP or a vendor's term, or it is an 8-bit image nothing
         # is known of): the edge rule does not trim it
@@ -922,7 +936,7 @@ class SDFCARLogic(ScriptedLoadableModuleLogic):
                                                   frameNode.GetName())
         if note:
             logging.warning(f"SDFCAR: {note}")
-        settings = mask_settings_for_intensity(relationship)
+        settings = mask_settings_for_intensity(relationship, AngioMaskSettings(bright_vessels=bool(brightVessels)))
         mask, parameters = angiogram_mask(frame, pixelSpacingMm, magnification, settings)
         for warning in parameters.get("warnings", []):
             logging.warning(f"SDFCAR: {frameNode.GetName()}: {warning}")

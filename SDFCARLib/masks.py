@@ -88,6 +88,10 @@ class MaskError(ValueError):
     """A mask cannot be used; the message names the problem and the fix."""
 
 
+class BrightVesselsError(MaskError):
+    """A frame shows its vessels bright; segmented with ``bright_vessels=True`` it would be read the right way up."""
+
+
 def single_grey_image(array: Any, not_numeric: str, colour: str, not_2d: str) -> np.ndarray:
     """The 2-D grey image in ``array``: RGB(A) with equal colour channels and singleton axes are
     accepted; otherwise a ``MaskError`` with the caller's message, its ``{dtype}``, ``{channels}`` or
@@ -541,7 +545,7 @@ def segment_angiogram(
         if s.bright_vessels:
             raise MaskError("bright_vessels (segment --bright-vessels) was given, but the vessels of this frame are dark "
                             "already, as in a raw X-ray frame: inverted they look bright; leave it out")
-        raise MaskError(f"the vessels of this frame look bright, not dark: its bright fine structures stand "
+        raise BrightVesselsError(f"the vessels of this frame look bright, not dark: its bright fine structures stand "
                         f"{1 / max(asymmetry, 1e-6):.1f}× further from the background than its dark ones (an inverted "
                         "display or export, or a subtracted frame saved with bright vessels?); vessels absorb X-rays and "
                         "are dark in a raw frame: invert its grey levels (segment --bright-vessels; in Python "

@@ -445,6 +445,7 @@ class _Recorder:
         self.infos = []
         self.sliceLayers = []
         self.confirm = True
+        self.questions = []
         self.pipInstalls = []
 
     def errorDisplay(self, text, **kwargs):
@@ -460,6 +461,10 @@ class _Recorder:
         self.sliceLayers.append(dict(kwargs, background=background))
 
     def confirmOkCancelDisplay(self, text, **kwargs):
+        return self.confirm
+
+    def confirmYesNoDisplay(self, text, **kwargs):
+        self.questions.append(text)
         return self.confirm
 
     def pip_install(self, requirements):
@@ -537,7 +542,7 @@ def install(monkeypatch, real_mrml=False):
     util = _module("slicer.util", VTKObservationMixin=VTKObservationMixin, tryWithErrorDisplay=tryWithErrorDisplay,
                    errorDisplay=recorder.errorDisplay, warningDisplay=recorder.warningDisplay, infoDisplay=recorder.infoDisplay,
                    setSliceViewerLayers=recorder.setSliceViewerLayers,
-                   confirmOkCancelDisplay=recorder.confirmOkCancelDisplay,
+                   confirmOkCancelDisplay=recorder.confirmOkCancelDisplay, confirmYesNoDisplay=recorder.confirmYesNoDisplay,
                    pip_install=recorder.pip_install)
     app = types.SimpleNamespace(connect=lambda *a: None, temporaryPath="/tmp", layoutManager=lambda: None)
     scene = types.SimpleNamespace(Clear=lambda *a: None, GetNodeByID=SCENE.get)

@@ -235,6 +235,9 @@ def test_the_vesselness_mask_of_a_frame_processed_for_display_does_not_trim_its_
     assert [s.edge_fraction for s in used] == [DISPLAY_EDGE_FRACTION, AngioMaskSettings().edge_fraction,
                                                AngioMaskSettings().edge_fraction, DISPLAY_EDGE_FRACTION,
                                                AngioMaskSettings().edge_fraction]
+    assert not any(s.bright_vessels for s in used)
+    logic.vesselnessMask(_FrameNode("drm", None), -1, brightVessels=True)  # an inverted export, said so
+    assert used[-1].bright_vessels and used[-1].edge_fraction == DISPLAY_EDGE_FRACTION
 
 
 # --- Sample Data from the console ----------------------------------------------------------------------------
@@ -689,3 +692,33 @@ def test_reading_the_geometry_from_dicom_changes_no_view_when_one_fails(sdfcar, 
     with pytest.raises(ValueError, match="outside its range"):
         logic.readGeometryFromDicom(p)
     assert [logic.viewValue(p, 1, field) for field in sdfcar.GEOMETRY_VIEW_FIELDS] == before
+
+
+@pytest.mark.parametrize("accepted", [True, False])
+def test_vesselness_on_a_frame_showing_its_vessels_bright_offers_to_invert_it(sdfcar, monkeypatch, accepted):
+    """The Vesselness button on an inverted export asks whether to segment it inverted, instead of only an error."""
+    from SDFCARLib.masks import BrightVesselsError
+
+    widget = _widget(sdfcar)
+    widget._parameterNode = types.SimpleNamespace()
+    view = types.SimpleNamespace(frame="frame", frameIndex=0, mask=None, pixelSpacingRow=0.3, pixelSpacingCol=0.3,
+                                 sid=1000.0, sod=750.0)
+    calls, stored = [], []
+    monkeypatch.setattr(widget.logic, "ensureDependencies", lambda *args: True)
+    monkeypatch.setattr(widget.logic, "viewParameters", lambda p, n: view)
+    monkeypatch.setattr(widget.logic, "setViewValue", lambda p, n, field, value: stored.append((n, field, value)))
+
+    def vesselness(frame, index, mask, pixelSpacingMm=None, magnification=None, brightVessels=False):
+        calls.append(brightVessels)
+        if not brightVessels:
+            raise BrightVesselsError("the vessels of this frame look bright, not dark")
+        return "segmentation", {"vessel_fraction": 0.05, "components": 2}
+
+    monkeypatch.setattr(widget.logic, "vesselnessMask", vesselness)
+    sdfcar.recorder.confirm = accepted
+    widget.onVesselness(2)
+    (question,) = sdfcar.recorder.questions
+    assert "look bright" in question and "frame 2 with its grey levels inverted" in question
+    assert calls == ([False, True] if accepted else [False])
+    assert stored == ([(2, "mask", "segmentation")] if accepted else [])
+    assert not sdfcar.recorder.errors

@@ -421,6 +421,7 @@ VERIFIED_MODULE_NAMES = {
                                 "Modules/Scripted/CropVolumeSequence/CropVolumeSequence.py at every tag",
     "slicer.util": "Base/Python/slicer/util.py",
     "slicer.util.childWidgetVariables": "util.py", "slicer.util.confirmOkCancelDisplay": "util.py",
+    "slicer.util.confirmYesNoDisplay": "Base/Python/slicer/util.py (text, windowTitle=None, parent=None) at every tag",
     "slicer.util.errorDisplay": "util.py", "slicer.util.warningDisplay": "util.py",
     "slicer.util.infoDisplay": "Base/Python/slicer/util.py (text, windowTitle=…) at every tag",
     "slicer.util.getModuleWidget": "util.py", "slicer.util.getModuleWidget().editor": "Segment Editor widget",
