@@ -658,17 +658,22 @@ def test_ctrl_c_while_the_field_is_evaluated_is_honoured(tmp_path, capsys, geome
     assert not out.exists() and not _leftovers(out)
 
 
-def test_ctrl_c_while_the_results_are_written_stops_and_keeps_nothing(tmp_path, capsys, geometry_file, mask_files,
-                                                                      monkeypatch):
+def _signal_after_the_qa_pictures(monkeypatch, signum) -> None:
+    """The process sends itself ``signum`` once the QA pictures are written: in the middle of writing the results."""
     import SDFCARLib.outputs as outputs
 
     real_qa = outputs.write_qa_png
 
-    def qa_then_ctrl_c(*args, **kwargs):
+    def qa_then_signal(*args, **kwargs):
         real_qa(*args, **kwargs)
-        os.kill(os.getpid(), signal.SIGINT)
+        os.kill(os.getpid(), signum)
 
-    monkeypatch.setattr(outputs, "write_qa_png", qa_then_ctrl_c)
+    monkeypatch.setattr(outputs, "write_qa_png", qa_then_signal)
+
+
+def test_ctrl_c_while_the_results_are_written_stops_and_keeps_nothing(tmp_path, capsys, geometry_file, mask_files,
+                                                                      monkeypatch):
+    _signal_after_the_qa_pictures(monkeypatch, signal.SIGINT)
     out = tmp_path / "out"
     code, _, err = run(capsys, "reconstruct", "--geometry", geometry_file, "--mask", *mask_files, "--out", out,
                        "--steps", 2, "--no-progress")
@@ -678,19 +683,11 @@ def test_ctrl_c_while_the_results_are_written_stops_and_keeps_nothing(tmp_path, 
 
 def test_sigterm_while_the_results_are_written_cleans_up_with_status_143(tmp_path, capsys, geometry_file, mask_files,
                                                                          monkeypatch):
-    import SDFCARLib.outputs as outputs
-
     def reached_the_test(signum, frame):  # without the command's own handler the signal lands here
         raise RuntimeError("SIGTERM was not handled by the command")
 
     previous = signal.signal(signal.SIGTERM, reached_the_test)
-    real_qa = outputs.write_qa_png
-
-    def qa_then_sigterm(*args, **kwargs):
-        real_qa(*args, **kwargs)
-        os.kill(os.getpid(), signal.SIGTERM)
-
-    monkeypatch.setattr(outputs, "write_qa_png", qa_then_sigterm)
+    _signal_after_the_qa_pictures(monkeypatch, signal.SIGTERM)
     out = tmp_path / "out"
     try:
         code, _, err = run(capsys, "reconstruct", "--geometry", geometry_file, "--mask", *mask_files, "--out", out,

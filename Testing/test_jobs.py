@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from job_helpers import alive as _alive, tiny_job_case, wait_for as _wait_for
 from SDFCARLib.geometry import CArmView, Geometry, VolumeGrid
 from SDFCARLib.jobs import JobFailed, JobFolderError, ReconstructionJob, prepare_job, run_job
 from SDFCARLib.phantoms import Branch, CentrelineTree, make_case
@@ -22,35 +23,10 @@ pytestmark = pytest.mark.skipif(os.name != "posix", reason="process-group tests 
 
 @pytest.fixture(scope="module")
 def tiny_case():
-    grid = VolumeGrid((24, 24, 24), (2.0, 2.0, 2.0))
-    views = [CArmView(a, 0.0, 1000.0, 750.0, (1.0, 1.0), (64, 64)) for a in (30.0, -30.0)]
-    tube = CentrelineTree([Branch(np.array([[-12.0, 0, -10], [10.0, 4, 12]]), np.array([3.0, 2.5]))])
-    return make_case(tube, Geometry(grid, views))
+    return tiny_job_case()
 
 
 SMALL = {"preset": "fast", "steps": 400, "levels": 4, "log2_table_size": 12, "width": 16, "depth": 2, "threads": 1}
-
-
-def _alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    # A zombie still answers kill(0); it has ended all the same.
-    try:
-        with open(f"/proc/{pid}/stat") as handle:
-            return handle.read().split(")")[-1].split()[0] != "Z"
-    except OSError:
-        return False
-
-
-def _wait_for(predicate, timeout: float, interval: float = 0.05) -> bool:
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        if predicate():
-            return True
-        time.sleep(interval)
-    return predicate()
 
 
 def test_progress_in_order_to_the_end_and_results(tiny_case, tmp_path):

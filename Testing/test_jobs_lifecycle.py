@@ -1,5 +1,5 @@
 """Background jobs: one run per folder, cancels that come late or find the folder gone, what a cancel leaves behind,
-and inputs refused before a worker starts (the tiny case of test_jobs.py)."""
+and inputs refused before a worker starts (the tiny case of job_helpers.py)."""
 
 from __future__ import annotations
 
@@ -11,13 +11,11 @@ import sys
 import time
 from pathlib import Path
 
-import numpy as np
 import pytest
 
-from SDFCARLib.geometry import CArmView, Geometry, VolumeGrid
+from job_helpers import alive as _alive, tiny_job_case, wait_for as _wait_for
 from SDFCARLib.jobs import (AnalysisJob, JobFailed, JobFolderError, ReconstructionJob, prepare_analysis_job, prepare_job,
                             run_job)
-from SDFCARLib.phantoms import Branch, CentrelineTree, make_case
 
 pytestmark = pytest.mark.skipif(os.name != "posix", reason="process-group tests use POSIX signals")
 
@@ -27,27 +25,7 @@ LONG = dict(SMALL, steps=100000)
 
 @pytest.fixture(scope="module")
 def tiny_case():
-    grid = VolumeGrid((24, 24, 24), (2.0, 2.0, 2.0))
-    views = [CArmView(a, 0.0, 1000.0, 750.0, (1.0, 1.0), (64, 64)) for a in (30.0, -30.0)]
-    tube = CentrelineTree([Branch(np.array([[-12.0, 0, -10], [10.0, 4, 12]]), np.array([3.0, 2.5]))])
-    return make_case(tube, Geometry(grid, views))
-
-
-def _alive(pid: int) -> bool:
-    try:
-        with open(f"/proc/{pid}/stat") as handle:
-            return handle.read().split(")")[-1].split()[0] != "Z"  # a zombie has ended all the same
-    except OSError:
-        return False
-
-
-def _wait_for(predicate, timeout: float, interval: float = 0.05) -> bool:
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        if predicate():
-            return True
-        time.sleep(interval)
-    return predicate()
+    return tiny_job_case()
 
 
 def _state(job_dir: Path) -> str:

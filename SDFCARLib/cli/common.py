@@ -33,26 +33,38 @@ class PartlyWritten(KeyboardInterrupt):
         self.terminated = terminated
 
 
-class TerminateOnSigterm:
-    """While active, SIGTERM raises ``Terminated`` in the main thread (the default would end the process at once,
-    leaving half-written staging folders beside the user's output)."""
+class _HandlerWhileActive:
+    """A context in which the signal named ``SIGNAL`` goes to ``_handle`` (in the main thread, where Python delivers
+    signals; elsewhere, or where the platform lacks the signal, nothing changes); the previous handler comes back after."""
+
+    SIGNAL = ""
 
     def __init__(self) -> None:
         self._previous: Any = None
 
-    @staticmethod
-    def _handle(signum, frame) -> None:
-        raise Terminated
+    def _handle(self, signum, frame) -> None:
+        raise NotImplementedError
 
-    def __enter__(self) -> "TerminateOnSigterm":
-        if hasattr(signal, "SIGTERM") and threading.current_thread() is threading.main_thread():
-            self._previous = signal.signal(signal.SIGTERM, self._handle)
+    def __enter__(self):
+        number = getattr(signal, self.SIGNAL, None)
+        if number is not None and threading.current_thread() is threading.main_thread():
+            self._previous = signal.signal(number, self._handle)
         return self
 
     def __exit__(self, *exc_info) -> None:
         if self._previous is not None:
-            signal.signal(signal.SIGTERM, self._previous)
+            signal.signal(getattr(signal, self.SIGNAL), self._previous)
             self._previous = None
+
+
+class TerminateOnSigterm(_HandlerWhileActive):
+    """While active, SIGTERM raises ``Terminated`` in the main thread (the default would end the process at once,
+    leaving half-written staging folders beside the user's output)."""
+
+    SIGNAL = "SIGTERM"
+
+    def _handle(self, signum, frame) -> None:
+        raise Terminated
 
 
 METRIC_ROWS = [(key, METRICS[key].title + (f" ({METRICS[key].unit})" if METRICS[key].unit else ""))
@@ -97,14 +109,16 @@ class ProgressBar:
             self.bar = None
 
 
-class CancelOnInterrupt:
+class CancelOnInterrupt(_HandlerWhileActive):
     """While active, Ctrl-C asks the reconstruction to stop at its next step (a second one aborts). With ``at_once``
     (set while the results are written: no step there to stop at) the first one aborts."""
 
+    SIGNAL = "SIGINT"
+
     def __init__(self) -> None:
+        super().__init__()
         self.requested = False
         self.at_once = False
-        self._previous: Any = None
 
     def __call__(self) -> bool:
         return self.requested
@@ -114,16 +128,6 @@ class CancelOnInterrupt:
             raise KeyboardInterrupt
         self.requested = True
         print("\ncancelling… (press Ctrl-C again to abort at once)", file=sys.stderr)
-
-    def __enter__(self) -> "CancelOnInterrupt":
-        if threading.current_thread() is threading.main_thread():
-            self._previous = signal.signal(signal.SIGINT, self._handle)
-        return self
-
-    def __exit__(self, *exc_info) -> None:
-        if self._previous is not None:
-            signal.signal(signal.SIGINT, self._previous)
-            self._previous = None
 
 
 def run_reconstruction(geometry, targets, settings, target_kind: str, show_progress: bool, frames=None,

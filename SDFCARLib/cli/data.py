@@ -177,16 +177,24 @@ def cmd_simulate(args: argparse.Namespace) -> int:
 MAX_GROWN_GRID_FACTOR = 8
 
 
-def _grid_holding_centreline(path, grid):
-    """``grid``, grown to hold the tree when ``path`` is a centreline (other labels carry their own grid)."""
+def _centreline_or_none(path):
+    """The centreline tree at ``path``; None for other label files and for a file that cannot be read (``read_label``
+    names what is wrong with it)."""
     if Path(path).suffix.lower() not in (".vtk", ".vtp"):
-        return grid
+        return None
     from ..phantoms import load_centreline_vtk
 
     try:
-        tree = load_centreline_vtk(path)
+        return load_centreline_vtk(path)
     except (ValueError, OSError):
-        return grid  # read_label names what is wrong with the file
+        return None
+
+
+def _grid_holding_centreline(path, grid):
+    """``grid``, grown to hold the tree when ``path`` is a centreline (other labels carry their own grid)."""
+    tree = _centreline_or_none(path)
+    if tree is None:
+        return grid
     grown = grid.grown_to_hold(*tree.bounds())
     # a tree far from the volume (another frame's coordinates) is not worth gigabytes: read_label then says it misses
     return grown if grown.num_voxels <= MAX_GROWN_GRID_FACTOR * grid.num_voxels else grid
@@ -203,14 +211,9 @@ def _warn_outside(label: np.ndarray, label_grid, grid) -> None:
 def centreline_outside_warning(path, grid, what: str = "label") -> Optional[str]:
     """A warning when the centreline at ``path`` reaches beyond ``grid``: it is voxelised on the grid, so
     the metrics score only the part inside. None for other label files (their own grid is checked when aligned)."""
-    if Path(path).suffix.lower() not in (".vtk", ".vtp"):
+    tree = _centreline_or_none(path)
+    if tree is None:
         return None
-    from ..phantoms import load_centreline_vtk
-
-    try:
-        tree = load_centreline_vtk(path)
-    except (ValueError, OSError):
-        return None  # read_label names what is wrong with the file
     outside_mm, total_mm = tree.length_outside_mm(*grid.bounds()), tree.total_length_mm()
     if outside_mm <= 0:
         return None
