@@ -549,17 +549,25 @@ class SDFCARWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
                     view.frame, view.frameIndex, view.mask, pixelSpacingMm=(view.pixelSpacingRow, view.pixelSpacingCol),
                     magnification=view.sid / view.sod, brightVessels=brightVessels)
 
+            question = f"Segment frame {n} with its grey levels inverted?"
             try:
                 segmentation, parameters = segment(False)
             except BrightVesselsError as exc:
                 # an inverted export: offer to read it the right way up rather than leave the user with an error
-                if not slicer.util.confirmYesNoDisplay(f"{exc}\n\nSegment frame {n} with its grey levels inverted?",
-                                                       windowTitle="SDFCAR: vessels look bright"):
+                if not slicer.util.confirmYesNoDisplay(f"{exc}\n\n{question}", windowTitle="SDFCAR: vessels look bright"):
                     return
                 segmentation, parameters = segment(True)
+            else:
+                if parameters.get("polarity") == "doubtful" and slicer.util.confirmYesNoDisplay(
+                        "The frame's vessels may look bright rather than dark (check the frame).\n\n"
+                        f"{question} (No keeps the mask made as it is.)", windowTitle="SDFCAR: vessels bright or dark?"):
+                    segmentation, parameters = segment(True)
             self.logic.setViewValue(p, n, "mask", segmentation)
             self.ui.statusLabel.text = (f"Vessel mask: {100 * parameters['vessel_fraction']:.1f} % of frame {n} in "
                                         f"{parameters['components']} piece(s), collimator excluded; refine it with Edit.")
+            shown = [w for w in parameters.get("warnings", []) if "bright_vessels" not in w]  # that one was asked
+            if shown:
+                slicer.util.warningDisplay("\n\n".join(shown), windowTitle=f"SDFCAR: the vessel mask of frame {n}")
 
     def onReadGeometry(self):
         with slicer.util.tryWithErrorDisplay("Could not read the C-arm geometry from the DICOM tags.", waitCursor=True):

@@ -9,9 +9,10 @@ said why. ``mask_warnings`` names each problem with the number that shows it and
 * border: the share of the image's outermost ``BORDER_PX`` pixels that are vessel. Vessels
   leaving the field cross the border at a few places (a few per cent at most); a collimator edge
   or the frame border segmented as vessel runs along it.
-* straight lines: a component that runs along a row or column over most of the image and is thin
-  across (``LINE_SPAN``, ``LINE_THICKNESS``): a collimator blade's edge inside the image, which the
-  border ring does not see. One joined to the tree is not found.
+* straight lines: a component that runs along a row or column from one side of the image to the
+  other and is thin across (``LINE_END``, ``LINE_THICKNESS``): a collimator blade's edge inside the
+  image, which the border ring does not see (a catheter enters at one side only). One joined to the
+  tree is not found.
 * specks: 8-connected components smaller than ``SPECK_MM2`` at the detector (``SPECK_PX`` when
   the pixel spacing is unknown). A vessel mask is a few connected trees; hundreds of specks are
   noise from a vesselness filter or a threshold.
@@ -44,7 +45,7 @@ SPECK_MM2 = 2.0  # components smaller than this (at the detector) are specks: 1 
 SPECK_PX = 15  # the same without a pixel spacing
 MAX_SPECKS = 20
 MAX_COVERAGE = 0.25
-LINE_SPAN = 0.8  # a component this long a share of the image side …
+LINE_END = 0.05  # a component reaching this near both sides of the image along one axis …
 LINE_THICKNESS = 0.06  # … and at most this share of the other side across is a straight edge, not a vessel
 MIN_COVERAGE = 0.0005
 
@@ -58,10 +59,15 @@ def _components(mask: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
     return labels, sizes
 
 
+def _spans(extent: slice, size: int) -> bool:
+    """Whether ``extent`` reaches within ``LINE_END`` of the image's side of both ends of an axis of ``size`` pixels."""
+    return extent.start <= LINE_END * size and extent.stop >= (1.0 - LINE_END) * size
+
+
 def _straight_lines_across(mask: np.ndarray) -> List[str]:
-    """The components that run nearly straight along a row or a column over ``LINE_SPAN`` of the image or more and
-    are at most ``LINE_THICKNESS`` of it across (a blade's edge, slightly tilted), described for a message; those
-    along the image's edge are the border check's."""
+    """The components that run nearly straight along a row or a column from near one side of the image to near the
+    other (``LINE_END``) and are at most ``LINE_THICKNESS`` of it across (a blade's edge, slightly tilted), described
+    for a message; those along the image's edge are the border check's."""
     labels, _ = _components(mask)
     rows, cols = mask.shape
     found = []
@@ -72,9 +78,10 @@ def _straight_lines_across(mask: np.ndarray) -> List[str]:
         if box[0].start < BORDER_PX and width > height or box[0].stop > rows - BORDER_PX and width > height \
                 or box[1].start < BORDER_PX and height > width or box[1].stop > cols - BORDER_PX and height > width:
             continue
-        if width >= LINE_SPAN * cols and height <= LINE_THICKNESS * rows:
+        # a blade's edge runs from one side of the image to the other; a catheter enters at one side only
+        if _spans(box[1], cols) and height <= LINE_THICKNESS * rows:
             found.append(f"across the image near row {(box[0].start + box[0].stop) // 2} ({width} pixels long)")
-        elif height >= LINE_SPAN * rows and width <= LINE_THICKNESS * cols:
+        elif _spans(box[0], rows) and width <= LINE_THICKNESS * cols:
             found.append(f"down the image near column {(box[1].start + box[1].stop) // 2} ({height} pixels long)")
     return found
 

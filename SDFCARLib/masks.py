@@ -379,20 +379,30 @@ MIN_FRAME_GREY_LEVELS = 16
 #: vessels measured 1.06–3.4 (the lowest processed for display), inverted ones 0.34–1.01, frames without vessels
 #: 0.93–1.9 (bench/RESULTS.md §89)
 MIN_DARK_VESSEL_ASYMMETRY = 0.8
+#: the polarity is measured outside the broad regions along the edge this much brighter than the field
+POLARITY_SHUTTER_RATIO = 1.3
+#: the polarity is judged where the stronger side's thin structures reach this (−log I); those of frames without
+#: contrast measured about 0.04 (bench/RESULTS.md §89)
+MIN_POLARITY_CONTRAST = 0.1
 DOUBTFUL_DARK_VESSEL_ASYMMETRY = 1.0
 
 
-def dark_vessel_asymmetry(log_image: np.ndarray, field: np.ndarray, largest_radius_px: float,
-                          tail: float = 1.0) -> float:
-    """How much further the fine structures of ``−log I`` reach above its background than below, over the field:
-    (top ``tail`` % − median) / (median − bottom ``tail`` %) of the image smoothed at 1 pixel less its smoothing at
-    twice the largest vessel radius. Vessels absorb, so a frame with dark vessels has a long upper tail (above 1;
-    noise and soft tissue are about symmetric), a frame showing them bright a long lower one (below 1)."""
+def thin_structure_contrasts(log_image: np.ndarray, field: np.ndarray, largest_radius_px: float,
+                             tail: float = 1.0) -> Tuple[float, float]:
+    """How far the fine structures of ``−log I`` reach above and below its background, over the field: top ``tail`` %
+    − median and median − bottom ``tail`` % of the image smoothed at 1 pixel less its smoothing at twice the largest
+    vessel radius, in −log I. Vessels absorb, so in a frame with dark vessels the first is the larger (noise and soft
+    tissue give about the same to both); a frame showing them bright has them in the second."""
     smooth = ndimage.gaussian_filter(log_image, 1.0)
     fine = (smooth - ndimage.gaussian_filter(smooth, max(2.0 * float(largest_radius_px), 2.0)))[field]
-    low, median, high = np.percentile(fine, [tail, 50.0, 100.0 - tail])
-    below = float(median - low)
-    return float(high - median) / below if below > 0 else float("inf")
+    low, median, high = (float(v) for v in np.percentile(fine, [tail, 50.0, 100.0 - tail]))
+    return high - median, median - low
+
+
+def dark_vessel_asymmetry(log_image: np.ndarray, field: np.ndarray, largest_radius_px: float) -> float:
+    """``thin_structure_contrasts``' first over its second: above 1 for dark vessels, below for bright ones."""
+    above, below = thin_structure_contrasts(log_image, field, largest_radius_px)
+    return above / below if below > 0 else float("inf")
 
 
 def _disk_opening(image: np.ndarray, radius: int) -> np.ndarray:
@@ -507,8 +517,12 @@ def segment_angiogram(
     s.check()
     started = time.perf_counter()
     image = _frame_array(frame)
+    given = image
     if s.bright_vessels:
-        image = float(image.min()) + float(image.max()) - image
+        # about robust levels: a hot pixel or a burned-in annotation at the top would otherwise lift the background and
+        # shrink the vessels' share of the intensity, which −log I measures
+        low, high = (float(v) for v in np.percentile(image, [0.1, 99.9]))
+        image = low + high - np.clip(image, low, high)
     iso_px_mm, sigmas, geometry = _scales_px(s, pixel_spacing_mm, magnification)
     lo, hi = np.percentile(image, [0.5, 99.5])
     if not hi > lo:
@@ -540,8 +554,24 @@ def segment_angiogram(
     # Fill the border with the nearest field values so the filters see no shutter edge.
     _, (ri, ci) = ndimage.distance_transform_edt(border, return_indices=True)
     filled = log_image[ri, ci]
-    asymmetry = dark_vessel_asymmetry(filled, field, r_max_px)
-    if asymmetry < MIN_DARK_VESSEL_ASYMMETRY:
+    # The polarity is read away from broad regions along the edge brighter than the field, even a little: an inverted
+    # export's collimator is white, only 1.5–2× the field (under shutter_ratio), and the field's corners against it
+    # would stand out as bright fine structures. (In a frame the right way up these are lungs: nothing is lost.)
+    brighter_only = np.maximum(-log_image, float(np.median(-log_image[field])))
+    bright_border, _, _ = _border(brighter_only, replace(s, shutter_ratio=POLARITY_SHUTTER_RATIO),
+                                   max(1, int(round(0.5 * r_max_px))), margin_px, int(np.ceil(4.0 * r_max_px)))
+    polarity_field = field & ~bright_border
+    if polarity_field.sum() >= 1000:  # filled as the filters' image is, so that no plateau's edge reaches in
+        _, (pi, pc) = ndimage.distance_transform_edt(~polarity_field, return_indices=True)
+        polarity_image = log_image[pi, pc]
+    else:
+        polarity_field, polarity_image = field, filled
+    dark_contrast, bright_contrast = thin_structure_contrasts(polarity_image, polarity_field, r_max_px)
+    asymmetry = dark_contrast / bright_contrast if bright_contrast > 0 else float("inf")
+    # judged only where the stronger side stands as far as a contrast-filled vessel does: a frame without contrast has
+    # only the background's thin structures, of either side (it is refused as holding no vessel further on)
+    judged = max(dark_contrast, bright_contrast) >= MIN_POLARITY_CONTRAST
+    if judged and asymmetry < MIN_DARK_VESSEL_ASYMMETRY:
         if s.bright_vessels:
             raise MaskError("bright_vessels (segment --bright-vessels) was given, but the vessels of this frame are dark "
                             "already, as in a raw X-ray frame: inverted they look bright; leave it out")
@@ -551,8 +581,8 @@ def segment_angiogram(
                         "are dark in a raw frame: invert its grey levels (segment --bright-vessels; in Python "
                         "AngioMaskSettings(bright_vessels=True)), or give the raw frame")
     warnings = []
-    for end, value in (("highest", float(image.max())), ("lowest", float(image.min()))):
-        clipped = float(np.mean(image[field] == value))
+    for end, value in (("highest", float(given.max())), ("lowest", float(given.min()))):  # the values of the user's frame
+        clipped = float(np.mean(given[field] == value))
         # most of the field at one value is its background, flat (a frame without noise: simulated, subtracted), not
         # a part of it over- or underexposed
         if MAX_CLIPPED_FIELD_SHARE < clipped < 0.5:
@@ -560,7 +590,7 @@ def segment_angiogram(
                             f"({value:g}): vessels there cannot be seen, so the mask misses them and a reconstruction "
                             "takes them as absent; choose a frame or run exposed without it, or paint the vessels there by hand "
                             "where you know them")
-    if asymmetry < DOUBTFUL_DARK_VESSEL_ASYMMETRY and not s.bright_vessels:
+    if judged and asymmetry < DOUBTFUL_DARK_VESSEL_ASYMMETRY and not s.bright_vessels:
         warnings.append(f"the frame's dark and bright fine structures stand out about as far (asymmetry {asymmetry:.2f}; "
                         "frames with dark vessels measure above 1): if its vessels look bright in the overlay, segment it "
                         "with bright_vessels (segment --bright-vessels)")
@@ -647,6 +677,11 @@ def segment_angiogram(
         "silhouette_level": c_median + s.silhouette_noise_units * c_spread,
         "strongest_contrast": strongest,
         "dark_vessel_asymmetry": asymmetry,
+        # "doubtful": the warning below DOUBTFUL_DARK_VESSEL_ASYMMETRY was given (the Slicer module then asks)
+        "polarity": "inverted as told" if s.bright_vessels else (
+            "doubtful" if judged and asymmetry < DOUBTFUL_DARK_VESSEL_ASYMMETRY else "dark vessels"),
+        "thin_dark_contrast": dark_contrast,
+        "thin_bright_contrast": bright_contrast,
         "min_length_px": float(min_length_px),
         "components_before_cleaning": int(area.size - 1),
         "components": int(ndimage.label(mask, structure=np.ones((3, 3), bool))[1]),  # 8-connected, as mask_checks counts

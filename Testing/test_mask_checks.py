@@ -54,6 +54,10 @@ def test_border_warning():
     (message,) = mask_warnings(blade)
     assert "straight line across the image near row" in message and "collimator" in message
     assert "down the image" in mask_warnings(blade.T)[0]
+    # a catheter enters at one side only: not a blade's edge
+    catheter = _vessel()
+    catheter[30:124, 100:104] = True
+    assert mask_warnings(catheter) == []
 
 
 def test_speck_warning_counts_the_specks():

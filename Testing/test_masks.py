@@ -247,13 +247,21 @@ def test_a_frame_showing_its_vessels_bright_is_refused_and_segmented_when_said_s
     tree = _tubes((160, 160), [((20, 20), (140, 140), 1.5, 1.0), ((80, 80), (20, 140), 0.8, 0.6)])
     frame, _ = _frame(tree)
     usual = _segment(frame)
-    assert usual.parameters["dark_vessel_asymmetry"] > 1.5  # vessels absorb: a long upper tail of −log I
+    assert usual.parameters["dark_vessel_asymmetry"] > 1.5  # vessels absorb: their −log I stands above its surroundings
+    silhouette = tree > 0
+    dice = lambda m: 2 * (m & silhouette).sum() / (m.sum() + silhouette.sum())  # noqa: E731
     inverted = 4095.0 - frame  # an inverted display's export
     with pytest.raises(MaskError, match=r"look bright, not dark.*\d\.\d× further.*bright_vessels=True"):
         _segment(inverted)
+    # … also behind a collimator, which such an export shows white: not as bright against the field as a blade is dark
+    behind, _ = _frame(tree, collimator_fraction=0.12)
+    with pytest.raises(MaskError, match="look bright, not dark"):
+        _segment(4095.0 - behind)
+    # … and inverted when said so about robust levels: a hot pixel does not take the vessels' contrast away
+    hot = inverted.copy()
+    hot[0, 0] = 65535.0
+    assert dice(_segment(hot, bright_vessels=True).mask) > dice(usual.mask) - 0.02
     said = _segment(inverted, bright_vessels=True)
-    silhouette = tree > 0
-    dice = lambda m: 2 * (m & silhouette).sum() / (m.sum() + silhouette.sum())  # noqa: E731
     assert dice(said.mask) > dice(usual.mask) - 0.02 and dice(said.mask) > 0.8
     with pytest.raises(MaskError, match="dark already.*leave it out"):
         _segment(frame, bright_vessels=True)
@@ -271,6 +279,9 @@ def test_a_frame_clipped_over_part_of_its_field_is_warned_of():
     overexposed[100:, :60] = overexposed.max() + 1000.0  # a lung corner the detector could not count
     (warning,) = _segment(overexposed).parameters["warnings"]
     assert re.search(r"\d+ % of the exposed field is clipped at the frame's highest value .* cannot be seen", warning)
+    # segmented inverted, the clipped part is named by its value in the user's frame
+    (warning,) = _segment(4095.0 - overexposed, bright_vessels=True).parameters["warnings"]
+    assert "clipped at the frame's lowest value" in warning
 
 
 
@@ -291,13 +302,17 @@ def test_a_frame_of_doubtful_polarity_is_segmented_with_a_warning(monkeypatch):
 
     frame, _ = _frame(_tubes((160, 160), [((20, 20), (140, 140), 1.5, 1.0)]))
     assert _segment(frame).parameters["warnings"] == []
-    monkeypatch.setattr(masks, "dark_vessel_asymmetry", lambda *args, **kwargs: 0.9)
+    monkeypatch.setattr(masks, "thin_structure_contrasts", lambda *args, **kwargs: (0.27, 0.30))
     result = _segment(frame)
     (warning,) = result.parameters["warnings"]
     assert "asymmetry 0.90" in warning and "--bright-vessels" in warning and result.mask.any()
-    monkeypatch.setattr(masks, "dark_vessel_asymmetry", lambda *args, **kwargs: 0.7)
+    assert result.parameters["polarity"] == "doubtful"
+    monkeypatch.setattr(masks, "thin_structure_contrasts", lambda *args, **kwargs: (0.21, 0.30))
     with pytest.raises(MaskError, match="look bright"):
         _segment(frame)
+    # thin structures as faint as a frame without contrast holds are not judged at all
+    monkeypatch.setattr(masks, "thin_structure_contrasts", lambda *args, **kwargs: (0.021, 0.030))
+    assert _segment(frame).parameters["warnings"] == []
 
 
 def test_edge_share_tapers_with_the_radius_so_a_thick_vessel_keeps_its_border():

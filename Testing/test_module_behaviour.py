@@ -722,3 +722,33 @@ def test_vesselness_on_a_frame_showing_its_vessels_bright_offers_to_invert_it(sd
     assert calls == ([False, True] if accepted else [False])
     assert stored == ([(2, "mask", "segmentation")] if accepted else [])
     assert not sdfcar.recorder.errors
+
+
+
+@pytest.mark.parametrize("accepted", [True, False])
+def test_vesselness_asks_on_a_frame_of_doubtful_polarity_and_shows_the_masks_warnings(sdfcar, monkeypatch, accepted):
+    widget = _widget(sdfcar)
+    widget._parameterNode = types.SimpleNamespace()
+    view = types.SimpleNamespace(frame="frame", frameIndex=0, mask=None, pixelSpacingRow=0.3, pixelSpacingCol=0.3,
+                                 sid=1000.0, sod=750.0)
+    calls, stored = [], []
+    monkeypatch.setattr(widget.logic, "ensureDependencies", lambda *args: True)
+    monkeypatch.setattr(widget.logic, "viewParameters", lambda p, n: view)
+    monkeypatch.setattr(widget.logic, "setViewValue", lambda p, n, field, value: stored.append(value))
+    clipped = "12 % of the exposed field is clipped at the frame's highest value (4095)"
+
+    def vesselness(frame, index, mask, pixelSpacingMm=None, magnification=None, brightVessels=False):
+        calls.append(brightVessels)
+        if brightVessels:
+            return "inverted", {"vessel_fraction": 0.05, "components": 1, "polarity": "inverted as told", "warnings": []}
+        return "as it is", {"vessel_fraction": 0.05, "components": 3, "polarity": "doubtful",
+                            "warnings": ["… segment it with bright_vessels (segment --bright-vessels)", clipped]}
+
+    monkeypatch.setattr(widget.logic, "vesselnessMask", vesselness)
+    sdfcar.recorder.confirm = accepted
+    widget.onVesselness(1)
+    (question,) = sdfcar.recorder.questions
+    assert "may look bright" in question and "No keeps the mask" in question
+    assert calls == ([False, True] if accepted else [False])
+    assert stored == (["inverted"] if accepted else ["as it is"])
+    assert sdfcar.recorder.warnings == ([] if accepted else [clipped])  # the polarity one was asked, not shown again

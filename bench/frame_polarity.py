@@ -1,6 +1,6 @@
 """Polarity of angiography frames: ``masks.dark_vessel_asymmetry`` of frames with dark vessels, of the same frames
 inverted (lowest + highest − value, an inverted display's export) and of frames without vessels; and whether
-``bright_vessels=True`` gives an inverted frame the mask of the original.
+``bright_vessels=True`` gives an inverted frame the mask of the original (Dice between the two).
 
     python bench/frame_polarity.py --protocol realistic-static-lao30-rao30 --cases 10 --extra \\
         --real ../shared/data/xa-phantom
@@ -33,22 +33,25 @@ class _Measured(Exception):
     pass
 
 
-def asymmetry(frame, spacing, magnification, settings=None) -> float:
-    """The pipeline's asymmetry of ``frame`` (the segmentation is stopped right after it)."""
-    measure, seen = masks.dark_vessel_asymmetry, []
+def asymmetry(frame, spacing, magnification, settings=None):
+    """The pipeline's (dark, bright) thin-structure contrasts of ``frame`` and their ratio, the asymmetry (the
+    segmentation is stopped right after they are measured)."""
+    measure, seen = masks.thin_structure_contrasts, []
 
     def record(*args, **kwargs):
         seen.append(measure(*args, **kwargs))
         raise _Measured
 
-    masks.dark_vessel_asymmetry = record
+    masks.thin_structure_contrasts = record
     try:
         masks.segment_angiogram(np.asarray(frame, float), spacing, magnification, settings)
     except _Measured:
         pass
     finally:
-        masks.dark_vessel_asymmetry = measure
-    return seen[0]
+        masks.thin_structure_contrasts = measure
+    dark, bright = seen[0]
+    judged = max(dark, bright) >= masks.MIN_POLARITY_CONTRAST
+    return (dark / bright if bright > 0 else float("inf")) if judged else None, round(dark, 4), round(bright, 4)
 
 
 def inverted(frame) -> np.ndarray:
@@ -72,15 +75,19 @@ def main(argv=None) -> int:
     groups = {}
 
     def row(group, name, frame, spacing, magnification, settings=None, check_inversion=False):
-        entry = {"group": group, "name": name, "dark": round(asymmetry(frame, spacing, magnification, settings), 3),
-                 "inverted": round(asymmetry(inverted(frame), spacing, magnification, settings), 3)}
+        dark, dark_thin, bright_thin = asymmetry(frame, spacing, magnification, settings)
+        inv, inv_dark_thin, inv_bright_thin = asymmetry(inverted(frame), spacing, magnification, settings)
+        # None: not judged (the thin structures of both sides under MIN_POLARITY_CONTRAST)
+        entry = {"group": group, "name": name, "dark": None if dark is None else round(dark, 3),
+                 "inverted": None if inv is None else round(inv, 3), "thin_contrasts": [dark_thin, bright_thin],
+                 "inverted_thin_contrasts": [inv_dark_thin, inv_bright_thin]}
         if check_inversion:
             from dataclasses import replace
 
             base = settings or masks.AngioMaskSettings()
             original = masks.segment_angiogram(np.asarray(frame, float), spacing, magnification, base).mask
             told = masks.segment_angiogram(inverted(frame), spacing, magnification, replace(base, bright_vessels=True)).mask
-            entry["bright_vessels_same_mask"] = bool(np.array_equal(original, told))
+            entry["bright_vessels_mask_dice"] = round(float(2 * (original & told).sum() / (original.sum() + told.sum())), 4)
         groups.setdefault(group, []).append(entry)
         print(json.dumps(entry), flush=True)
 
@@ -93,6 +100,16 @@ def main(argv=None) -> int:
             for v, (frame, view) in enumerate(zip(case.frames, case.geometry.views), start=1):
                 row(args.protocol, f"{suite}{seed} view {v}", frame, view.pixel_spacing_mm, view.magnification, settings,
                     check_inversion=seed == 0)
+            if seed < 3:  # the same tree behind a collimator (12 % of each side), as an inverted export shows it white
+                from SDFCARLib.phantoms import simulate_views
+                from SDFCARLib.settings import MASK_THRESHOLD_MM
+
+                line_integrals, _ = simulate_views(case.label, case.geometry.volume, case.geometry.views, MASK_THRESHOLD_MM)
+                for v, (integral, view) in enumerate(zip(line_integrals, case.geometry.views), start=1):
+                    frame, _ = simulate_angiogram(integral, view.pixel_spacing_mm, seed,
+                                                  AngiogramSettings(collimator_fraction=0.12))
+                    row("behind a collimator", f"{suite}{seed} view {v}", frame, view.pixel_spacing_mm,
+                        view.magnification, settings)
     if args.extra:
         for seed in range(8):
             frame, _ = simulate_angiogram(np.zeros((512, 512)), 0.278, seed,
@@ -108,11 +125,18 @@ def main(argv=None) -> int:
                 view, _ = view_from_dicom(run, index)
                 row("real XA", f"{name} frame {index}", run.frames[index], view.pixel_spacing_mm, view.sid_mm / view.sod_mm)
     print(f"\nrefused below {masks.MIN_DARK_VESSEL_ASYMMETRY}, warned below {masks.DOUBTFUL_DARK_VESSEL_ASYMMETRY}")
+    def span(values):
+        judged = [v for v in values if v is not None]
+        unjudged = len(values) - len(judged)
+        text = f"{min(judged):.3f}–{max(judged):.3f}" if judged else "—"
+        return text + (f" ({unjudged} not judged)" if unjudged else "")
+
     for group, rows in groups.items():
         dark, inv = [r["dark"] for r in rows], [r["inverted"] for r in rows]
-        caught = sum(v < masks.MIN_DARK_VESSEL_ASYMMETRY for v in inv)
-        print(f"{group}: {len(rows)} frames, dark {min(dark):.3f}–{max(dark):.3f}, inverted {min(inv):.3f}–{max(inv):.3f} "
-              f"(refused {caught}/{len(rows)}, dark ones refused {sum(v < masks.MIN_DARK_VESSEL_ASYMMETRY for v in dark)})")
+        refused = lambda values: sum(v is not None and v < masks.MIN_DARK_VESSEL_ASYMMETRY for v in values)  # noqa: E731
+        warned = lambda values: sum(v is not None and v < masks.DOUBTFUL_DARK_VESSEL_ASYMMETRY for v in values)  # noqa: E731
+        print(f"{group}: {len(rows)} frames, dark {span(dark)}, inverted {span(inv)}; inverted refused "
+              f"{refused(inv)}/{len(rows)} (warned {warned(inv)}), dark ones refused {refused(dark)} (warned {warned(dark)})")
     print(f"{time.perf_counter() - started:.0f} s")
     return 0
 

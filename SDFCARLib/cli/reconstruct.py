@@ -178,7 +178,8 @@ def _auto_masks(args: argparse.Namespace, geometry, provenance
                 ) -> Tuple[List[Tuple[Dict[str, Any], np.ndarray, Any]], List[Optional[str]]]:
     """--auto-masks: the segment pipeline on the chosen frame of each XA run the geometry was read from, and each
     run's Pixel Intensity Relationship."""
-    from ..masks import frame_processed_for_display, mask_settings_for_intensity, segment_angiogram
+    from ..masks import (BrightVesselsError, MaskError, frame_processed_for_display, mask_settings_for_intensity,
+                         segment_angiogram)
 
     runs = dicom_runs_from_args(args)
     if not runs:
@@ -193,8 +194,16 @@ def _auto_masks(args: argparse.Namespace, geometry, provenance
     for n, (frame, view, info) in enumerate(zip(frames, geometry.views, provenance["views"]), start=1):
         frame_info = info["frame"]
         relationship = intensity[n - 1] if intensity else None
-        auto.append((frame_info, frame, segment_angiogram(frame, view.pixel_spacing_mm, view.sid_mm / view.sod_mm,
-                                                          mask_settings_for_intensity(relationship))))
+        try:
+            segmented = segment_angiogram(frame, view.pixel_spacing_mm, view.sid_mm / view.sod_mm,
+                                          mask_settings_for_intensity(relationship))
+        except BrightVesselsError as exc:
+            raise MaskError(f"view {n} ({runs[n - 1].path}): {exc}. --auto-masks segments the frames as they are: make "
+                            f"this view's mask with `segment --dicom {runs[n - 1].path} --frame {frame_info['index']} "
+                            "--bright-vessels --out MASK.png` and give the masks with --mask") from None
+        except MaskError as exc:
+            raise MaskError(f"view {n} ({runs[n - 1].path}): {exc}") from None
+        auto.append((frame_info, frame, segmented))
         p = auto[-1][2].parameters
         print(f"view {n}: auto mask of frame {frame_info['index']}: {p['components']} component(s), "
               f"{100 * p['vessel_fraction']:.1f}% of the frame"
