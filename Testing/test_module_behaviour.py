@@ -694,19 +694,36 @@ def test_reading_the_geometry_from_dicom_changes_no_view_when_one_fails(sdfcar, 
     assert [logic.viewValue(p, 1, field) for field in sdfcar.GEOMETRY_VIEW_FIELDS] == before
 
 
+def _vesselness_widget(sdfcar, monkeypatch):
+    """A widget whose view 1, 2, … has a frame, spacing and distances; returns it and the values it stores, as
+    (view, field, value)."""
+    widget = _widget(sdfcar)
+    widget._parameterNode = types.SimpleNamespace()
+    view = types.SimpleNamespace(frame="frame", frameIndex=0, mask=None, pixelSpacingRow=0.3, pixelSpacingCol=0.3,
+                                 sid=1000.0, sod=750.0)
+    stored = []
+    monkeypatch.setattr(widget.logic, "ensureDependencies", lambda *args: True)
+    monkeypatch.setattr(widget.logic, "viewParameters", lambda p, n: view)
+    monkeypatch.setattr(widget.logic, "setViewValue", lambda p, n, field, value: stored.append((n, field, value)))
+    return widget, stored
+
+
+def _press_vesselness(sdfcar, monkeypatch, widget, n, vesselness, accepted):
+    """Press view ``n``'s Vesselness with the logic's ``vesselness``, answering its one question; the question."""
+    monkeypatch.setattr(widget.logic, "vesselnessMask", vesselness)
+    sdfcar.recorder.confirm = accepted
+    widget.onVesselness(n)
+    (question,) = sdfcar.recorder.questions
+    return question
+
+
 @pytest.mark.parametrize("accepted", [True, False])
 def test_vesselness_on_a_frame_showing_its_vessels_bright_offers_to_invert_it(sdfcar, monkeypatch, accepted):
     """The Vesselness button on an inverted export asks whether to segment it inverted, instead of only an error."""
     from SDFCARLib.masks import BrightVesselsError
 
-    widget = _widget(sdfcar)
-    widget._parameterNode = types.SimpleNamespace()
-    view = types.SimpleNamespace(frame="frame", frameIndex=0, mask=None, pixelSpacingRow=0.3, pixelSpacingCol=0.3,
-                                 sid=1000.0, sod=750.0)
-    calls, stored = [], []
-    monkeypatch.setattr(widget.logic, "ensureDependencies", lambda *args: True)
-    monkeypatch.setattr(widget.logic, "viewParameters", lambda p, n: view)
-    monkeypatch.setattr(widget.logic, "setViewValue", lambda p, n, field, value: stored.append((n, field, value)))
+    widget, stored = _vesselness_widget(sdfcar, monkeypatch)
+    calls = []
 
     def vesselness(frame, index, mask, pixelSpacingMm=None, magnification=None, brightVessels=False):
         calls.append(brightVessels)
@@ -714,27 +731,17 @@ def test_vesselness_on_a_frame_showing_its_vessels_bright_offers_to_invert_it(sd
             raise BrightVesselsError("the vessels of this frame look bright, not dark")
         return "segmentation", {"vessel_fraction": 0.05, "components": 2}
 
-    monkeypatch.setattr(widget.logic, "vesselnessMask", vesselness)
-    sdfcar.recorder.confirm = accepted
-    widget.onVesselness(2)
-    (question,) = sdfcar.recorder.questions
+    question = _press_vesselness(sdfcar, monkeypatch, widget, 2, vesselness, accepted)
     assert "look bright" in question and "frame 2 with its grey levels inverted" in question
     assert calls == ([False, True] if accepted else [False])
     assert stored == ([(2, "mask", "segmentation")] if accepted else [])
     assert not sdfcar.recorder.errors
 
 
-
 @pytest.mark.parametrize("accepted", [True, False])
 def test_vesselness_asks_on_a_frame_of_doubtful_polarity_and_shows_the_masks_warnings(sdfcar, monkeypatch, accepted):
-    widget = _widget(sdfcar)
-    widget._parameterNode = types.SimpleNamespace()
-    view = types.SimpleNamespace(frame="frame", frameIndex=0, mask=None, pixelSpacingRow=0.3, pixelSpacingCol=0.3,
-                                 sid=1000.0, sod=750.0)
-    calls, stored = [], []
-    monkeypatch.setattr(widget.logic, "ensureDependencies", lambda *args: True)
-    monkeypatch.setattr(widget.logic, "viewParameters", lambda p, n: view)
-    monkeypatch.setattr(widget.logic, "setViewValue", lambda p, n, field, value: stored.append(value))
+    widget, stored = _vesselness_widget(sdfcar, monkeypatch)
+    calls = []
     clipped = "12 % of the exposed field is clipped at the frame's highest value (4095)"
 
     def vesselness(frame, index, mask, pixelSpacingMm=None, magnification=None, brightVessels=False):
@@ -744,11 +751,8 @@ def test_vesselness_asks_on_a_frame_of_doubtful_polarity_and_shows_the_masks_war
         return "as it is", {"vessel_fraction": 0.05, "components": 3, "polarity": "doubtful",
                             "warnings": ["… segment it with bright_vessels (segment --bright-vessels)", clipped]}
 
-    monkeypatch.setattr(widget.logic, "vesselnessMask", vesselness)
-    sdfcar.recorder.confirm = accepted
-    widget.onVesselness(1)
-    (question,) = sdfcar.recorder.questions
+    question = _press_vesselness(sdfcar, monkeypatch, widget, 1, vesselness, accepted)
     assert "may look bright" in question and "No keeps the mask" in question
     assert calls == ([False, True] if accepted else [False])
-    assert stored == (["inverted"] if accepted else ["as it is"])
+    assert stored == [(1, "mask", "inverted" if accepted else "as it is")]
     assert sdfcar.recorder.warnings == ([] if accepted else [clipped])  # the polarity one was asked, not shown again
