@@ -554,13 +554,13 @@ class SDFCARWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
                 segmentation, parameters = segment(False)
             except BrightVesselsError as exc:
                 # an inverted export: offer to read it the right way up rather than leave the user with an error
-                if not slicer.util.confirmYesNoDisplay(f"{exc}\n\n{question}", windowTitle="SDFCAR: vessels look bright"):
+                if not self.askYesNo(f"{exc}\n\n{question}", "SDFCAR: vessels look bright"):
                     return
                 segmentation, parameters = segment(True)
             else:
-                if parameters.get("polarity") == "doubtful" and slicer.util.confirmYesNoDisplay(
+                if parameters.get("polarity") == "doubtful" and self.askYesNo(
                         "The frame's vessels may look bright rather than dark (check the frame).\n\n"
-                        f"{question} (No keeps the mask made as it is.)", windowTitle="SDFCAR: vessels bright or dark?"):
+                        f"{question} (No keeps the mask made as it is.)", "SDFCAR: vessels bright or dark?"):
                     segmentation, parameters = segment(True)
             self.logic.setViewValue(p, n, "mask", segmentation)
             self.ui.statusLabel.text = (f"Vessel mask: {100 * parameters['vessel_fraction']:.1f} % of frame {n} in "
@@ -568,6 +568,16 @@ class SDFCARWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
             shown = [w for w in parameters.get("warnings", []) if "bright_vessels" not in w]  # that one was asked
             if shown:
                 slicer.util.warningDisplay("\n\n".join(shown), windowTitle=f"SDFCAR: the vessel mask of frame {n}")
+
+    @staticmethod
+    def askYesNo(text, windowTitle):
+        """A Yes/No question asked inside ``tryWithErrorDisplay(waitCursor=True)``: the arrow comes back while it is
+        open (the same override-cursor calls tryWithErrorDisplay makes), the wait cursor after."""
+        slicer.app.restoreOverrideCursor()
+        try:
+            return slicer.util.confirmYesNoDisplay(text, windowTitle=windowTitle)
+        finally:
+            slicer.app.setOverrideCursor(qt.Qt.WaitCursor)
 
     def onReadGeometry(self):
         with slicer.util.tryWithErrorDisplay("Could not read the C-arm geometry from the DICOM tags.", waitCursor=True):

@@ -446,6 +446,7 @@ class _Recorder:
         self.sliceLayers = []
         self.confirm = True
         self.questions = []
+        self.cursor = []  # setOverrideCursor / restoreOverrideCursor calls, in order
         self.pipInstalls = []
 
     def errorDisplay(self, text, **kwargs):
@@ -465,6 +466,7 @@ class _Recorder:
 
     def confirmYesNoDisplay(self, text, **kwargs):
         self.questions.append(text)
+        self.cursor.append("asked")
         return self.confirm
 
     def pip_install(self, requirements):
@@ -544,7 +546,9 @@ def install(monkeypatch, real_mrml=False):
                    setSliceViewerLayers=recorder.setSliceViewerLayers,
                    confirmOkCancelDisplay=recorder.confirmOkCancelDisplay, confirmYesNoDisplay=recorder.confirmYesNoDisplay,
                    pip_install=recorder.pip_install)
-    app = types.SimpleNamespace(connect=lambda *a: None, temporaryPath="/tmp", layoutManager=lambda: None)
+    app = types.SimpleNamespace(connect=lambda *a: None, temporaryPath="/tmp", layoutManager=lambda: None,
+                                setOverrideCursor=lambda cursor: recorder.cursor.append(cursor),
+                                restoreOverrideCursor=lambda: recorder.cursor.append("restored"))
     scene = types.SimpleNamespace(Clear=lambda *a: None, GetNodeByID=SCENE.get)
     layout_manager = None
     if real is not None:
@@ -567,7 +571,8 @@ def install(monkeypatch, real_mrml=False):
                          "slicer.ScriptedLoadableModule": slicer.ScriptedLoadableModule,
                          "qt": _module("qt", QTimer=Timer, QWidget=Widget, QGroupBox=Widget, QPushButton=Widget,
                                        QSpinBox=Widget, QDoubleSpinBox=Widget, QLabel=Widget, QComboBox=ComboBox,
-                                       QFormLayout=Layout, QHBoxLayout=Layout)}.items():
+                                       QFormLayout=Layout, QHBoxLayout=Layout,
+                                       Qt=types.SimpleNamespace(WaitCursor="WaitCursor"))}.items():
         monkeypatch.setitem(sys.modules, name, module)
     monkeypatch.delitem(sys.modules, "slicer.packaging", raising=False)
     ScriptedLoadableModuleLogic._node = None

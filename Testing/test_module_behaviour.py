@@ -733,6 +733,7 @@ def test_vesselness_on_a_frame_showing_its_vessels_bright_offers_to_invert_it(sd
 
     question = _press_vesselness(sdfcar, monkeypatch, widget, 2, vesselness, accepted)
     assert "look bright" in question and "frame 2 with its grey levels inverted" in question
+    assert sdfcar.recorder.cursor == ["restored", "asked", "WaitCursor"]  # asked with the arrow, not the wait cursor
     assert calls == ([False, True] if accepted else [False])
     assert stored == ([(2, "mask", "segmentation")] if accepted else [])
     assert not sdfcar.recorder.errors
