@@ -567,17 +567,21 @@ class SDFCARWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
                                         f"{parameters['components']} piece(s), collimator excluded; refine it with Edit.")
             shown = [w for w in parameters.get("warnings", []) if "bright_vessels" not in w]  # that one was asked
             if shown:
-                slicer.util.warningDisplay("\n\n".join(shown), windowTitle=f"SDFCAR: the vessel mask of frame {n}")
+                self.withArrowCursor(slicer.util.warningDisplay, "\n\n".join(shown),
+                                     windowTitle=f"SDFCAR: the vessel mask of frame {n}")
 
     @staticmethod
-    def askYesNo(text, windowTitle):
-        """A Yes/No question asked inside ``tryWithErrorDisplay(waitCursor=True)``: the arrow comes back while it is
-        open (the same override-cursor calls tryWithErrorDisplay makes), the wait cursor after."""
+    def withArrowCursor(display, *args, **kwargs):
+        """``display(*args, **kwargs)`` (a dialog) inside ``tryWithErrorDisplay(waitCursor=True)``: the arrow comes back
+        while it is open (the same override-cursor calls tryWithErrorDisplay makes), the wait cursor after."""
         slicer.app.restoreOverrideCursor()
         try:
-            return slicer.util.confirmYesNoDisplay(text, windowTitle=windowTitle)
+            return display(*args, **kwargs)
         finally:
             slicer.app.setOverrideCursor(qt.Qt.WaitCursor)
+
+    def askYesNo(self, text, windowTitle):
+        return self.withArrowCursor(slicer.util.confirmYesNoDisplay, text, windowTitle=windowTitle)
 
     def onReadGeometry(self):
         with slicer.util.tryWithErrorDisplay("Could not read the C-arm geometry from the DICOM tags.", waitCursor=True):

@@ -9,10 +9,10 @@ said why. ``mask_warnings`` names each problem with the number that shows it and
 * border: the share of the image's outermost ``BORDER_PX`` pixels that are vessel. Vessels
   leaving the field cross the border at a few places (a few per cent at most); a collimator edge
   or the frame border segmented as vessel runs along it.
-* straight lines: a component that runs along a row or column from one side of the image to the
-  other and is thin across (``LINE_END``, ``LINE_THICKNESS``): a collimator blade's edge inside the
-  image, which the border ring does not see (a catheter enters at one side only). One joined to the
-  tree is not found.
+* straight lines: a component that runs along a row or column over most of the image, its two ends
+  as far from their sides, and is thin across (``LINE_SPAN``, ``LINE_END``, ``LINE_THICKNESS``): a
+  collimator blade's edge inside the image, which the border ring does not see, running from shutter
+  to shutter (a catheter enters at one side and ends inside). One joined to the tree is not found.
 * specks: 8-connected components smaller than ``SPECK_MM2`` at the detector (``SPECK_PX`` when
   the pixel spacing is unknown). A vessel mask is a few connected trees; hundreds of specks are
   noise from a vesselness filter or a threshold.
@@ -45,7 +45,8 @@ SPECK_MM2 = 2.0  # components smaller than this (at the detector) are specks: 1 
 SPECK_PX = 15  # the same without a pixel spacing
 MAX_SPECKS = 20
 MAX_COVERAGE = 0.25
-LINE_END = 0.05  # a component reaching this near both sides of the image along one axis …
+LINE_SPAN = 0.8  # a component this long a share of the image side, …
+LINE_END = 0.05  # … its ends as far from their sides within this share, …
 LINE_THICKNESS = 0.06  # … and at most this share of the other side across is a straight edge, not a vessel
 MIN_COVERAGE = 0.0005
 
@@ -60,8 +61,11 @@ def _components(mask: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
 
 
 def _spans(extent: slice, size: int) -> bool:
-    """Whether ``extent`` reaches within ``LINE_END`` of the image's side of both ends of an axis of ``size`` pixels."""
-    return extent.start <= LINE_END * size and extent.stop >= (1.0 - LINE_END) * size
+    """Whether ``extent`` covers ``LINE_SPAN`` of an axis of ``size`` pixels or more with its two ends as far from
+    their sides of the image, within ``LINE_END`` of the side: a blade's edge runs from shutter to shutter (or margin
+    to margin), a catheter enters at one side and ends inside."""
+    before, after = extent.start, size - extent.stop
+    return extent.stop - extent.start >= LINE_SPAN * size and abs(before - after) <= LINE_END * size
 
 
 def _straight_lines_across(mask: np.ndarray) -> List[str]:

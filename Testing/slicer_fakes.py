@@ -454,6 +454,7 @@ class _Recorder:
 
     def warningDisplay(self, text, **kwargs):
         self.warnings.append(text)
+        self.cursor.append("warned")
 
     def infoDisplay(self, text, **kwargs):
         self.infos.append(text)

@@ -275,12 +275,19 @@ def test_auto_masks_of_an_inverted_run_name_the_view_and_the_segment_command(tmp
     frames = np.stack([simulate_angiogram(c * _vessel_line_integral(), 0.3, 7, AngiogramSettings(ribs=1))[0]
                        for c in (1.0, 1.0)])
     view = CArmView(30.0, 0.0, 975.0, 750.0, (0.39, 0.39), (128, 128))
-    inverted = write_xa(tmp_path / "inverted.dcm", (4095 - frames).astype(np.uint16), view, bits_stored=12)
+    (tmp_path / "my runs").mkdir()  # a path with a space: the command the message gives must still work pasted
+    inverted = write_xa(tmp_path / "my runs" / "inverted.dcm", (4095 - frames).astype(np.uint16), view, bits_stored=12)
     other = write_xa(tmp_path / "other.dcm", frames.astype(np.uint16),
                      CArmView(-30.0, 20.0, 975.0, 750.0, (0.39, 0.39), (128, 128)), bits_stored=12)
     out = tmp_path / "result"
     assert main(["reconstruct", "--dicom", str(other), str(inverted), "--auto-masks", "--volume-shape", "8", "8", "8",
                  "--volume-spacing", "8", "--steps", "1", "--no-progress", "--out", str(out)]) == 2
     err = capsys.readouterr().err
-    assert f"view 2 ({inverted})" in err and "look bright" in err and f"segment --dicom {inverted}" in err
-    assert "--bright-vessels" in err and not out.exists()
+    assert f"view 2 ({inverted})" in err and "look bright" in err and not out.exists()
+    import shlex
+
+    command = err.split("`")[1]
+    assert command.startswith(f"segment --dicom {shlex.quote(str(inverted))} --frame ") and "--bright-vessels" in command
+    mask = tmp_path / "mask2.png"
+    assert main(shlex.split(command.replace("MASK.png", shlex.quote(str(mask))))) == 0, capsys.readouterr().err
+    assert mask.is_file()

@@ -54,9 +54,13 @@ def test_border_warning():
     (message,) = mask_warnings(blade)
     assert "straight line across the image near row" in message and "collimator" in message
     assert "down the image" in mask_warnings(blade.T)[0]
-    # a catheter enters at one side only: not a blade's edge
+    # … also between side blades, which keep it from the image's sides
+    between = _vessel()
+    between[12:14, 11:117] = True
+    assert "straight line across the image near row 13" in mask_warnings(between)[0]
+    # a catheter enters at one side and ends inside: not a blade's edge
     catheter = _vessel()
-    catheter[30:124, 100:104] = True
+    catheter[20:128, 100:104] = True
     assert mask_warnings(catheter) == []
 
 

@@ -757,3 +757,5 @@ def test_vesselness_asks_on_a_frame_of_doubtful_polarity_and_shows_the_masks_war
     assert calls == ([False, True] if accepted else [False])
     assert stored == [(1, "mask", "inverted" if accepted else "as it is")]
     assert sdfcar.recorder.warnings == ([] if accepted else [clipped])  # the polarity one was asked, not shown again
+    assert sdfcar.recorder.cursor == (["restored", "asked", "WaitCursor"] if accepted else
+                                      ["restored", "asked", "WaitCursor", "restored", "warned", "WaitCursor"])
