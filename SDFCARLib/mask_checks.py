@@ -68,12 +68,11 @@ def _spans(extent: slice, size: int) -> bool:
     return extent.stop - extent.start >= LINE_SPAN * size and abs(before - after) <= LINE_END * size
 
 
-def _straight_lines_across(mask: np.ndarray) -> List[str]:
-    """The components that run nearly straight along a row or a column from near one side of the image to near the
-    other (``LINE_END``) and are at most ``LINE_THICKNESS`` of it across (a blade's edge, slightly tilted), described
-    for a message; those along the image's edge are the border check's."""
-    labels, _ = _components(mask)
-    rows, cols = mask.shape
+def _straight_lines_across(labels: np.ndarray) -> List[str]:
+    """The components (``labels``, as ``_components`` gives them) that run nearly straight along a row or a column
+    (``_spans``) and are at most ``LINE_THICKNESS`` of the image across (a blade's edge, slightly tilted), described for
+    a message; those along the image's edge are the border check's."""
+    rows, cols = labels.shape
     found = []
     for box in ndimage.find_objects(labels):
         if box is None:
@@ -82,7 +81,6 @@ def _straight_lines_across(mask: np.ndarray) -> List[str]:
         if box[0].start < BORDER_PX and width > height or box[0].stop > rows - BORDER_PX and width > height \
                 or box[1].start < BORDER_PX and height > width or box[1].stop > cols - BORDER_PX and height > width:
             continue
-        # a blade's edge runs from one side of the image to the other; a catheter enters at one side only
         if _spans(box[1], cols) and height <= LINE_THICKNESS * rows:
             found.append(f"across the image near row {(box[0].start + box[0].stop) // 2} ({width} pixels long)")
         elif _spans(box[0], rows) and width <= LINE_THICKNESS * cols:
@@ -128,20 +126,21 @@ def mask_warnings(mask: np.ndarray, pixel_spacing_mm: Optional[Sequence[float]] 
                        "vessel: the collimator's edge or the frame border was segmented (vessels that leave the field "
                        "cross the border at a few places only); erase it from the mask or mask the collimated border")
     if total:
-        for line in _straight_lines_across(m):
+        labels, sizes = _components(m)
+        for line in _straight_lines_across(labels):
             out.append(f"{source}: a straight line {line} is marked as vessel: a collimator blade's edge or the "
                        "frame's edge inside the image was segmented (no coronary runs straight across the image); "
                        "erase it from the mask")
         limit = speck_area_px(pixel_spacing_mm)
-        _, sizes = _components(m)
         specks = sizes[sizes < limit]
         if specks.size >= MAX_SPECKS:
             unit = (f"{SPECK_MM2:g} mm² ({limit:.0f} pixels)" if pixel_spacing_mm is not None
                     else f"{limit:.0f} pixels")
             out.append(f"{source}: the mask has {specks.size} specks (connected pieces smaller than {unit}, "
                        f"{int(specks.sum())} pixels in all, of {sizes.size} pieces): noise of the vesselness filter or "
-                       "threshold; remove small components (Slicer's Segment Editor: Islands, "
-                       "minimum size; the segment pipeline: a larger min_length_mm) or raise the threshold — specks slow the run down and add false branches")
+                       "threshold; remove small components (Slicer's Segment Editor: Islands, minimum size; the "
+                       "segment pipeline: a larger min_length_mm) or raise the threshold — specks slow the run down "
+                       "and add false branches")
     return out
 
 

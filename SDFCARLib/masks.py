@@ -24,10 +24,12 @@ Angiogram masks (``segment_angiogram`` / ``angiogram_mask``), for when no mask e
        its width only); widened, with the image edge, by the filters' reach (2 × the largest σ).
        They are filled with the nearest field values before filtering, and are never vessel.
        A frame whose field is under ``min_field_fraction`` is refused.
-       Polarity, on the field: vessels absorb, so the fine structures of ``−log I`` reach further
-       above its background than below (``dark_vessel_asymmetry``); a frame where the bright ones
-       reach much further shows its vessels bright (an inverted display or export) and is refused,
-       naming ``bright_vessels`` (its grey levels inverted first); a doubtful one gets a warning.
+       Polarity, on the field less its broad bright regions along the edge: vessels absorb, so the
+       fine structures of ``−log I`` reach further above its background than below
+       (``thin_structure_contrasts``; their ratio is ``dark_vessel_asymmetry`` in the parameters); a
+       frame where the bright ones reach much further shows its vessels bright (an inverted display
+       or export) and is refused, naming ``bright_vessels`` (its grey levels inverted first); a
+       doubtful one gets a warning.
     3. Background: grey opening (a window wider than the widest vessel) of the log image, box
        smoothed and subtracted (a top-hat): soft tissue, ribs, diaphragm and exposure go.
     4. Ridge filter (Sato by default; Frangi and Meijering selectable) at σ = r/√3 for radii
@@ -374,17 +376,17 @@ MAX_CLIPPED_FIELD_SHARE = 0.05
 MIN_FRAME_GREY_LEVELS = 16
 
 
-#: a frame whose fine structures stand out darker than lighter by less than this (``dark_vessel_asymmetry``) is refused
-#: as showing its vessels bright, and one below ``DOUBTFUL_DARK_VESSEL_ASYMMETRY`` segmented with a warning: frames with
-#: vessels measured 1.06–3.4 (the lowest processed for display), inverted ones 0.34–1.01, frames without vessels
-#: 0.93–1.9 (bench/RESULTS.md §89)
+#: a frame whose fine structures reach further above than below by less than this ratio (``dark_vessel_asymmetry``)
+#: is refused as showing its vessels bright, and one below ``DOUBTFUL_DARK_VESSEL_ASYMMETRY`` segmented with a warning:
+#: frames with dark vessels measured 1.06–3.97 (the lowest processed for display), inverted ones 0.32–0.96
+#: (bench/RESULTS.md §89)
 MIN_DARK_VESSEL_ASYMMETRY = 0.8
+DOUBTFUL_DARK_VESSEL_ASYMMETRY = 1.0
 #: the polarity is measured outside the broad regions along the edge this much brighter than the field
 POLARITY_SHUTTER_RATIO = 1.3
-#: the polarity is judged where the stronger side's thin structures reach this (−log I); those of frames without
-#: contrast measured about 0.04 (bench/RESULTS.md §89)
+#: the polarity is judged where the stronger side's fine structures reach this (−log I); those of frames without
+#: contrast measured about 0.05 (bench/RESULTS.md §89)
 MIN_POLARITY_CONTRAST = 0.1
-DOUBTFUL_DARK_VESSEL_ASYMMETRY = 1.0
 
 
 def thin_structure_contrasts(log_image: np.ndarray, field: np.ndarray, largest_radius_px: float,
@@ -397,12 +399,6 @@ def thin_structure_contrasts(log_image: np.ndarray, field: np.ndarray, largest_r
     fine = (smooth - ndimage.gaussian_filter(smooth, max(2.0 * float(largest_radius_px), 2.0)))[field]
     low, median, high = (float(v) for v in np.percentile(fine, [tail, 50.0, 100.0 - tail]))
     return high - median, median - low
-
-
-def dark_vessel_asymmetry(log_image: np.ndarray, field: np.ndarray, largest_radius_px: float) -> float:
-    """``thin_structure_contrasts``' first over its second: above 1 for dark vessels, below for bright ones."""
-    above, below = thin_structure_contrasts(log_image, field, largest_radius_px)
-    return above / below if below > 0 else float("inf")
 
 
 def _disk_opening(image: np.ndarray, radius: int) -> np.ndarray:
@@ -539,8 +535,8 @@ def segment_angiogram(
     log_image = -np.log(np.maximum(image - min(float(image.min()), 0.0), floor))
     r_max_px = float(geometry["vessel_radius_px"][1])
     margin_px = int(np.ceil(2.0 * max(sigmas))) + 2
-    border, _, border_info = _border(-log_image, s, max(1, int(round(0.5 * r_max_px))), margin_px,
-                                           int(np.ceil(4.0 * r_max_px)))
+    border_sizes = (max(1, int(round(0.5 * r_max_px))), margin_px, int(np.ceil(4.0 * r_max_px)))
+    border, _, border_info = _border(-log_image, s, *border_sizes)
     field = ~border
     if field.mean() < s.min_field_fraction and not border_info["shutter_fraction"] > 0:
         raise MaskError(f"the frame is {image.shape[0]}×{image.shape[1]} pixels: the filters' margin of {margin_px} pixels "
@@ -558,8 +554,7 @@ def segment_angiogram(
     # export's collimator is white, only 1.5–2× the field (under shutter_ratio), and the field's corners against it
     # would stand out as bright fine structures. (In a frame the right way up these are lungs: nothing is lost.)
     brighter_only = np.maximum(-log_image, float(np.median(-log_image[field])))
-    bright_border, _, _ = _border(brighter_only, replace(s, shutter_ratio=POLARITY_SHUTTER_RATIO),
-                                   max(1, int(round(0.5 * r_max_px))), margin_px, int(np.ceil(4.0 * r_max_px)))
+    bright_border, _, _ = _border(brighter_only, replace(s, shutter_ratio=POLARITY_SHUTTER_RATIO), *border_sizes)
     polarity_field = field & ~bright_border
     if polarity_field.sum() >= 1000:  # filled as the filters' image is, so that no plateau's edge reaches in
         _, (pi, pc) = ndimage.distance_transform_edt(~polarity_field, return_indices=True)
@@ -571,6 +566,7 @@ def segment_angiogram(
     # judged only where the stronger side stands as far as a contrast-filled vessel does: a frame without contrast has
     # only the background's thin structures, of either side (it is refused as holding no vessel further on)
     judged = max(dark_contrast, bright_contrast) >= MIN_POLARITY_CONTRAST
+    doubtful = judged and asymmetry < DOUBTFUL_DARK_VESSEL_ASYMMETRY and not s.bright_vessels
     if judged and asymmetry < MIN_DARK_VESSEL_ASYMMETRY:
         if s.bright_vessels:
             raise MaskError("bright_vessels (segment --bright-vessels) was given, but the vessels of this frame are dark "
@@ -590,7 +586,7 @@ def segment_angiogram(
                             f"({value:g}): vessels there cannot be seen, so the mask misses them and a reconstruction "
                             "takes them as absent; choose a frame or run exposed without it, or paint the vessels there by hand "
                             "where you know them")
-    if judged and asymmetry < DOUBTFUL_DARK_VESSEL_ASYMMETRY and not s.bright_vessels:
+    if doubtful:
         warnings.append(f"the frame's dark and bright fine structures stand out about as far (asymmetry {asymmetry:.2f}; "
                         "frames with dark vessels measure above 1): if its vessels look bright in the overlay, segment it "
                         "with bright_vessels (segment --bright-vessels)")
@@ -678,8 +674,7 @@ def segment_angiogram(
         "strongest_contrast": strongest,
         "dark_vessel_asymmetry": asymmetry,
         # "doubtful": the warning below DOUBTFUL_DARK_VESSEL_ASYMMETRY was given (the Slicer module then asks)
-        "polarity": "inverted as told" if s.bright_vessels else (
-            "doubtful" if judged and asymmetry < DOUBTFUL_DARK_VESSEL_ASYMMETRY else "dark vessels"),
+        "polarity": "inverted as told" if s.bright_vessels else ("doubtful" if doubtful else "dark vessels"),
         "thin_dark_contrast": dark_contrast,
         "thin_bright_contrast": bright_contrast,
         "min_length_px": float(min_length_px),

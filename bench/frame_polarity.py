@@ -1,11 +1,12 @@
-"""Polarity of angiography frames: ``masks.dark_vessel_asymmetry`` of frames with dark vessels, of the same frames
-inverted (lowest + highest − value, an inverted display's export) and of frames without vessels; and whether
-``bright_vessels=True`` gives an inverted frame the mask of the original (Dice between the two).
+"""Polarity of angiography frames: the dark-vessel asymmetry (``masks.thin_structure_contrasts``, dark over bright)
+of frames with dark vessels, of the same frames inverted (lowest + highest − value, an inverted display's export)
+and of frames without vessels; and whether ``bright_vessels=True`` gives an inverted frame the mask of the original
+(Dice between the two).
 
     python bench/frame_polarity.py --protocol realistic-static-lao30-rao30 --cases 10 --extra \\
         --real ../shared/data/xa-phantom
 
-Per frame the asymmetry is read where ``segment_angiogram`` computes it (on its field, before the ridge filter), so the
+Per frame the contrasts are read where ``segment_angiogram`` computes them (on its field, before the ridge filter), so the
 values are the pipeline's own. Prints one JSON line per frame and a summary per group (minimum, maximum) with the
 levels ``MIN_DARK_VESSEL_ASYMMETRY`` (refused below) and ``DOUBTFUL_DARK_VESSEL_ASYMMETRY`` (a warning below).
 """

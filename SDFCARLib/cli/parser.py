@@ -177,8 +177,8 @@ def build_parser() -> argparse.ArgumentParser:
                         "run says it itself")
     p.add_argument("--bright-vessels", action="store_true",
                    help="the frame shows its vessels bright (an inverted display or export): its grey levels are "
-                        "inverted (lowest + highest − value) before it is segmented. Without it a frame whose vessels look "
-                        "bright is refused, saying so")
+                        "inverted (about their 0.1 and 99.9 percentiles) before it is segmented. Without it a frame whose "
+                        "vessels look bright is refused, saying so")
     p.add_argument("--out", required=True, help="mask PNG to write (NAME.png; the other files are named after it)")
     p.add_argument("--overwrite", action="store_true", help="replace existing files")
     p.set_defaults(func=cmd_segment)

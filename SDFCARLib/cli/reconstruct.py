@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import shlex
 import sys
 import time
 from pathlib import Path
@@ -198,8 +199,6 @@ def _auto_masks(args: argparse.Namespace, geometry, provenance
             segmented = segment_angiogram(frame, view.pixel_spacing_mm, view.sid_mm / view.sod_mm,
                                           mask_settings_for_intensity(relationship))
         except BrightVesselsError as exc:
-            import shlex
-
             raise MaskError(f"view {n} ({runs[n - 1].path}): {exc}. --auto-masks segments the frames as they are: make "
                             f"this view's mask with `segment --dicom {shlex.quote(str(runs[n - 1].path))} --frame "
                             f"{frame_info['index']} --bright-vessels --out MASK.png`, the other views' with segment too, "
