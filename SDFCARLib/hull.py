@@ -22,7 +22,8 @@ Field of view
     kept only within ``one_view_reach_mm`` of the part every view sees and agrees on (a vessel that
     leaves a view's field continues from there; beyond that reach one view cannot place it in
     depth anyway). On the real phantom pair of bench/RESULTS.md the one-view sheets tripled the
-    support of the placed grid without the reach, and add a few per cent with 15 mm.
+    support of the placed grid without the reach, and add a few per cent with 15 mm. Of three or
+    more views, a voxel two of them see is placed in depth by those two and is not bounded so.
 
     The baseline keeps its definition, the strict hull (``fov_aware=False``, the default: every
     view must see the voxel and agree), so that its numbers stay comparable across versions and
@@ -39,8 +40,9 @@ from scipy import ndimage
 
 from .geometry import CArmView, VolumeGrid
 from .projector import footprint_radius_px
+from .settings import RegionSettings
 
-ONE_VIEW_REACH_MM = 15.0  # how far beyond the part all views see the support follows a single view
+ONE_VIEW_REACH_MM = RegionSettings.one_view_reach_mm  # how far beyond the part all views see the support follows a single view
 
 
 def _distance_to_mask_px(mask: np.ndarray) -> np.ndarray:
@@ -94,6 +96,7 @@ def visual_hull(
     hull = np.ones(grid.shape, dtype=bool)
     seen_by_any = np.zeros(grid.shape, dtype=bool)
     seen_by_all = np.ones(grid.shape, dtype=bool)
+    seeing_views = np.zeros(grid.shape, dtype=np.uint8)  # how many views see each voxel (fov_aware)
     for n, (mask, view, margin, fov) in enumerate(zip(masks, views, margins, fovs), start=1):
         mask = np.asarray(mask, dtype=bool)
         if mask.shape != tuple(view.detector_shape):
@@ -127,6 +130,9 @@ def visual_hull(
                 all_flat = seen_by_all[i0:i1].reshape(-1)
                 all_flat[np.flatnonzero(candidates)[~seen]] = False
                 seen_by_all[i0:i1] = all_flat.reshape(seen_by_all[i0:i1].shape)
+                count_flat = seeing_views[i0:i1].reshape(-1)
+                count_flat[np.flatnonzero(candidates)[seen]] += 1
+                seeing_views[i0:i1] = count_flat.reshape(seeing_views[i0:i1].shape)
             else:
                 ok &= seen
             sub = hull[i0:i1].reshape(-1)
@@ -134,14 +140,16 @@ def visual_hull(
             hull[i0:i1] = sub.reshape(hull[i0:i1].shape)
     if fov_aware:
         hull &= seen_by_any  # a voxel no view sees is not constrained at all: leave it out
-        one_view = hull & ~seen_by_all
+        # two views place a voxel in depth: of three views, those two are enough where the third cannot see
+        placed = seen_by_all | (seeing_views >= 2)
+        one_view = hull & ~placed
         if one_view_reach_mm is not None and one_view.any():
             every_view = hull & seen_by_all
             if every_view.any():
                 near = ndimage.distance_transform_edt(~every_view, sampling=grid.spacing_mm) <= one_view_reach_mm
             else:
                 near = np.zeros(grid.shape, dtype=bool)
-            hull &= seen_by_all | near
+            hull &= placed | near
     return hull
 
 

@@ -95,10 +95,13 @@ def occupancy_loss(image: torch.Tensor, target: torch.Tensor, weight: Optional[t
     return torch.mean(squared if weight is None else weight * squared)
 
 
-def excess_path_loss(rendered: torch.Tensor, target: torch.Tensor, factor: float, tolerance: float) -> torch.Tensor:
+def excess_path_loss(rendered: torch.Tensor, target: torch.Tensor, factor: float, tolerance: float,
+                     weight: Optional[torch.Tensor] = None) -> torch.Tensor:
     """Mean over the image of max(rendered − factor·target − tolerance, 0)²: only what a ray crosses beyond
-    the target's allowance costs (all in the target's units, L / L_ref for the frames' path lengths)."""
-    return torch.mean(torch.relu(rendered - factor * target - tolerance) ** 2)
+    the target's allowance costs (all in the target's units, L / L_ref for the frames' path lengths), each pixel
+    weighed by ``weight`` (H, W) where given."""
+    squared = torch.relu(rendered - factor * target - tolerance) ** 2
+    return torch.mean(squared if weight is None else weight * squared)
 
 
 def partial_occupancy_loss(occupancy: torch.Tensor) -> torch.Tensor:
@@ -229,10 +232,14 @@ class GeometricLoss:
         pixel_mm: per view, pixel size at the isocenter.
         traced_pixels: per view, flat indices of the pixels whose rendering can be non-zero
             (``ConeBeamProjector.pixels``), or None for all.
+        known_pixels: per view None, or (H, W) 1 where the target is known and 0 where it is not (a part of the
+            detector the view could not see): renderings and targets are blanked there before their distances
+            are taken, and those pixels add nothing to the loss.
     """
 
     def __init__(self, target_silhouettes: Sequence[torch.Tensor], pixel_mm: Sequence[float],
-                 traced_pixels: Sequence[Optional[np.ndarray]], settings: DistanceSettings) -> None:
+                 traced_pixels: Sequence[Optional[np.ndarray]], settings: DistanceSettings,
+                 known_pixels: Optional[Sequence[Optional[torch.Tensor]]] = None) -> None:
         self.settings = settings
         f = settings.downsample
         self.crops: List[Tuple[int, int, int, int]] = []
@@ -256,12 +263,21 @@ class GeometricLoss:
         self.width = max(c1 - c0 for _, _, c0, c1 in self.crops)
         device = target_silhouettes[0].device
         self.step_mm = torch.tensor([px * f for px in pixel_mm], device=device)
+        # the renderings are blanked where the view could not see, as its mask is: what the fit puts there changes
+        # no distance the view can check
+        self.known = [None if k is None else k.to(torch.float32) for k in
+                      (known_pixels if known_pixels is not None else [None] * len(self.crops))]
         # Pixels that padding adds to bring crops to a common size are excluded from the sum.
         self.weights = torch.zeros(len(self.crops), 1, self.height, self.width, device=device)
         for n, (r0, r1, c0, c1) in enumerate(self.crops):
             self.weights[n, 0, : r1 - r0, : c1 - c0] = 1.0 / self.full_sizes[n]
+            known = self.known[n]
+            if known is not None:  # a pooled pixel counts only where every pixel it pools is known (min-pooling)
+                known_pooled = -pooled(-known, settings.downsample)[0, 0, r0:r1, c0:c1]
+                self.weights[n, 0, : r1 - r0, : c1 - c0] *= known_pooled
         with torch.no_grad():
-            self.target = signed_distance(self._batch(target_silhouettes), self.step_mm, settings)
+            targets = [s if k is None else s * k for s, k in zip(target_silhouettes, self.known)]
+            self.target = signed_distance(self._batch(targets), self.step_mm, settings)
 
     def _batch(self, silhouettes: Sequence[torch.Tensor]) -> torch.Tensor:
         parts = []
@@ -272,6 +288,7 @@ class GeometricLoss:
 
     def __call__(self, silhouettes: Sequence[torch.Tensor]) -> torch.Tensor:
         """L_geo averaged over views for rendered silhouettes (H, W) per view."""
+        silhouettes = [s if k is None else s * k for s, k in zip(silhouettes, self.known)]
         sdt = signed_distance(self._batch(silhouettes), self.step_mm, self.settings)
         difference = sdt - self.target
         if self.settings.tolerance_mm > 0:
@@ -293,6 +310,15 @@ class ViewTarget:
     blur_sigma_px: Tuple[float, float] = (0.0, 0.0)
     # (H, W) weights of the pixels in L_occ (``thin_weights.py``), None: every pixel alike
     pixel_weight: Optional[torch.Tensor] = None
+    # (H, W) 1 where the view could show a vessel, 0 where it could not (collimated, clipped: ``masks.unseen_pixels``),
+    # so that its 0 there is no evidence and adds nothing to the loss; None: every pixel known
+    known: Optional[torch.Tensor] = None
+
+    def occupancy_weight(self) -> Optional[torch.Tensor]:
+        """Each pixel's weight in L_occ: ``pixel_weight`` on the known pixels, 0 on the unknown (None: all 1)."""
+        if self.known is None:
+            return self.pixel_weight
+        return self.known if self.pixel_weight is None else self.pixel_weight * self.known
 
     def silhouette_of(self, line_integral: torch.Tensor) -> torch.Tensor:
         return silhouette(line_integral, self.silhouette_length_mm)

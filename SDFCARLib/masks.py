@@ -342,6 +342,66 @@ def _border(log_image: np.ndarray, settings: AngioMaskSettings, opening_px: int,
 MIN_NOISE_LOG = 1e-3
 
 
+def _log_intensity(image: np.ndarray, high: float) -> np.ndarray:
+    """−log I of a frame (``high``: its 99.5th percentile), floored so that zeros stay finite."""
+    # Beer–Lambert: −log I is proportional to the path through iodine, and a change of exposure
+    # or of the tissue in front only adds to it, which the background removal takes away.
+    floor = max(1e-6 * max(abs(high), 1.0), float(np.percentile(image, 50)) * 1e-3)
+    return -np.log(np.maximum(image - min(float(image.min()), 0.0), floor))
+
+
+def _border_sizes(sigmas: Sequence[float], largest_radius_px: float) -> Tuple[int, Tuple[int, int, int]]:
+    """The filters' margin (pixels) and ``_border``'s (opening, margin, contact) sizes."""
+    margin_px = int(np.ceil(2.0 * max(sigmas))) + 2
+    return margin_px, (max(1, int(round(0.5 * largest_radius_px))), margin_px, int(np.ceil(4.0 * largest_radius_px)))
+
+
+def _clipped_ends(given: np.ndarray, field: np.ndarray) -> List[Tuple[str, float, float]]:
+    """(end, value, share of the field) for the frame's highest and lowest value, each where the field holds it
+    over less than half its pixels: most of the field at one value is its background, flat (a frame without noise:
+    simulated, subtracted), not a part of it over- or underexposed."""
+    ends = []
+    for end, value in (("highest", float(given.max())), ("lowest", float(given.min()))):  # the values of the user's frame
+        share = float(np.mean(given[field] == value)) if field.any() else 0.0
+        if share < 0.5:
+            ends.append((end, value, share))
+    return ends
+
+
+#: pixels at the frame's highest or lowest value over more than this share of the exposed field are taken as clipped
+#: (``unseen_pixels``); a single brightest pixel of a noisy frame is not
+MIN_UNSEEN_CLIPPED_SHARE = 0.001
+
+
+def unseen_pixels(
+    frame: Any,
+    pixel_spacing_mm: Optional[Union[float, Sequence[float]]] = None,
+    magnification: Optional[float] = None,
+    settings: Optional[AngioMaskSettings] = None,
+) -> np.ndarray:
+    """Bool image, True where this frame cannot show a vessel, so that a mask's 0 there says nothing: the border
+    ``segment_angiogram`` never marks (the collimator or shutter, and the filters' margin along it and along the image
+    edge) and the pixels clipped at the frame's highest or lowest value (over- or underexposed), widened by the
+    largest vessel radius. A mask made on it is 0 there because the view did not look, not because nothing is
+    there."""
+    s = settings if settings is not None else AngioMaskSettings()
+    s.check()
+    image = _frame_array(frame)
+    lo, hi = np.percentile(image, [0.5, 99.5])
+    if not hi > lo:
+        raise MaskError("the frame is flat (the same value almost everywhere): it shows nothing; check the frame index")
+    _, sigmas, geometry = _scales_px(s, pixel_spacing_mm, magnification)
+    r_max_px = float(geometry["vessel_radius_px"][1])
+    _, border_sizes = _border_sizes(sigmas, r_max_px)
+    # the shutter is found by its distance from the field's level, either side: the polarity does not matter here
+    border, _, _ = _border(-_log_intensity(image, hi), s, *border_sizes)
+    unseen = border.copy()
+    for _, value, share in _clipped_ends(image, ~border):
+        if share > MIN_UNSEEN_CLIPPED_SHARE:
+            unseen |= ndimage.binary_dilation(image == value, iterations=max(1, int(np.ceil(r_max_px))))
+    return unseen
+
+
 def _local_noise(image: np.ndarray, field: np.ndarray, block: int = 32) -> np.ndarray:
     """Smooth map of the noise standard deviation: robust (median) spread of the fine residual
     in blocks of the field, interpolated, ``MIN_NOISE_LOG`` at least; blocks without field or
@@ -529,13 +589,9 @@ def segment_angiogram(
         raise MaskError(f"the frame holds only {levels} grey levels: it is a mask or a label image, not an X-ray frame "
                         "(those hold hundreds); give the frame the vessels were seen in, or use the mask as a mask "
                         "(reconstruct --mask)")
-    # Beer–Lambert: −log I is proportional to the path through iodine, and a change of exposure
-    # or of the tissue in front only adds to it, which the background removal takes away.
-    floor = max(1e-6 * max(abs(hi), 1.0), float(np.percentile(image, 50)) * 1e-3)
-    log_image = -np.log(np.maximum(image - min(float(image.min()), 0.0), floor))
+    log_image = _log_intensity(image, hi)
     r_max_px = float(geometry["vessel_radius_px"][1])
-    margin_px = int(np.ceil(2.0 * max(sigmas))) + 2
-    border_sizes = (max(1, int(round(0.5 * r_max_px))), margin_px, int(np.ceil(4.0 * r_max_px)))
+    margin_px, border_sizes = _border_sizes(sigmas, r_max_px)
     border, _, border_info = _border(-log_image, s, *border_sizes)
     field = ~border
     if field.mean() < s.min_field_fraction and not border_info["shutter_fraction"] > 0:
@@ -577,11 +633,8 @@ def segment_angiogram(
                         "are dark in a raw frame: invert its grey levels (segment --bright-vessels; in Python "
                         "AngioMaskSettings(bright_vessels=True)), or give the raw frame")
     warnings = []
-    for end, value in (("highest", float(given.max())), ("lowest", float(given.min()))):  # the values of the user's frame
-        clipped = float(np.mean(given[field] == value))
-        # most of the field at one value is its background, flat (a frame without noise: simulated, subtracted), not
-        # a part of it over- or underexposed
-        if MAX_CLIPPED_FIELD_SHARE < clipped < 0.5:
+    for end, value, clipped in _clipped_ends(given, field):
+        if MAX_CLIPPED_FIELD_SHARE < clipped:
             warnings.append(f"{100 * clipped:.0f} % of the exposed field is clipped at the frame's {end} value "
                             f"({value:g}): vessels there cannot be seen, so the mask misses them and a reconstruction "
                             "takes them as absent; choose a frame or run exposed without it, or paint the vessels there by hand "

@@ -57,7 +57,7 @@ from .consistency import consistency_warnings, view_consistency, view_separation
 from .evidence import (EvidenceError, EvidenceSettings, assumed_frame_intensity, is_binary_image, unreadable_intensity,
                        view_evidence)
 from .mask_checks import mask_warnings, support_masks
-from .masks import MaskError, binarise_mask
+from .masks import MaskError, binarise_mask, unseen_pixels
 from .connectivity import ReconnectSettings, field_values, reconnect_fragments
 from .metrics import component_counts, component_labels
 from .projector import ConeBeamProjector, project_volume
@@ -175,6 +175,8 @@ class Problem:
     # where L_occ fits the frames' path lengths: the masks' own targets, which it fits after
     # frame_evidence_until_fraction of the steps (None: L_occ fits view_targets throughout)
     mask_targets: Optional[List[ViewTarget]] = None
+    # per view, bool (H, W): the pixels whose 0 is no evidence (``unknown_pixels``), None: every pixel known
+    unknown: Optional[List[np.ndarray]] = None
 
 
 def _normalised_points(geometry: Geometry, flat: np.ndarray, device: torch.device) -> torch.Tensor:
@@ -323,11 +325,18 @@ def build_problem(geometry: Geometry, targets: Sequence[np.ndarray], settings: S
         arrays = [border_trimmed_mask(a > 0, e, settings.loss.frame_trim_mask_mm,
                                       centre_fraction=settings.loss.frame_trim_centre_fraction).astype(np.float32)
                   for a, e in zip(arrays, evidence_images)]
+    unknown = None
+    if settings.region.frames_unseen_unknown:
+        unknown, unreadable = unknown_pixels(frames, pixels, geometry, target_kind)
+        warnings += unreadable
     for message in warnings:
         _report(progress, phase="warning", message=message, step=0, total=settings.optimisation.total_steps,
                 elapsed_s=0.0, eta_s=None, device=settings.run.device)
     if settings.region.support == "hull":
-        support = support_mask(pixels, geometry.views, grid, settings.region.support_margin_mm)
+        support = support_mask(pixels, geometry.views, grid, settings.region.support_margin_mm,
+                               fields_of_view=None if unknown is None else [~u for u in unknown],
+                               one_view_reach_mm=(settings.region.one_view_reach_mm if unknown is None
+                                                  else settings.region.frames_unseen_reach_mm))
         voxels = np.flatnonzero(support.reshape(-1))
         if voxels.size == 0:
             raise ReconstructionError(
@@ -358,6 +367,11 @@ def build_problem(geometry: Geometry, targets: Sequence[np.ndarray], settings: S
         view_targets = [dataclasses.replace(t, pixel_weight=w) for t, w in zip(view_targets, weights)]
         if mask_targets is not None:
             mask_targets = [dataclasses.replace(t, pixel_weight=w) for t, w in zip(mask_targets, weights)]
+    known = None if unknown is None else [torch.as_tensor(~u, dtype=torch.float32, device=device) for u in unknown]
+    if known is not None:
+        view_targets = [dataclasses.replace(t, known=k) for t, k in zip(view_targets, known)]
+        if mask_targets is not None:
+            mask_targets = [dataclasses.replace(t, known=k) for t, k in zip(mask_targets, known)]
     geometric: Optional[GeometricLoss] = None
     if settings.mode.geometric_loss:
         loss = settings.loss
@@ -367,6 +381,7 @@ def build_problem(geometry: Geometry, targets: Sequence[np.ndarray], settings: S
             [None if support is None else p.pixels for p in projectors],
             DistanceSettings(loss.dt_downsample, loss.dt_threshold, loss.dt_truncation_mm, loss.dt_kernel_size,
                              loss.dt_tolerance_mm),
+            known_pixels=known,
         )
     record = dict(evidence.record) if settings.loss.frame_evidence else dict(FRAME_EVIDENCE_OFF)
     if evidence_images is not None:
@@ -377,7 +392,30 @@ def build_problem(geometry: Geometry, targets: Sequence[np.ndarray], settings: S
             record["excess_tolerance_mm"] = settings.loss.frame_excess_tolerance_mm
     return Problem(geometry, settings, target_kind, arrays, support, voxels, device, device_reason, needed_bytes,
                    projectors, view_targets, geometric, time.perf_counter() - t_start, warnings, consistency, record,
-                   mask_targets=mask_targets)
+                   mask_targets=mask_targets, unknown=unknown)
+
+
+def unknown_pixels(frames: Optional[Sequence[Optional[np.ndarray]]], masks: Sequence[np.ndarray], geometry: Geometry,
+                   target_kind: str) -> Tuple[Optional[List[np.ndarray]], List[str]]:
+    """Per view, the pixels whose mask value says nothing (``frames_unseen_unknown``): those its frame cannot show a
+    vessel in (``masks.unseen_pixels``) that the mask leaves empty — a pixel the mask marks stays evidence — and the
+    warnings of views whose frame could not be read (every pixel of those stays known). None where there is nothing
+    to read them off: no frames, line-integral targets, or binary "frames" (masks)."""
+    if frames is None or target_kind != "mask" or len(frames) != len(geometry.views):
+        return None, []
+    if any(frame is None or np.shape(frame) != tuple(view.detector_shape) or is_binary_image(frame)
+           for frame, view in zip(frames, geometry.views)):
+        return None, []
+    unknown, warnings = [], []
+    for n, (frame, mask, view) in enumerate(zip(frames, masks, geometry.views), start=1):
+        mask = np.asarray(mask, bool)
+        try:
+            unknown.append(unseen_pixels(frame, view.pixel_spacing_mm, view.magnification) & ~mask)
+        except MaskError as exc:
+            unknown.append(np.zeros_like(mask))
+            warnings.append(f"view {n}: its frame's collimator and clipped parts could not be read ({exc}); every pixel of "
+                            "its mask is taken as seen")
+    return unknown, warnings
 
 
 def frames_until_step(settings: Settings) -> int:
@@ -399,7 +437,7 @@ def caps_path_length(problem: Problem) -> bool:
 
 
 def _mean_occupancy_loss(line_integrals: Sequence[torch.Tensor], targets: Sequence[ViewTarget]) -> torch.Tensor:
-    return sum(occupancy_loss(t.rendered(li), t.image, t.pixel_weight) for li, t in zip(line_integrals, targets)) / len(targets)
+    return sum(occupancy_loss(t.rendered(li), t.image, t.occupancy_weight()) for li, t in zip(line_integrals, targets)) / len(targets)
 
 
 def occupancy_terms(problem: Problem, step: int, line_integrals: Sequence[torch.Tensor]) -> Dict[str, torch.Tensor]:
@@ -414,7 +452,7 @@ def occupancy_terms(problem: Problem, step: int, line_integrals: Sequence[torch.
         if step > frames_until_step(problem.settings):
             return {"weighted": loss.lambda_occ * l_occ, "l_occ": l_occ}
         l_excess = sum(excess_path_loss(t.rendered(li), t.image, loss.frame_excess_factor,
-                                        loss.frame_excess_tolerance_mm / t.reference_mm)
+                                        loss.frame_excess_tolerance_mm / t.reference_mm, t.known)
                        for li, t in zip(line_integrals, problem.view_targets)) / count
         return {"weighted": loss.lambda_occ * l_occ + loss.lambda_occ_frames * l_excess, "l_occ": l_occ,
                 "l_excess": l_excess}
@@ -593,9 +631,10 @@ def _exclude_disagreeing_pieces(problem: Problem, model: ImplicitField, step: in
     checked, finishing = segmentation, {}
     if region.exclusion_takes_finishing_removals and segmentation.any():
         traced = problem.projectors if problem.support is not None else None  # as in finish
-        checked, finishing = finishing_removals(segmentation, references, geometry, region, traced)
+        checked, finishing = finishing_removals(segmentation, references, geometry, region, traced, problem.unknown)
     kept, record = disagreeing_pieces(checked, references, geometry, region.width_agreement_min_ratio,
-                                      region.prune_piece_mm, keep_connected=True, measure=region.width_agreement_measure)
+                                      region.prune_piece_mm, keep_connected=True, measure=region.width_agreement_measure,
+                                      unknown=problem.unknown)
     zone = removal_zone(segmentation, kept, geometry.volume.spacing_mm)
     problem.excluded = zone if problem.excluded is None else problem.excluded | zone
     problem.exclusion = problem.exclusion or {"exclusions": []}
@@ -614,9 +653,11 @@ def prune_settings(region: RegionSettings) -> PruneSettings:
 
 
 def finishing_removals(segmentation: np.ndarray, references: Sequence[np.ndarray], geometry: Geometry,
-                       region: RegionSettings, projectors: Optional[Sequence[ConeBeamProjector]]) -> Tuple[np.ndarray, Dict[str, int]]:
+                       region: RegionSettings, projectors: Optional[Sequence[ConeBeamProjector]],
+                       unknown: Optional[Sequence[np.ndarray]] = None) -> Tuple[np.ndarray, Dict[str, int]]:
     """The segmentation less what ``finish``'s pruning and fragment check (as ``region`` asks) would remove,
-    and how many voxels each removed. ``projectors``: the fit's own (they hold every voxel of the support), or None."""
+    and how many voxels each removed. ``projectors``: the fit's own (they hold every voxel of the support), or None;
+    ``unknown``: per view the pixels whose mask value says nothing, or None."""
     counts: Dict[str, int] = {}
     if region.prune:
         kept, _ = prune_redundant_branches(segmentation, references, geometry,
@@ -625,7 +666,7 @@ def finishing_removals(segmentation: np.ndarray, references: Sequence[np.ndarray
         counts["pruned_voxels"] = int((segmentation & ~kept).sum())
         segmentation = segmentation & kept
     if region.drop_unconfirmed_fragments and segmentation.any():
-        removed, _ = unconfirmed_fragments(segmentation, references, geometry, projectors=projectors)
+        removed, _ = unconfirmed_fragments(segmentation, references, geometry, projectors=projectors, unknown=unknown)
         counts["unconfirmed_voxels"] = int(removed.sum())
         segmentation = segmentation & ~removed
     return segmentation, counts
@@ -675,7 +716,8 @@ def finish(problem: Problem, model: ImplicitField, history: List[Dict[str, float
         if _is_cancelled(cancel):
             raise ReconstructionCancelled("cancelled before checking and joining the fragments")
         segmentation, unconfirmed, reconnection = drop_then_join_fragments(
-            segmentation, occupancy_volume, field_volume, references, geometry, problem.support, settings, projectors=traced)
+            segmentation, occupancy_volume, field_volume, references, geometry, problem.support, settings, projectors=traced,
+            unknown=problem.unknown)
     # last: grown only from what pruning and the fragment checks kept (before them it grows ghosts too);
     # the grown voxels' occupancy is raised to the threshold, as bridges are filled, so that occupancy.nrrd,
     # the surface and `analyse` keep reading the segmentation as occupancy ≥ threshold
@@ -693,7 +735,8 @@ def finish(problem: Problem, model: ImplicitField, history: List[Dict[str, float
         # joins two true vessels, the tree lost more than the ghost (the rule cutting freely scored lower)
         kept, width_check = disagreeing_pieces(segmentation, references, geometry,
                                                settings.region.width_agreement_min_ratio, settings.region.prune_piece_mm,
-                                               keep_connected=True, measure=settings.region.width_agreement_measure)
+                                               keep_connected=True, measure=settings.region.width_agreement_measure,
+                                               unknown=problem.unknown)
         segmentation = erase_removed(segmentation, kept, occupancy_volume, field_volume, geometry, settings)
     small: Optional[Dict[str, Any]] = None
     if settings.region.min_fragment_volume_mm3 and segmentation.any():
@@ -709,6 +752,8 @@ def finish(problem: Problem, model: ImplicitField, history: List[Dict[str, float
     projected = reprojected_masks(segmentation, geometry, projectors=traced)
     if _is_cancelled(cancel):
         raise ReconstructionCancelled("cancelled after reprojecting the result")
+    if problem.unknown is not None:  # only what each view could see: a vessel behind its collimator disagrees with nothing
+        projected = [p & ~u for p, u in zip(projected, problem.unknown)]
     qa = [reprojection_qa(p, m, v) for p, m, v in zip(projected, references, geometry.views)]
     qa_warned = qa_warnings(qa)
     for message in qa_warned:
@@ -747,6 +792,8 @@ def finish(problem: Problem, model: ImplicitField, history: List[Dict[str, float
         "warnings": list(problem.warnings) + qa_warned,
         "view_consistency": list(problem.consistency),
         "frame_evidence": problem.evidence,
+        # per view, the share of the detector whose mask value was taken as unknown (None: every pixel known)
+        "unknown_pixel_fraction": None if problem.unknown is None else [round(float(u.mean()), 4) for u in problem.unknown],
     }
     return Reconstruction(geometry, settings, occupancy_volume, field_volume, segmentation, problem.support, report, history,
                           list(zip(projected, references)))
@@ -769,6 +816,7 @@ def drop_then_join_fragments(
     support: Optional[np.ndarray],
     settings: Settings,
     projectors: Optional[Sequence[ConeBeamProjector]] = None,
+    unknown: Optional[Sequence[np.ndarray]] = None,
 ) -> Tuple[np.ndarray, Optional[Dict[str, Any]], Optional[Dict[str, Any]]]:
     """The detached fragments that some view does not confirm removed, then the rest joined to the tree.
 
@@ -776,12 +824,13 @@ def drop_then_join_fragments(
     first: joined to the tree first, a ghost would be part of the largest component, which the
     confirmation step never judges (RESULTS §19). ``occupancy_volume`` and ``field_volume`` are updated
     in place (removed voxels emptied, bridges filled); returns the new segmentation and the two steps'
-    reports (None for a step that is off). Bridges carry their gap's points in LPS mm.
+    reports (None for a step that is off). Bridges carry their gap's points in LPS mm. ``unknown``: per view the
+    pixels whose mask value says nothing (``Problem.unknown``), None: all known.
     """
     region = settings.region
     unconfirmed: Optional[Dict[str, Any]] = None
     if region.drop_unconfirmed_fragments and segmentation.any():
-        removed, unconfirmed = unconfirmed_fragments(segmentation, masks, geometry, projectors=projectors)
+        removed, unconfirmed = unconfirmed_fragments(segmentation, masks, geometry, projectors=projectors, unknown=unknown)
         if removed.any():
             segmentation = erase_removed(segmentation, segmentation & ~removed, occupancy_volume, field_volume, geometry,
                                          settings)
@@ -926,7 +975,7 @@ def fit_field(geometry: Geometry, targets: Sequence[np.ndarray], settings: Setti
         calibrations.append(calibrate(geometry, targets, settings, target_kind, progress=progress, cancel=cancel))
         geometry = calibrations[-1].geometry
         torch.manual_seed(settings.run.seed)
-    problem = build_problem(geometry, targets, settings, target_kind, progress, evidence=evidence)
+    problem = build_problem(geometry, targets, settings, target_kind, progress, frames=frames, evidence=evidence)
     if _is_cancelled(cancel):
         raise ReconstructionCancelled("cancelled before the optimisation started")
     model = ImplicitField(field_config(settings)).to(problem.device)

@@ -268,6 +268,7 @@ def unconfirmed_fragments(
     geometry: Geometry,
     threshold_mm: float = PruneSettings.threshold_mm,
     projectors: Optional[Sequence[ConeBeamProjector]] = None,
+    unknown: Optional[Sequence[Optional[np.ndarray]]] = None,
 ) -> Tuple[np.ndarray, Dict[str, Any]]:
     """Voxels of the components other than the largest that some view seeing them does not need.
 
@@ -275,8 +276,10 @@ def unconfirmed_fragments(
     no other component covers (line integral above ``threshold_mm``); a view onto whose detector it
     does not project at all neither confirms nor rejects it. ``projectors``: one per view whose
     voxels hold every segmented voxel (the reconstruction's own, which already traced these rays);
-    otherwise projectors of the segmented voxels are built. Returns the boolean volume of the
-    unconfirmed components' voxels and a report (fragments, removed fragments and voxels, seconds).
+    otherwise projectors of the segmented voxels are built. ``unknown``: per view None or a bool detector
+    image, True where the view could not see (collimated, clipped): a component that projects only there is
+    not seen by that view. Returns the boolean volume of the unconfirmed components' voxels and a report
+    (fragments, removed fragments and voxels, seconds).
     """
     t0 = time.perf_counter()
     segmentation = np.asarray(segmentation, dtype=bool)
@@ -291,11 +294,17 @@ def unconfirmed_fragments(
     segmented = np.flatnonzero(segmentation.reshape(-1))
     if projectors is None or not all(p.covers(segmented) for p in projectors):
         projectors = [ConeBeamProjector(view, geometry.volume, voxels=segmented) for view in geometry.views]
+    unseen = list(unknown) if unknown is not None else [None] * len(masks)
+    if len(unseen) != len(masks):
+        raise ValueError(f"unconfirmed_fragments: {len(unseen)} unknown-pixel images for {len(masks)} masks")
     confirmed = np.ones(sizes.size, dtype=bool)
-    for mask, view, projector in zip(masks, geometry.views, projectors):
+    for mask, view, projector, not_seen in zip(masks, geometry.views, projectors, unseen):
         if tuple(np.shape(mask)) != tuple(view.detector_shape):
             raise ValueError(f"unconfirmed_fragments: mask shape {np.shape(mask)} differs from the detector {tuple(view.detector_shape)}")
         integrals, pixels, seen = projector.group_integrals(components, sizes.size)
+        if not_seen is not None:  # seen: casting a shadow on a pixel the view could see
+            known = ~np.asarray(not_seen, dtype=bool).reshape(-1)[pixels]
+            seen = seen & ((integrals > threshold_mm) & known[:, None]).any(axis=0)
         covered = (integrals > threshold_mm) & np.asarray(mask, dtype=bool).reshape(-1)[pixels][:, None]
         alone = (covered & (covered.sum(axis=1) == 1)[:, None]).sum(axis=0)
         confirmed &= (alone > 0) | ~seen

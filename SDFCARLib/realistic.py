@@ -19,6 +19,9 @@ makes the input a user has from a ground-truth label, and keeps the truth for sc
    window; Pixel Intensity Relationship ``DISP``) and the masks are segmented on those as the
    product segments a DISP frame (``masks.mask_settings_for_intensity``), as a user's exported runs
    mostly are. ``RealisticInput.frame_intensity`` then says ``DISP`` per view.
+5. Collimation (optional, ``collimator_fraction``): every frame behind shutters over that share of each
+   side, as runs are mostly collimated; a vessel the shutter covers in one view is missing from that
+   view's mask only.
 
 ``RealisticInput.info`` records the motion, the mask pipeline's parameters and the masks' Dice and
 clDice against the true silhouettes (line integral > ``settings.MASK_THRESHOLD_MM``).
@@ -53,6 +56,8 @@ class RealisticOptions:
     mask_edge_max_radius_mm: Optional[float] = AngioMaskSettings.edge_max_radius_mm
     mask_min_contrast: float = AngioMaskSettings.min_contrast
     display: bool = False  # frames processed for display (DISP) before they are segmented and handed over
+    # the share of each side of every frame under the collimator's shutter (angiogram.AngiogramSettings); 0: none
+    collimator_fraction: float = 0.0
 
     def check(self) -> None:
         for name in ("max_shift_mm", "max_rotation_deg"):
@@ -61,6 +66,9 @@ class RealisticOptions:
                 raise ValueError(f"{name} must be a finite number, 0 or more, got {value!r}")
         if not (math.isfinite(self.snr) and self.snr > 0):
             raise ValueError(f"snr must be a positive finite number (the frames' background signal-to-noise), got {self.snr!r}")
+        if not (math.isfinite(self.collimator_fraction) and 0.0 <= self.collimator_fraction < 0.4):
+            raise ValueError(f"collimator_fraction is the share of each side of a frame under the shutter: 0 (none) up to "
+                             f"under 0.4, got {self.collimator_fraction!r}")
 
 
 @dataclass
@@ -101,7 +109,8 @@ def realistic_input(label: np.ndarray, geometry: Geometry, seed: int,
     line_integrals, true_masks = simulate_views(label, geometry.volume, true_views, MASK_THRESHOLD_MM)
     frames, masks, per_view = [], [], []
     for n, (li, view, truth) in enumerate(zip(line_integrals, true_views, true_masks), start=1):
-        frame, _ = simulate_angiogram(li, view.pixel_spacing_mm, rng, AngiogramSettings(snr=options.snr))
+        frame, _ = simulate_angiogram(li, view.pixel_spacing_mm, rng,
+                                      AngiogramSettings(snr=options.snr, collimator_fraction=options.collimator_fraction))
         if options.display:  # no draw from rng: the scene and its noise are the linear protocol's
             frame = display_processed(frame, view.pixel_spacing_mm)
         try:
@@ -124,6 +133,6 @@ def realistic_input(label: np.ndarray, geometry: Geometry, seed: int,
         })
     info = {"motion": motions, "views": per_view, "snr": options.snr,
             "max_shift_mm": options.max_shift_mm, "max_rotation_deg": options.max_rotation_deg,
-            "display": options.display}
+            "display": options.display, "collimator_fraction": options.collimator_fraction}
     intensity = [DISPLAY_INTENSITY] * len(frames) if options.display else None
     return RealisticInput(geometry, true_views, frames, masks, true_masks, info, intensity)

@@ -197,6 +197,9 @@ class RegionSettings:
 
     support: str = "full"  # "full": every voxel; "hull": the masks' visual hull widened by the margin
     support_margin_mm: float = 0.5
+    # how far beyond the part every view sees the support follows a single view (hull.support_mask): off a view's
+    # detector and, with frames_unseen_unknown, behind its collimator
+    one_view_reach_mm: float = 15.0
     threshold: float = 0.5  # segmentation = occupancy ≥ threshold
     # 0: off. Otherwise, after pruning and the fragment steps, the segmentation also takes the voxels
     # ≥ grow_threshold 26-connected to it (hysteresis; their occupancy is raised to the threshold): a
@@ -245,6 +248,15 @@ class RegionSettings:
     # would remove from the fit's segmentation, so the fit may re-place their pixels too; false: the width check's
     # alone (taken out so early, thin true stretches are lost: RESULTS §32a)
     exclusion_takes_finishing_removals: bool = False
+    # where the X-ray frames are given: a pixel the frame cannot show a vessel in (masks.unseen_pixels: collimator,
+    # clipped, the filters' margin along the image edge) and the mask leaves empty is unknown, not background: that
+    # view neither forbids a vessel there in the support nor asks the rendering to be empty there (L_occ, L_geo),
+    # and the reprojection QA counts only what the view could see
+    frames_unseen_unknown: bool = False
+    # with frames_unseen_unknown (and frames): how far beyond the part every view sees the support follows a single view,
+    # in place of one_view_reach_mm; one view cannot place a vessel in depth, and 4 or 15 mm let the fit put ghosts
+    # there that took the mask pixels of true vessels (RESULTS §90)
+    frames_unseen_reach_mm: float = 0.0
 
 
 #: a calibration candidate's score is its mean loss over this many last steps (Adam's steps are noisy)
@@ -439,6 +451,12 @@ class Settings:
                 f"decide), got {r.reconnect_min_occupancy}")
         if not 0 < r.threshold < 1:
             raise ReconstructionError(f"threshold must be between 0 and 1, got {r.threshold}")
+        for name, default in (("one_view_reach_mm", RegionSettings.one_view_reach_mm),
+                              ("frames_unseen_reach_mm", RegionSettings.frames_unseen_reach_mm)):
+            value = getattr(r, name)  # finite already (every number setting is checked so)
+            if value < 0:
+                raise ReconstructionError(f"{name} is how far (mm) the support follows a single view beyond the part "
+                                          f"every view sees: 0 or more (default {default:g}), got {value}")
         if not 0 <= r.grow_threshold <= r.threshold:
             raise ReconstructionError(f"grow_threshold must be 0 (off) or an occupancy up to threshold ({r.threshold:g}), "
                                       f"got {r.grow_threshold}")
@@ -702,10 +720,12 @@ PROTOCOLS: Dict[str, Tuple[str, str]] = {
     "realistic-static-lao30-rao30-cra30": ("lao30-rao30-cra30", "mask"),
     "realistic-display-lao30-rao30": ("lao30-rao30", "mask"),
     "realistic-static-display-lao30-rao30": ("lao30-rao30", "mask"),
+    "realistic-static-collimated-lao30-rao30": ("lao30-rao30", "mask"),
 }
 #: the protocols whose masks are segmented from simulated angiograms (``realistic.py``), with the
 #: object motion between the acquisitions; "static" ones have the same images without motion; "display"
-#: ones the same frames processed for display (``display_processing.py``, DISP: no path lengths read)
+#: ones the same frames processed for display (``display_processing.py``, DISP: no path lengths read); "collimated"
+#: ones the same scene behind the collimator's shutters
 REALISTIC_PROTOCOLS: Dict[str, Dict[str, Any]] = {
     "realistic-lao30-rao30": {"max_shift_mm": 3.0, "max_rotation_deg": 2.0},
     "realistic-lao50cra25-rao50cra25": {"max_shift_mm": 3.0, "max_rotation_deg": 2.0},
@@ -715,6 +735,8 @@ REALISTIC_PROTOCOLS: Dict[str, Dict[str, Any]] = {
     "realistic-static-lao30-rao30-cra30": {"max_shift_mm": 0.0, "max_rotation_deg": 0.0},
     "realistic-display-lao30-rao30": {"max_shift_mm": 3.0, "max_rotation_deg": 2.0, "display": True},
     "realistic-static-display-lao30-rao30": {"max_shift_mm": 0.0, "max_rotation_deg": 0.0, "display": True},
+    # every frame behind shutters over 15 % of each side: part of the tree is seen by one view only
+    "realistic-static-collimated-lao30-rao30": {"max_shift_mm": 0.0, "max_rotation_deg": 0.0, "collimator_fraction": 0.15},
 }
 
 

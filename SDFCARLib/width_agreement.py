@@ -125,15 +125,21 @@ def half_widths_mm(half_width_px: np.ndarray, view: CArmView, points_mm: np.ndar
 
 
 def width_agreement(masks: Sequence[np.ndarray], geometry: Geometry, points_mm: np.ndarray,
-                    measure: str = "centreline") -> np.ndarray:
+                    measure: str = "centreline", unknown: Optional[Sequence[Optional[np.ndarray]]] = None) -> np.ndarray:
     """Per point: the smallest over the largest of the views' half-widths at its projections (0–1);
-    ``measure``: how a view's half-width map is made (``HALF_WIDTH_MEASURES``, module docstring)."""
+    ``measure``: how a view's half-width map is made (``HALF_WIDTH_MEASURES``, module docstring). ``unknown``: per
+    view None or a bool detector image, True where the view could not see (its mask's 0 there is no width): a
+    point projecting there is unread (NaN)."""
     if len(masks) != len(geometry.views):
         raise ValueError(f"{len(masks)} masks for {len(geometry.views)} views: give one mask per view, in the views' order")
     if measure not in HALF_WIDTH_MEASURES:
         raise ValueError(f"unknown half-width measure {measure!r}: choose one of {', '.join(HALF_WIDTH_MEASURES)}")
     half_width_px = HALF_WIDTH_MEASURES[measure]
-    widths = np.stack([half_widths_mm(half_width_px(m), v, points_mm) for m, v in zip(masks, geometry.views)])
+    unseen = list(unknown) if unknown is not None else [None] * len(masks)
+    if len(unseen) != len(masks):
+        raise ValueError(f"{len(unseen)} unknown-pixel images for {len(masks)} masks: give one per view (None: all known)")
+    widths = np.stack([half_widths_mm(half_width_px(m) if u is None else np.where(u, np.nan, half_width_px(m)), v, points_mm)
+                       for m, v, u in zip(masks, geometry.views, unseen)])
     # NaN where a view leaves the width unread (open_ends): the point has no agreement
     return widths.min(axis=0) / np.maximum(widths.max(axis=0), 1e-9)
 
@@ -161,8 +167,10 @@ def _splits_its_component(kept: np.ndarray, labels: np.ndarray, piece: np.ndarra
 
 def disagreeing_pieces(segmentation: np.ndarray, masks: Sequence[np.ndarray], geometry: Geometry,
                        min_ratio: float, piece_mm: float = 6.0,
-                       keep_connected: bool = False, measure: str = "centreline") -> Tuple[np.ndarray, Dict[str, Any]]:
-    """The segmentation without its pieces whose median width agreement is below ``min_ratio``.
+                       keep_connected: bool = False, measure: str = "centreline",
+                       unknown: Optional[Sequence[Optional[np.ndarray]]] = None) -> Tuple[np.ndarray, Dict[str, Any]]:
+    """The segmentation without its pieces whose median width agreement is below ``min_ratio``
+    (``unknown``: as for ``width_agreement``; a piece no point of which every view sees is kept).
 
     ``keep_connected``: a piece is removed only where the rest of its component stays in one part
     (the least agreeing first, each decision on what is left, repeated until nothing more goes): a
@@ -181,7 +189,7 @@ def disagreeing_pieces(segmentation: np.ndarray, masks: Sequence[np.ndarray], ge
         return segmentation.copy(), info
     agreement = np.ones(segmentation.shape)
     agreement[tuple(voxels.T)] = width_agreement(masks, geometry, geometry.volume.index_to_world(voxels.astype(float)),
-                                                 measure)
+                                                 measure, unknown)
     pieces, count = skeleton_pieces(segmentation, geometry.volume.spacing_mm, piece_mm)
     medians = np.ones(count + 1)
     if count and np.isnan(agreement).any():  # the median of the points read; a piece with none is kept

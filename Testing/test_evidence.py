@@ -14,7 +14,7 @@ from SDFCARLib.evidence import (EvidenceError, EvidenceSettings, absorbance_abov
                                 estimate_attenuation_per_mm, unreadable_intensity, view_evidence)
 from SDFCARLib.geometry import CArmView, Geometry, VolumeGrid
 from SDFCARLib.losses import make_target, frame_target, occupancy_loss
-from SDFCARLib.masks import segment_angiogram
+from SDFCARLib.masks import segment_angiogram, unseen_pixels
 from SDFCARLib.line_integral_consistency import equal_total_factors, rays_of
 from SDFCARLib.optimiser import build_problem, occupancy_targets, occupancy_terms, read_frame_evidence, reconstruct
 from SDFCARLib.phantoms import Branch, CentrelineTree, simulate_views, voxelize
@@ -227,6 +227,57 @@ def test_reconstruction_fits_the_frames_when_asked(angiogram_case):
         assert view["attenuation_per_mm"] == pytest.approx(0.25, rel=0.2)
     overlap = np.sum(result.segmentation & label) / np.sum(label)
     assert overlap > 0.6 and result.segmentation.sum() < 2.0 * label.sum()
+
+
+def test_what_a_collimator_hides_from_one_view_is_unknown_to_it_not_background():
+    tree = CentrelineTree([Branch(np.array([[-12.0, -3.0, -11.0], [0.0, 2.0, 0.0], [11.0, -2.0, 12.0]]),
+                                  np.array([1.8, 1.6, 1.4]))])
+    label = voxelize(tree, GRID)
+    line_integrals, silhouettes = simulate_views(label, GRID, VIEWS)
+    rng = np.random.default_rng(3)
+    frames = [simulate_angiogram(li, v.pixel_spacing_mm, rng, AngiogramSettings(snr=40.0, collimator_fraction=c))[0]
+              for li, v, c in zip(line_integrals, VIEWS, (0.0, 0.25))]  # view 2 collimated tightly
+    unseen = [unseen_pixels(f, v.pixel_spacing_mm, v.magnification) for f, v in zip(frames, VIEWS)]
+    masks = [s & ~u for s, u in zip(silhouettes, unseen)]  # a mask shows nothing where its frame does not
+    geometry = Geometry(GRID, VIEWS)
+    rows, cols, _ = VIEWS[1].project(GRID.voxel_centers())
+    on_detector = (np.rint(rows) >= 0) & (np.rint(rows) < 128) & (np.rint(cols) >= 0) & (np.rint(cols) < 128)
+    behind_blade = np.zeros(GRID.num_voxels, bool)
+    behind_blade[on_detector] = unseen[1][np.rint(rows[on_detector]).astype(int), np.rint(cols[on_detector]).astype(int)]
+    hidden = label & behind_blade.reshape(GRID.shape)
+    assert hidden.sum() > 0.2 * label.sum()  # the case does what it says
+
+    strict = build_problem(geometry, masks, make_settings("fast"), "mask", frames=frames)
+    open_minded = build_problem(geometry, masks, make_settings("fast", frames_unseen_unknown=True), "mask", frames=frames)
+    assert strict.unknown is None and (hidden & strict.support).sum() < 0.2 * hidden.sum()  # view 2's 0 forbade it (but its margin)
+    # view 2 could not see it, so one view alone would have to place it in depth: by default the support does not follow
+    assert (hidden & open_minded.support).sum() <= (hidden & strict.support).sum()
+    far_reaching = build_problem(geometry, masks, make_settings("fast", frames_unseen_unknown=True, frames_unseen_reach_mm=40.0),
+                                 "mask", frames=frames)
+    assert (hidden & far_reaching.support).sum() > 0.9 * hidden.sum()
+    with pytest.raises(ReconstructionError, match="frames_unseen_reach_mm is how far"):
+        make_settings("fast", frames_unseen_reach_mm=-1.0)
+    for target, mask, u in zip(open_minded.view_targets, masks, unseen):
+        np.testing.assert_array_equal(target.known.cpu().numpy() == 0, u & ~mask)
+    # masks handed over as the frames: nothing to read the field of view off
+    as_frames = build_problem(geometry, masks, make_settings("fast", frames_unseen_unknown=True), "mask",
+                              frames=[m.astype(np.uint8) * 255 for m in masks])
+    assert as_frames.unknown is None and as_frames.view_targets[0].known is None
+    # a frame whose field cannot be read (flat but for three values): its view keeps every pixel, and says so
+    flat = np.full(frames[1].shape, 1000, np.uint16)
+    flat[0, :3] = (10, 20, 30)
+    unread = build_problem(geometry, masks, make_settings("fast", frames_unseen_unknown=True), "mask",
+                           frames=[frames[0], flat])
+    assert not unread.unknown[1].any() and np.array_equal(unread.unknown[0], open_minded.unknown[0])
+    assert any("view 2: its frame's collimator and clipped parts could not be read" in w for w in unread.warnings)
+
+    result = reconstruct(geometry, masks, make_settings("fast", steps=10, warmup_steps=2, frames_unseen_unknown=True),
+                         "mask", frames=frames)
+    assert result.report["unknown_pixel_fraction"] == [round(float((u & ~m).mean()), 4) for u, m in zip(unseen, masks)]
+    # the reprojection QA (its numbers and its pictures) counts only what each view could see
+    projected = [p for p, _ in result.qa_masks]
+    assert not any(np.any(p & u & ~m) for p, u, m in zip(projected, unseen, masks))
+    assert result.report["reprojection_qa"][1]["pixels"]["result_only"] == int((projected[1] & ~masks[1]).sum())
 
 
 def test_occupancy_loss_fits_the_frames_then_the_masks_when_asked(angiogram_case):

@@ -167,6 +167,24 @@ def test_a_collimated_border_does_not_constrain(cropped_case):
         support_mask(clipped, views, grid, fields_of_view=[fov[:10], None])
 
 
+def test_of_three_views_two_place_what_the_third_could_not_see():
+    grid = VolumeGrid((24, 24, 40), (1.0, 1.0, 1.0))
+    views = [CArmView(a, 0.0, 1000.0, 750.0, (0.5, 0.5), (128, 128)) for a in (0.0, 90.0, 45.0)]
+    tree = CentrelineTree([Branch(np.array([[-4.0, 2.0, -18.0], [0.0, 0.0, 0.0], [4.0, -2.0, 18.0]]),
+                                  np.array([1.5, 1.5, 1.5]))])
+    label = voxelize(tree, grid)
+    _, masks = simulate_views(label, grid, views)
+    fov = np.ones((128, 128), bool)
+    fov[:40] = False  # view 3's collimator over the top rows: the head end, z ≳ 9 mm (rows run along −z)
+    masks = [masks[0], masks[1], masks[2] & fov]
+    upper = label & (grid.voxel_centers()[:, 2].reshape(grid.shape) > 12)
+    assert upper.sum() > 40
+    assert np.any(upper & ~support_mask(masks, views, grid))  # view 3's empty mask forbade the head end
+    # views 1 and 2 see it and place it in depth: no reach from the part all three see bounds it
+    kept = support_mask(masks, views, grid, fields_of_view=[None, None, fov], one_view_reach_mm=0.0)
+    assert not np.any(upper & ~kept)
+
+
 def test_voxels_no_view_sees_are_left_out():
     grid = VolumeGrid((20, 20, 20), (4.0, 4.0, 4.0))  # 80 mm: larger than either detector's view
     views = [CArmView(0.0, 0.0, 1000.0, 750.0, (0.5, 0.5), (64, 64)),

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -61,6 +62,20 @@ def test_excess_path_loss_charges_only_what_a_ray_crosses_beyond_its_allowance()
     assert rendered.grad[0, 1] == 0 and rendered.grad[1, 0] == 0
     assert float(rendered.grad[0, 0]) == pytest.approx(2 * 0.3 / 4) and float(rendered.grad[1, 1]) == pytest.approx(2 * 1.0 / 4)
     assert float(excess_path_loss(target, target, 1.0, 0.0)) == 0.0
+
+
+def test_unknown_pixels_add_nothing_to_the_occupancy_terms():
+    target = make_target(torch.tensor([[0.0, 1.0], [0.0, 0.0]]), "mask", TAU)
+    rendered = torch.tensor([[0.5, 1.0], [1.0, 0.0]], requires_grad=True)  # a ghost on each empty pixel of the first column
+    known = torch.tensor([[1.0, 1.0], [0.0, 1.0]])  # the bottom left pixel the view could not see
+    hidden = dataclasses.replace(target, known=known)
+    assert float(occupancy_loss(rendered, target.image, hidden.occupancy_weight()).detach()) == pytest.approx(0.25 / 4)
+    assert float(occupancy_loss(rendered, target.image, target.occupancy_weight()).detach()) == pytest.approx(1.25 / 4)
+    weighted = dataclasses.replace(hidden, pixel_weight=torch.full((2, 2), 2.0))
+    assert torch.equal(weighted.occupancy_weight(), 2.0 * known)  # the thin-vessel weights on the known pixels only
+    loss = excess_path_loss(rendered, target.image, 1.0, 0.0, known)
+    loss.backward()
+    assert float(loss.detach()) == pytest.approx(0.25 / 4) and rendered.grad[1, 0] == 0
 
 
 def test_partial_occupancy_loss_is_the_mass_weighted_mean_of_one_minus_occupancy():
@@ -271,6 +286,25 @@ def test_geometric_loss_gradient_points_towards_the_target():
     assert float(grad[rows, 23:25].sum()) > 0
     # far from both borders nothing changes
     assert float(grad[rows, :12].abs().sum()) == 0.0
+
+
+def test_geometric_loss_ignores_what_the_view_could_not_see():
+    target = band_image(col=18)
+    known = torch.ones_like(target)
+    known[:, 28:] = 0.0  # a collimator blade over the right columns
+    ghost = target.clone()
+    ghost[8:32, 32:36] = 1.0  # a vessel behind the blade, which the mask could not show
+    for downsample in (1, 2):
+        settings = DistanceSettings(downsample=downsample)
+        blind = GeometricLoss([target], [0.5], [None], settings, known_pixels=[known])
+        assert float(GeometricLoss([target], [0.5], [None], settings)([ghost])) > 0.0
+        assert float(blind([ghost])) == 0.0
+        # where the view could see, the loss is the one without unknown pixels
+        shifted = band_image(col=16)
+        assert float(blind([shifted])) > 0.0
+    rendering = ghost.clamp(0.02, 0.98).requires_grad_(True)
+    blind([rendering]).backward()
+    assert float(rendering.grad[:, 30:].abs().sum()) == 0.0
 
 
 def test_geometric_loss_averages_views_and_handles_different_sizes():

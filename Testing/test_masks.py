@@ -10,7 +10,8 @@ from scipy import ndimage
 from skimage.measure import label as connected_components
 
 from SDFCARLib.io import InputError, read_mask
-from SDFCARLib.masks import AngioMaskSettings, MaskError, angiogram_mask, binarise_mask, segment_angiogram
+from SDFCARLib.masks import (AngioMaskSettings, MaskError, angiogram_mask, binarise_mask, segment_angiogram,
+                             unseen_pixels)
 
 
 # --- binarising --------------------------------------------------------------------------------------
@@ -135,6 +136,24 @@ def test_border_is_detected_and_never_vessel():
     assert open_result.parameters["shutter_fraction"] == 0.0
     margin = open_result.parameters["border_margin_px"]
     assert open_result.border.sum() == 160 * 160 - (160 - 2 * margin) ** 2
+
+
+def test_unseen_pixels_are_the_segmentations_border_and_the_clipped_parts():
+    line_integral = _tubes((160, 160), [((10, 20), (150, 140), 1.5, 1.0)])
+    frame, info = _frame(line_integral, collimator_fraction=0.12)
+    unseen = unseen_pixels(frame, SPACING, MAGNIFICATION)
+    np.testing.assert_array_equal(unseen, _segment(frame).border)  # where the mask never marks a vessel
+    assert unseen[info["collimator"]].all() and not unseen[60:100, 60:100].any()
+    open_frame = _frame(line_integral)[0]
+    np.testing.assert_array_equal(unseen_pixels(open_frame, SPACING, MAGNIFICATION), _segment(open_frame).border)
+    overexposed = open_frame.astype(float)
+    overexposed[100:, :60] = overexposed.max() + 1000.0  # a lung corner the detector could not count
+    clipped = unseen_pixels(overexposed, SPACING, MAGNIFICATION)
+    assert clipped[100:, :60].all() and not clipped[40:90, 70:120].any()
+    # a single brightest pixel of a noisy frame is not a clipped region
+    assert unseen_pixels(open_frame, SPACING, MAGNIFICATION)[20:140, 20:140].sum() == 0
+    with pytest.raises(MaskError, match="flat"):
+        unseen_pixels(np.full((64, 64), 100.0))
 
 
 def test_hysteresis_keeps_a_faint_branch_connected_to_the_tree():

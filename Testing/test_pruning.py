@@ -193,6 +193,24 @@ def test_unconfirmed_fragments_does_not_count_a_view_that_cannot_see_the_fragmen
     assert not removed.any() and info["fragments"] == 1
 
 
+def test_unconfirmed_fragments_does_not_count_a_view_that_could_not_see_the_fragment():
+    # View 2 (LAO 90, its columns along y) is collimated over y > 10 mm: the fragment at y = 15 lies behind the blade
+    vessel = _segment([8.0, -4.0, -15.0], [8.0, -4.0, 15.0], 1.5)
+    fragment = _segment([-8.0, 15.0, -5.0], [-8.0, 15.0, 5.0], 1.5)
+    _, masks = simulate_views(vessel | fragment, GRID, VIEWS)
+    shadow = project_volume(fragment.astype(np.float32), VIEWS[1], GRID) > 0
+    assert shadow.any()
+    blade = np.zeros(VIEWS[1].detector_shape, bool)
+    blade[:, np.flatnonzero(shadow.any(axis=0)).min() - 2:] = True
+    masks = [masks[0], masks[1] & ~blade]
+    removed, _ = unconfirmed_fragments(vessel | fragment, masks, Geometry(GRID, VIEWS))
+    np.testing.assert_array_equal(removed, fragment)  # without the blade known, view 2 rejects it
+    removed, info = unconfirmed_fragments(vessel | fragment, masks, Geometry(GRID, VIEWS), unknown=[None, blade & ~masks[1]])
+    assert not removed.any() and info["fragments"] == 1
+    with pytest.raises(ValueError, match="unknown-pixel images"):
+        unconfirmed_fragments(vessel | fragment, masks, Geometry(GRID, VIEWS), unknown=[None])
+
+
 def test_unconfirmed_fragments_of_one_piece_and_bad_masks(missed_vessel_case):
     geometry, vessel_a, _, _, masks = missed_vessel_case
     removed, info = unconfirmed_fragments(vessel_a, masks, geometry)

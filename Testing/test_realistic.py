@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from scipy import ndimage
 
 from SDFCARLib.geometry import CArmView, Geometry, VolumeGrid
 from SDFCARLib.metrics import mask_dice
@@ -47,7 +48,9 @@ def test_same_seed_same_input_and_static_has_no_motion(case):
     for options, words in ((RealisticOptions(-1.0), "max_shift_mm must be a finite number, 0 or more, got -1.0"),
                            (RealisticOptions(float("nan")), "max_shift_mm must be a finite number"),
                            (RealisticOptions(max_rotation_deg=float("inf")), "max_rotation_deg must be a finite number"),
-                           (RealisticOptions(snr=float("inf")), "snr must be a positive finite number")):
+                           (RealisticOptions(snr=float("inf")), "snr must be a positive finite number"),
+                           (RealisticOptions(collimator_fraction=0.5), "collimator_fraction is the share of each side"),
+                           (RealisticOptions(collimator_fraction=float("nan")), "collimator_fraction")):
         with pytest.raises(ValueError, match=words):
             options.check()
     for seed in (-1, 1.7, None):
@@ -75,3 +78,20 @@ def test_display_frames_are_the_linear_frames_processed_and_say_disp(case):
     for mask, truth in zip(shown.masks, shown.true_masks):
         assert 0.5 < mask_dice(mask, truth) < 1.0
     assert REALISTIC_PROTOCOLS["realistic-static-display-lao30-rao30"]["display"] is True
+
+
+def test_collimated_frames_hide_what_the_shutter_covers_from_the_masks(case):
+    geometry, label = case
+    open_field = realistic_input(label, geometry, seed=5, options=RealisticOptions(0.0, 0.0))
+    options = RealisticOptions(0.0, 0.0, collimator_fraction=0.12)
+    collimated = realistic_input(label, geometry, seed=5, options=options)
+    assert collimated.info["collimator_fraction"] == 0.12 and open_field.info["collimator_fraction"] == 0.0
+    edge = int(0.12 * 200)  # the shutters cover 12 % of each side: 24 pixels
+    for shut, open_mask, truth in zip(collimated.masks, open_field.masks, collimated.true_masks):
+        outer = np.zeros((200, 200), bool)
+        outer[:edge], outer[-edge:], outer[:, :edge], outer[:, -edge:] = True, True, True, True
+        assert truth[outer].any() and not shut[outer].any()  # vessels are there, the mask cannot show them
+        inner = ~ndimage.binary_dilation(outer, iterations=12)
+        assert mask_dice(shut[inner], open_mask[inner]) > 0.8  # in the open field the masks are alike
+    registered = REALISTIC_PROTOCOLS["realistic-static-collimated-lao30-rao30"]
+    assert registered["collimator_fraction"] > 0 and registered["max_shift_mm"] == 0.0

@@ -114,6 +114,8 @@ def test_overrides_and_none_values():
     (dict(width_exclusion_repeats=0), "width_exclusion_repeats must be at least 1"),
     (dict(final_reconnect_max_gap_mm=-1.0), "final_reconnect_max_gap_mm must be 0 (off) or a gap in mm"),
     (dict(min_fragment_volume_mm3=-1.0), "min_fragment_volume_mm3 must be 0 (off) or a volume in mm³"),
+    (dict(one_view_reach_mm=-1.0), "one_view_reach_mm is how far (mm) the support follows a single view"),
+    (dict(frames_unseen_reach_mm=-0.5), "frames_unseen_reach_mm is how far (mm)"),
 ])
 def test_bad_settings(kwargs, fragment):
     kwargs = dict(kwargs)

@@ -115,6 +115,27 @@ def test_a_piece_seen_with_different_widths_is_removed_and_a_true_one_kept():
     assert loose["removed_voxels"] == 0 and np.array_equal(unchanged, segmentation)
 
 
+def test_a_piece_a_view_could_not_see_is_not_judged_by_it():
+    true_tube, hidden = _tube(1.2, x_mm=-8.0), _tube(2.5, x_mm=8.0)
+    both = CentrelineTree(true_tube.tree.branches + hidden.tree.branches)
+    grid = grid_around(both, 0.4)
+    segmentation = voxelize_exact(both, grid)
+    geometry = Geometry(grid, VIEWS)
+    # view 2's collimator covers the second tube: its mask is empty there, and that says nothing (read as it is,
+    # the nearest centreline there is the thin tube's, and the hidden tube looks a ghost of widths 1.2 and 2.5 mm)
+    behind_blade = render_mask(_tube(6.0, x_mm=8.0).tree, VIEWS[1])
+    masks = [render_mask(both, VIEWS[0]), render_mask(both, VIEWS[1]) & ~behind_blade]
+    unknown = [None, behind_blade & ~masks[1]]
+    cut, _ = disagreeing_pieces(segmentation, masks, geometry, min_ratio=0.7)
+    assert (segmentation & ~cut).sum() > 0.5 * voxelize_exact(hidden.tree, grid).sum()  # taken as a ghost
+    kept, info = disagreeing_pieces(segmentation, masks, geometry, min_ratio=0.7, unknown=unknown)
+    assert np.array_equal(kept, segmentation) and info["removed_pieces"] == 0
+    agreement = width_agreement(masks, geometry, _interior(hidden), unknown=unknown)
+    assert np.isnan(agreement).mean() > 0.9  # unread where view 2 did not look
+    with pytest.raises(ValueError, match="unknown-pixel images"):
+        width_agreement(masks, geometry, _interior(hidden), unknown=unknown[:1])
+
+
 def _segment(start_mm, end_mm, diameter_mm):
     points = np.linspace(start_mm, end_mm, 13)
     return Branch(points, np.full(len(points), diameter_mm / 2))
