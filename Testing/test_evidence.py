@@ -200,15 +200,21 @@ VIEWS = [CArmView(30.0, 0.0, 1000.0, 750.0, (0.4, 0.4), (128, 128)),
          CArmView(-40.0, 15.0, 1000.0, 750.0, (0.4, 0.4), (128, 128))]
 
 
-@pytest.fixture(scope="module")
-def angiogram_case():
+def _one_vessel_frames(collimator_fractions=(0.0, 0.0)):
+    """A curved vessel's label, silhouettes and simulated frames of VIEWS, each behind its collimator."""
     tree = CentrelineTree([Branch(np.array([[-12.0, -3.0, -11.0], [0.0, 2.0, 0.0], [11.0, -2.0, 12.0]]),
                                   np.array([1.8, 1.6, 1.4]))])
     label = voxelize(tree, GRID)
-    line_integrals, _ = simulate_views(label, GRID, VIEWS)
+    line_integrals, silhouettes = simulate_views(label, GRID, VIEWS)
     rng = np.random.default_rng(3)
-    frames = [simulate_angiogram(li, v.pixel_spacing_mm, rng, AngiogramSettings(snr=40.0))[0]
-              for li, v in zip(line_integrals, VIEWS)]
+    frames = [simulate_angiogram(li, v.pixel_spacing_mm, rng, AngiogramSettings(snr=40.0, collimator_fraction=c))[0]
+              for li, v, c in zip(line_integrals, VIEWS, collimator_fractions)]
+    return label, silhouettes, frames
+
+
+@pytest.fixture(scope="module")
+def angiogram_case():
+    label, _, frames = _one_vessel_frames()
     masks = [segment_angiogram(f, v.pixel_spacing_mm, v.magnification).mask for f, v in zip(frames, VIEWS)]
     return Geometry(GRID, VIEWS), label, frames, masks
 
@@ -230,13 +236,7 @@ def test_reconstruction_fits_the_frames_when_asked(angiogram_case):
 
 
 def test_what_a_collimator_hides_from_one_view_is_unknown_to_it_not_background():
-    tree = CentrelineTree([Branch(np.array([[-12.0, -3.0, -11.0], [0.0, 2.0, 0.0], [11.0, -2.0, 12.0]]),
-                                  np.array([1.8, 1.6, 1.4]))])
-    label = voxelize(tree, GRID)
-    line_integrals, silhouettes = simulate_views(label, GRID, VIEWS)
-    rng = np.random.default_rng(3)
-    frames = [simulate_angiogram(li, v.pixel_spacing_mm, rng, AngiogramSettings(snr=40.0, collimator_fraction=c))[0]
-              for li, v, c in zip(line_integrals, VIEWS, (0.0, 0.25))]  # view 2 collimated tightly
+    label, silhouettes, frames = _one_vessel_frames((0.0, 0.25))  # view 2 collimated tightly
     unseen = [unseen_pixels(f, v.pixel_spacing_mm, v.magnification) for f, v in zip(frames, VIEWS)]
     masks = [s & ~u for s, u in zip(silhouettes, unseen)]  # a mask shows nothing where its frame does not
     geometry = Geometry(GRID, VIEWS)
