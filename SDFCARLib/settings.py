@@ -197,8 +197,8 @@ class RegionSettings:
 
     support: str = "full"  # "full": every voxel; "hull": the masks' visual hull widened by the margin
     support_margin_mm: float = 0.5
-    # how far beyond the part every view sees the support follows a single view (hull.support_mask): off a view's
-    # detector and, with frames_unseen_unknown, behind its collimator
+    # how far beyond the part every view sees the support follows a single view (hull.support_mask) off a view's
+    # detector (behind its collimator: frames_unseen_reach_mm)
     one_view_reach_mm: float = 15.0
     threshold: float = 0.5  # segmentation = occupancy ≥ threshold
     # 0: off. Otherwise, after pruning and the fragment steps, the segmentation also takes the voxels
@@ -249,9 +249,9 @@ class RegionSettings:
     # alone (taken out so early, thin true stretches are lost: RESULTS §32a)
     exclusion_takes_finishing_removals: bool = False
     # where the X-ray frames are given: a pixel the frame cannot show a vessel in (masks.unseen_pixels: collimator,
-    # clipped, the filters' margin along the image edge) and the mask leaves empty is unknown, not background: that
-    # view neither forbids a vessel there in the support nor asks the rendering to be empty there (L_occ, L_geo),
-    # and the reprojection QA counts only what the view could see
+    # clipped, the filters' margin along the image edge) and the mask leaves empty is unknown, not background: the
+    # losses (L_occ, L_geo), the fragment and width checks and the reprojection QA leave it out, and the support
+    # follows the other views there only frames_unseen_reach_mm. Off: level on the collimated suites (RESULTS §90)
     frames_unseen_unknown: bool = False
     # with frames_unseen_unknown (and frames): how far beyond the part every view sees the support follows a single view,
     # in place of one_view_reach_mm; one view cannot place a vessel in depth, and 4 or 15 mm let the fit put ghosts
