@@ -217,15 +217,24 @@ def calibrate(geometry: Geometry, targets: Sequence[np.ndarray], settings, targe
 FRAME_CALIBRATION_LIMITS = {"deg": 4.0, "mm": 6.0}
 
 
+def _rounded(value: float, digits: int) -> Optional[float]:
+    """``value`` rounded for report.json; None where it is not a number (nothing was measured)."""
+    return round(value, digits) if np.isfinite(value) else None
+
+
 def calibrate_from_frames(geometry: Geometry, line_integrals: Sequence[np.ndarray], progress=None,
-                          min_consistency_gain: float = CalibrationSettings.calibration_min_consistency_gain) -> Calibration:
+                          min_consistency_gain: float = CalibrationSettings.calibration_min_consistency_gain,
+                          unseen: Optional[Sequence[Optional[np.ndarray]]] = None) -> Calibration:
     """Each view's object motion against view 1 from the epipolar consistency of the frames' vessel
     line integrals (``line_integral_consistency.py``), in seconds: with two views the three motions
     that pair observes; with three or more, all six of each view over every pair of views at once.
 
     A motion is applied only where it divides the inconsistency by ``min_consistency_gain`` or more;
-    a smaller gain is what noise in the frames and masks alone allows the search (no motion to find)."""
-    from .line_integral_consistency import ALL_MOTIONS, OBSERVED_MOTIONS, WEAK_MOTIONS, estimate_motions, motion_axes
+    a smaller gain is what noise in the frames and masks alone allows the search (no motion to find).
+    ``unseen``: per view None or a bool image, True where its frame cannot show a vessel (collimator, clipped or
+    image edge, ``masks.unseen_pixels``): the epipolar planes through vessels that run into it are not compared."""
+    from .line_integral_consistency import (ALL_MOTIONS, MIN_UNTRUNCATED_PLANES, OBSERVED_MOTIONS, WEAK_MOTIONS,
+                                            estimate_motions, motion_axes)
     from .optimiser import _report
 
     t0 = time.perf_counter()
@@ -249,9 +258,11 @@ def calibrate_from_frames(geometry: Geometry, line_integrals: Sequence[np.ndarra
                 elapsed_s=time.perf_counter() - t0, eta_s=None, device="cpu", message=message)
 
     warnings: List[str] = []
+    unseen = list(unseen) if unseen is not None else [None] * len(views)
     for group in groups:
         estimates = estimate_motions([views[k] for k in group], [line_integrals[k] for k in group], centre,
-                                     FRAME_CALIBRATION_LIMITS["deg"], FRAME_CALIBRATION_LIMITS["mm"], progress=told)
+                                     FRAME_CALIBRATION_LIMITS["deg"], FRAME_CALIBRATION_LIMITS["mm"], progress=told,
+                                     unseen=[unseen[k] for k in group])
         searched = ALL_MOTIONS if len(group) > 2 else OBSERVED_MOTIONS
         for k, estimate in zip(group[1:], estimates):
             axes = motion_axes(views[0], views[k], centre)
@@ -262,7 +273,15 @@ def calibrate_from_frames(geometry: Geometry, line_integrals: Sequence[np.ndarra
                 entry[name] = {"value": round(estimate.parameters[name], 3), "unit": "deg" if rotation else "mm",
                                "axis_lps": [round(float(v), 4) for v in (axes[name][:3] if rotation else axes[name][3:])]}
             gain = estimate.cost_before / max(estimate.cost_after, 1e-12)
-            if estimate.at_limit:
+            if not estimate.measured:
+                warnings.append(f"view {k + 1}: the vessels run into a collimator or the image's edge on almost every "
+                                "epipolar plane through this view and view 1, so the frames cannot show the motion between "
+                                "the acquisitions; the view was left as given (the frames' fields of view "
+                                "truncate the vessels; bench/RESULTS.md §91)")
+                entry.update(left_as_given=True, why_left_as_given=(
+                    f"only {estimate.planes_compared} epipolar planes are not truncated by a collimator or the image's "
+                    f"edge ({MIN_UNTRUNCATED_PLANES} needed)"))
+            elif estimate.at_limit:
                 warnings.append(f"view {k + 1}: the pose correction from the frames reached the end of its range "
                                 f"({', '.join(n.replace('_', ' ') for n in estimate.at_limit)}); the view was left as given. "
                                 "Check the view's angles and distances and that each frame belongs to its view")
@@ -273,8 +292,9 @@ def calibrate_from_frames(geometry: Geometry, line_integrals: Sequence[np.ndarra
                     "asked): no more than noise in the frames and masks allows without any motion"))
             else:
                 views[k] = moved(views[k], estimate.added[:3], estimate.added[3:], centre)
-            entry.update(consistency_before=round(estimate.cost_before, 5), consistency_after=round(estimate.cost_after, 5),
-                         consistency_gain=round(gain, 2),
+            entry.update(consistency_before=_rounded(estimate.cost_before, 5), consistency_after=_rounded(estimate.cost_after, 5),
+                         consistency_gain=_rounded(gain, 2),
+                         truncated_pixels=list(estimate.truncated_pixels), planes_compared=estimate.planes_compared,
                          not_observed=(["a shift of every other view together along view 1's axis (kept near zero)"]
                                        if len(group) > 2 else list(WEAK_MOTIONS) + ["shift_along_baseline"]),
                          object_rotation_deg=[round(float(v), 4) for v in views[k].object_rotation_deg],

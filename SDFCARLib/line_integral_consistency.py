@@ -29,6 +29,17 @@ Observable motion
     16). Searched are the three that move the images across the planes or turn them: the shift along
     n₀ and the rotations (about the region's centre) about the baseline and about m.
 
+Truncation
+    The consistency holds only where both views see the whole object on a plane. A vessel that runs
+    into one view's collimator or off its detector continues where that view cannot see: on the
+    planes through it that view's integral misses what the other view's holds, and the search turns
+    the view to hide the difference (on collimated static pairs it applied 1.5–3.8° that were not
+    there, bench/RESULTS.md §91). Where each view's unseen part is given (``truncated_rays``: its
+    vessel pixels next to it), the planes through those rays are left out of the comparison. That
+    stops the spurious turns on static pairs, but a vessel hidden further along still reaches planes
+    that are compared, and with real motion the poses found so scored lower (§91): the run asks for it
+    only with ``calibration_skip_truncated_planes``.
+
 Three views or more
     Each pair has its own baseline, so what view 1–k cannot see moves view k across the planes of
     its pair with a third view. ``estimate_motions`` matches each view to view 1 first, then makes
@@ -50,6 +61,7 @@ from dataclasses import dataclass
 from typing import Any, Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
+from scipy import ndimage
 from scipy.optimize import least_squares, minimize
 
 from .geometry import CArmView, rotation_matrix
@@ -117,6 +129,36 @@ def rays_of(image: np.ndarray, view: CArmView, pool: Optional[int] = None) -> Li
     area = float(view.pixel_spacing_mm[0] * view.pixel_spacing_mm[1])
     solid_angle = area * cosine ** 3 / view.sid_mm ** 2
     return LineIntegralImage(source, directions, image[rows, cols] * solid_angle)
+
+
+#: a vessel pixel this close (pixels) to the view's unseen part (collimator, clipped or image edge) runs into it
+TRUNCATION_REACH_PX = 3
+#: a plane within this many ε (the search's blur as an angle) of a truncated ray is left out of the comparison
+TRUNCATION_PLANE_MARGIN = 3.0
+#: fewer planes than this (a quarter of those sampled) left at any blur: the pair's motion is not measured (on 21 planes
+#: the search turned RCA-8 of the collimated motion suite 1.4° off, §91)
+MIN_UNTRUNCATED_PLANES = 64
+
+
+def truncated_rays(image: np.ndarray, unseen: Optional[np.ndarray], view: CArmView,
+                   reach_px: int = TRUNCATION_REACH_PX) -> Optional[LineIntegralImage]:
+    """The rays of ``image``'s vessel pixels (line integral > 0) within ``reach_px`` of ``unseen`` (bool, True where
+    the view cannot show a vessel: ``masks.unseen_pixels``), weight 1 each; None where no vessel reaches it."""
+    if unseen is None:
+        return None
+    image, unseen = np.asarray(image, float), np.asarray(unseen, bool)
+    if unseen.shape != image.shape:
+        raise EpipolarError(f"the unseen-pixel image has shape {unseen.shape} but the frame {image.shape}")
+    touching = (image > 0) & ndimage.binary_dilation(unseen, iterations=int(reach_px))
+    if not touching.any():
+        return None
+    rows, cols = np.nonzero(touching)
+    source, directions = view.rays(rows.astype(float), cols.astype(float))
+    return LineIntegralImage(source, directions, np.ones(len(rows)))
+
+
+def _moved(rays: Optional[LineIntegralImage], motion: np.ndarray, centre: np.ndarray) -> Optional[LineIntegralImage]:
+    return None if rays is None else rays.moved(motion[:3], motion[3:], centre)
 
 
 def with_equal_totals(rays: Sequence[LineIntegralImage], centre_mm: Sequence[float]) -> List[LineIntegralImage]:
@@ -190,28 +232,40 @@ def plane_angles(rays: LineIntegralImage, other_source: np.ndarray, n0: np.ndarr
 
 
 def plane_sampling(a: LineIntegralImage, b: LineIntegralImage, blur_mm: float, centre_mm: np.ndarray,
-                   planes: int = 256) -> np.ndarray:
-    """The angles κ of ``planes`` epipolar planes spanning both images' vessel rays (plus a blur's margin)."""
+                   planes: int = 256,
+                   truncated: Sequence[Optional[LineIntegralImage]] = (None, None)) -> np.ndarray:
+    """The angles κ of ``planes`` epipolar planes spanning both images' vessel rays (plus a blur's margin),
+    less those within ``TRUNCATION_PLANE_MARGIN`` ε of a ``truncated`` ray of either view (``truncated_rays``,
+    moved as the view's rays are)."""
     centre = np.asarray(centre_mm, float)
     n0, m = epipolar_frame(a.source_mm, b.source_mm, centre)
     kappa_a = plane_angles(a, b.source_mm, n0, m)
     kappa_b = plane_angles(b, a.source_mm, n0, m)
     low = min(np.percentile(kappa_a, 0.5), np.percentile(kappa_b, 0.5))
     high = max(np.percentile(kappa_a, 99.5), np.percentile(kappa_b, 99.5))
-    margin = 3.0 * blur_mm / float(np.linalg.norm(a.source_mm - centre))
-    return np.linspace(low - margin, high + margin, planes)
+    epsilon = blur_mm / float(np.linalg.norm(a.source_mm - centre))
+    kappa = np.linspace(low - 3.0 * epsilon, high + 3.0 * epsilon, planes)
+    cut = [plane_angles(t, other.source_mm, n0, m) for t, other in zip(truncated, (b, a)) if t is not None]
+    if not cut:
+        return kappa
+    cut_kappa = np.sort(np.concatenate(cut))
+    position = np.searchsorted(cut_kappa, kappa)
+    nearest = np.minimum(np.abs(cut_kappa[np.clip(position - 1, 0, len(cut_kappa) - 1)] - kappa),
+                         np.abs(cut_kappa[np.clip(position, 0, len(cut_kappa) - 1)] - kappa))
+    return kappa[nearest > TRUNCATION_PLANE_MARGIN * epsilon]
 
 
 def consistency(a: LineIntegralImage, b: LineIntegralImage, blur_mm: float, centre_mm: np.ndarray,
-                planes: int = 256, kappa: Optional[np.ndarray] = None) -> Dict[str, Any]:
+                planes: int = 256, kappa: Optional[np.ndarray] = None,
+                truncated: Sequence[Optional[LineIntegralImage]] = (None, None)) -> Dict[str, Any]:
     """How far two views' plane derivatives disagree over the epipolar planes through both sources
-    (sampled by ``plane_sampling`` unless ``kappa`` gives the planes' angles).
+    (sampled by ``plane_sampling``, without the ``truncated`` planes, unless ``kappa`` gives the planes' angles).
 
     ``cost`` = Σ(ρ_a − ρ_b)² / ½Σ(ρ_a² + ρ_b²): 0 when consistent, 2 when unrelated."""
     centre = np.asarray(centre_mm, float)
     n0, m = epipolar_frame(a.source_mm, b.source_mm, centre)
     if kappa is None:
-        kappa = plane_sampling(a, b, blur_mm, centre, planes)
+        kappa = plane_sampling(a, b, blur_mm, centre, planes, truncated)
     rho_a = plane_derivatives(a, plane_angles(a, b.source_mm, n0, m), kappa, (n0, m), blur_mm, centre)
     rho_b = plane_derivatives(b, plane_angles(b, a.source_mm, n0, m), kappa, (n0, m), blur_mm, centre)
     scale = 0.5 * float(np.sum(rho_a ** 2 + rho_b ** 2))
@@ -233,6 +287,15 @@ class MotionEstimate:
     cost_before: float
     cost_after: float
     seconds: float
+    # per view of the pair (or of the views, jointly), its vessel pixels next to its unseen part (``truncated_rays``)
+    truncated_pixels: Tuple[int, ...] = ()
+    # the fewest epipolar planes compared at any blur (truncated ones left out); below ``MIN_UNTRUNCATED_PLANES``
+    # nothing was searched and the motion is none
+    planes_compared: int = 0
+
+    @property
+    def measured(self) -> bool:
+        return self.planes_compared >= MIN_UNTRUNCATED_PLANES
 
     def report(self) -> Dict[str, Any]:
         return {"parameters": {k: round(v, 4) for k, v in self.parameters.items()},
@@ -240,6 +303,7 @@ class MotionEstimate:
                 "translation_mm": [round(float(v), 4) for v in self.translation_mm],
                 "rotation_centre_mm": [round(float(v), 3) for v in self.centre_mm],
                 "consistency_before": round(self.cost_before, 5), "consistency_after": round(self.cost_after, 5),
+                "truncated_pixels": list(self.truncated_pixels), "planes_compared": self.planes_compared,
                 "seconds": round(self.seconds, 2)}
 
 
@@ -266,26 +330,37 @@ ALL_MOTIONS = OBSERVED_MOTIONS + WEAK_MOTIONS + ("shift_along_baseline",)
 def estimate_motion(reference: CArmView, reference_image: np.ndarray, view: CArmView, image: np.ndarray,
                     centre_mm: Sequence[float], max_rotation_deg: float = 4.0, max_translation_mm: float = 6.0,
                     blurs_mm: Sequence[float] = SEARCH_BLURS_MM,
-                    searched: Sequence[str] = OBSERVED_MOTIONS) -> MotionEstimate:
+                    searched: Sequence[str] = OBSERVED_MOTIONS,
+                    unseen: Sequence[Optional[np.ndarray]] = (None, None)) -> MotionEstimate:
     """The object motion of ``view`` (on top of what it carries) that makes its line integrals consistent
-    with ``reference``'s: the ``searched`` motions (module docstring), coarse to fine over ``blurs_mm``."""
+    with ``reference``'s: the ``searched`` motions (module docstring), coarse to fine over ``blurs_mm``.
+    ``unseen``: per image, None or a bool image, True where that view cannot show a vessel; the planes
+    through vessels that run into it are not compared ("Truncation"). Too few planes left: no search, no motion."""
     from .calibration import moved
 
     t0 = time.perf_counter()
     centre = np.asarray(centre_mm, float)
     ref_rays, view_rays = with_equal_totals([rays_of(reference_image, reference), rays_of(image, view)], centre)
+    cut = (truncated_rays(reference_image, unseen[0], reference), truncated_rays(image, unseen[1], view))
+    cut_pixels = tuple(0 if c is None else len(c.weights) for c in cut)
     axes = motion_axes(reference, view, centre)
     unknown = [name for name in searched if name not in axes]
     if unknown or not searched:
         raise EpipolarError(f"unknown motion(s) {unknown or searched}; choose among {', '.join(axes)}")
     basis = np.stack([axes[name] for name in searched])
     limits = _limits(searched, axes, max_rotation_deg, max_translation_mm)
+    planes = min(len(plane_sampling(ref_rays, view_rays, blur, centre, truncated=cut)) for blur in blurs_mm)
+    if planes < MIN_UNTRUNCATED_PLANES:
+        return MotionEstimate(np.asarray(view.object_rotation_deg, float), np.asarray(view.object_translation_mm, float),
+                              centre, np.zeros(6), {name: 0.0 for name in searched}, [], float("nan"), float("nan"),
+                              time.perf_counter() - t0, cut_pixels, planes)
 
     def cost(params: np.ndarray, blur: float) -> float:
         if np.any(np.abs(params) > limits):
             return 10.0  # outside the range searched: worse than any pair of images (costs ≤ 4)
         motion = params @ basis
-        return consistency(ref_rays, view_rays.moved(motion[:3], motion[3:], centre), blur, centre)["cost"]
+        return consistency(ref_rays, view_rays.moved(motion[:3], motion[3:], centre), blur, centre,
+                           truncated=(cut[0], _moved(cut[1], motion, centre)))["cost"]
 
     params = np.zeros(len(searched))
     before = cost(params, blurs_mm[-1])
@@ -297,7 +372,7 @@ def estimate_motion(reference: CArmView, reference_image: np.ndarray, view: CArm
     at_limit = [name for name, value, limit in zip(searched, params, limits) if abs(value) >= 0.99 * limit]
     return MotionEstimate(np.asarray(final.object_rotation_deg), np.asarray(final.object_translation_mm), centre, motion,
                           {name: float(v) for name, v in zip(searched, params)}, at_limit,
-                          before, cost(params, blurs_mm[-1]), time.perf_counter() - t0)
+                          before, cost(params, blurs_mm[-1]), time.perf_counter() - t0, cut_pixels, planes)
 
 
 def _limits(names: Sequence[str], axes: Dict[str, np.ndarray], max_rotation_deg: float, max_translation_mm: float) -> np.ndarray:
@@ -307,31 +382,38 @@ def _limits(names: Sequence[str], axes: Dict[str, np.ndarray], max_rotation_deg:
 def estimate_motions(views: Sequence[CArmView], images: Sequence[np.ndarray], centre_mm: Sequence[float],
                      max_rotation_deg: float = 4.0, max_translation_mm: float = 6.0,
                      blurs_mm: Sequence[float] = SEARCH_BLURS_MM, joint_blurs_mm: Sequence[float] = JOINT_BLURS_MM,
-                     prior_weight: float = MOTION_PRIOR_WEIGHT, progress=None) -> List[MotionEstimate]:
+                     prior_weight: float = MOTION_PRIOR_WEIGHT, progress=None,
+                     unseen: Optional[Sequence[Optional[np.ndarray]]] = None) -> List[MotionEstimate]:
     """The object motion of every view after the first (the reference), one estimate each.
 
     Each view is first matched to view 1 alone (``estimate_motion``: the three motions that pair
     observes). With three views or more, every pair of views is then made consistent at once over all
     six motions of each view: the shift along view 1–k's baseline, invisible to that pair, moves view
-    k across the planes of its pair with a third view. ``progress(k, total, message)`` is told each step."""
+    k across the planes of its pair with a third view. ``progress(k, total, message)`` is told each step.
+    ``unseen``: per view None or its bool image of what it cannot show (``estimate_motion``); where a pair has too
+    few planes left for the joint search, each view keeps what matching it to view 1 found."""
     from .calibration import moved
 
     t0 = time.perf_counter()
     views, centre = list(views), np.asarray(centre_mm, float)
     if len(views) != len(images) or len(views) < 2:
         raise EpipolarError(f"need one image per view and two views at least (got {len(views)} views, {len(images)} images)")
+    unseen = list(unseen) if unseen is not None else [None] * len(views)
+    if len(unseen) != len(views):
+        raise EpipolarError(f"{len(unseen)} unseen-pixel images for {len(views)} views")
     total = len(views) - 1 + (len(views) > 2)
     pairwise = []
     for k in range(1, len(views)):
         if progress:
             progress(k, total, f"view {k + 1}: consistency of its frame with view 1's")
         pairwise.append(estimate_motion(views[0], images[0], views[k], images[k], centre, max_rotation_deg,
-                                        max_translation_mm, blurs_mm))
+                                        max_translation_mm, blurs_mm, unseen=(unseen[0], unseen[k])))
     if len(views) == 2:
         return pairwise
     if progress:
         progress(total, total, "every pair of views at once")
     rays = with_equal_totals([rays_of(image, view) for image, view in zip(images, views)], centre)
+    cut = [truncated_rays(image, u, view) for image, u, view in zip(images, unseen, views)]
     axes = [motion_axes(views[0], view, centre) for view in views[1:]]
     bases = [np.stack([a[name] for name in ALL_MOTIONS]) for a in axes]  # orthonormal: rows are unit, orthogonal
     limits = np.concatenate([_limits(ALL_MOTIONS, a, max_rotation_deg, max_translation_mm) for a in axes])
@@ -344,9 +426,13 @@ def estimate_motions(views: Sequence[CArmView], images: Sequence[np.ndarray], ce
     def moved_rays(params: np.ndarray) -> List[LineIntegralImage]:
         return [r.moved(m[:3], m[3:], centre) if k else r for k, (r, m) in enumerate(zip(rays, motions(params)))]
 
+    def moved_cut(params: np.ndarray) -> List[Optional[LineIntegralImage]]:
+        return [_moved(c, m, centre) if k else c for k, (c, m) in enumerate(zip(cut, motions(params)))]
+
     def pair_cost(params: np.ndarray, blur: float) -> float:
-        current = moved_rays(params)
-        return sum(consistency(current[i], current[j], blur, centre)["cost"] for i, j in pairs)
+        current, edges = moved_rays(params), moved_cut(params)
+        return sum(consistency(current[i], current[j], blur, centre, truncated=(edges[i], edges[j]))["cost"]
+                   for i, j in pairs)
 
     def residuals(params: np.ndarray, blur: float, planes: List[np.ndarray], scales: List[float]) -> np.ndarray:
         current = moved_rays(params)
@@ -358,11 +444,15 @@ def estimate_motions(views: Sequence[CArmView], images: Sequence[np.ndarray], ce
 
     params = np.clip(np.concatenate([basis @ estimate.added for basis, estimate in zip(bases, pairwise)]),
                      -0.98 * limits, 0.98 * limits)
+    fewest = min(len(plane_sampling(rays[i], rays[j], blur, centre, truncated=(cut[i], cut[j])))
+                 for i, j in pairs for blur in joint_blurs_mm)
+    if fewest < MIN_UNTRUNCATED_PLANES:
+        return pairwise
     before = pair_cost(np.zeros_like(params), joint_blurs_mm[-1])
     for blur in joint_blurs_mm:
         # Gauss–Newton on the plane derivatives' differences, the planes and scales held for the stage
-        current = moved_rays(params)
-        planes = [plane_sampling(current[i], current[j], blur, centre) for i, j in pairs]
+        current, edges = moved_rays(params), moved_cut(params)
+        planes = [plane_sampling(current[i], current[j], blur, centre, truncated=(edges[i], edges[j])) for i, j in pairs]
         scales = [consistency(current[i], current[j], blur, centre, kappa=k)["scale"] for (i, j), k in zip(pairs, planes)]
         params = least_squares(residuals, params, args=(blur, planes, scales), bounds=(-limits, limits),
                                diff_step=JOINT_DIFF_STEP, x_scale=1.0, max_nfev=JOINT_MAX_EVALUATIONS).x
@@ -376,5 +466,5 @@ def estimate_motions(views: Sequence[CArmView], images: Sequence[np.ndarray], ce
                     if abs(value) >= 0.99 * limit]
         out.append(MotionEstimate(np.asarray(final.object_rotation_deg), np.asarray(final.object_translation_mm), centre,
                                   motion, {name: float(v) for name, v in zip(ALL_MOTIONS, own)}, at_limit,
-                                  before, after, seconds))
+                                  before, after, seconds, tuple(0 if c is None else len(c.weights) for c in cut), fewest))
     return out

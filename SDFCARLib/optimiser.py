@@ -966,8 +966,10 @@ def fit_field(geometry: Geometry, targets: Sequence[np.ndarray], settings: Setti
     if settings.calibration.calibrate_from_frames and len(geometry.views) > 1 and evidence.images is not None:
         from .calibration import calibrate_from_frames
 
+        unseen = (unknown_pixels(frames, targets, geometry, target_kind)[0]
+                  if settings.calibration.calibration_skip_truncated_planes else None)
         calibrations.append(calibrate_from_frames(geometry, evidence.images, progress,
-                                                  settings.calibration.calibration_min_consistency_gain))
+                                                  settings.calibration.calibration_min_consistency_gain, unseen))
         geometry = calibrations[-1].geometry
     if settings.calibration.calibrate and len(geometry.views) > 1:
         from .calibration import calibrate

@@ -274,6 +274,11 @@ class CalibrationSettings:
     # motion, noise in the segmented masks lets the search divide it by up to 1.4 with spurious turns that
     # cost clDice; simulated motions (up to 3 mm / 2°) divide it by 2.4–114 on 18 of 20 cases (RESULTS §20). 1: always
     calibration_min_consistency_gain: float = 2.0
+    # ... comparing only the epipolar planes on which no vessel runs into a view's collimator, clipped part or image
+    # edge (their integrals miss what the view cannot see). On collimated static pairs every plane let the search turn
+    # two views of twenty by 3–3.8° that were not there (−44 clDice points each); skipping the truncated planes stops
+    # that, but with motion it found poses that scored lower on 8 of 10 cases (RESULTS §91): off, measured
+    calibration_skip_truncated_planes: bool = False
     calibrate: bool = False  # the search by re-fitting the field per candidate pose (minutes per view)
     calibration_range_mm: float = 4.0  # shift candidates within ± this
     # rotation candidates within ± this; 0 (the default) searches the shift only: on masks segmented from

@@ -275,3 +275,23 @@ def test_calibrate_from_frames_leaves_a_pose_beyond_its_range_as_given_and_warns
     assert result.geometry.views[1] == VIEW_2
     assert result.views[0]["left_as_given"] is True
     assert len(result.warnings) == 1 and "end of its range" in result.warnings[0] and "view 2" in result.warnings[0]
+
+
+def test_calibrate_from_frames_leaves_a_view_whose_vessels_run_into_its_collimator_everywhere_as_given_and_warns():
+    from blob_phantom import VIEW_1, VIEW_2, blob_image
+    from SDFCARLib.calibration import calibrate_from_frames
+
+    grid = VolumeGrid((32, 32, 32), (2.0, 2.0, 2.0), (0.0, 0.0, 0.0))
+    images = [blob_image(VIEW_1), blob_image(VIEW_2.with_object_motion((0.7, 0.5, 0.0), (0.0, 0.0, -1.2)))]
+    geometry = Geometry(grid, (VIEW_1, VIEW_2))
+    unseen = [None, ~(images[1] > 0)]  # view 2 sees only its vessels' pixels: every plane through them is cut
+    result = calibrate_from_frames(geometry, images, unseen=unseen)
+    assert result.geometry.views == (VIEW_1, VIEW_2)
+    (entry,) = result.views
+    assert entry["left_as_given"] is True and "not truncated" in entry["why_left_as_given"]
+    assert entry["consistency_gain"] is None and entry["truncated_pixels"][1] > 0
+    assert len(result.warnings) == 1 and "collimator" in result.warnings[0] and "view 2" in result.warnings[0]
+    # the same frames with nothing said of what they cannot see: the motion is found, as without collimators
+    open_field = calibrate_from_frames(geometry, images, unseen=[None, None])
+    assert open_field.geometry.views[1] != VIEW_2 and open_field.views[0]["planes_compared"] == 256
+    assert open_field.views[0]["truncated_pixels"] == [0, 0]

@@ -6,13 +6,16 @@ import math
 
 import numpy as np
 import pytest
+from scipy import ndimage
 
 from blob_phantom import AMPLITUDES, CENTRES, SIGMA_MM, VIEW_1, VIEW_2, VIEW_3, blob_image
 from SDFCARLib.calibration import moved
 from SDFCARLib.geometry import rotation_matrix
-from SDFCARLib.line_integral_consistency import (EpipolarError, consistency, epipolar_frame, estimate_motion,
-                                                  equal_total_factors, estimate_motions, plane_angles,
-                                                  plane_derivatives, rays_of, with_equal_totals)
+from SDFCARLib.line_integral_consistency import (MIN_UNTRUNCATED_PLANES, TRUNCATION_PLANE_MARGIN,
+                                                  TRUNCATION_REACH_PX, EpipolarError, consistency, epipolar_frame,
+                                                  estimate_motion, equal_total_factors, estimate_motions, plane_angles,
+                                                  plane_derivatives, plane_sampling, rays_of, truncated_rays,
+                                                  with_equal_totals)
 
 #: VIEW_1 with pixels a third the size: its rays are pooled 3 × 3 (``RAY_PIXEL_MM``)
 FINE_VIEW_1 = dataclasses.replace(VIEW_1, pixel_spacing_mm=(0.8 / 3, 0.8 / 3), detector_shape=(384, 384))
@@ -165,3 +168,66 @@ def test_estimate_motions_with_two_views_is_estimate_motion_and_refuses_a_missin
     np.testing.assert_allclose(joint.translation_mm, alone.translation_mm)
     with pytest.raises(EpipolarError, match="one image per view"):
         estimate_motions([VIEW_1, VIEW_2, VIEW_3], images, np.zeros(3))
+
+
+def _shutter_rows(rows: int) -> np.ndarray:
+    """View 2's detector behind a shutter over its first ``rows`` rows: the epipolar lines of the LAO/RAO pair run
+    along rows, so the shutter's edge lies along the planes, as a collimator's top edge does."""
+    unseen = np.zeros(VIEW_2.detector_shape, dtype=bool)
+    unseen[:rows] = True
+    return unseen
+
+
+def test_truncated_rays_are_the_vessel_pixels_next_to_what_the_view_cannot_see():
+    image = blob_image(VIEW_2)
+    assert truncated_rays(image, None, VIEW_2) is None
+    assert truncated_rays(image, _shutter_rows(2), VIEW_2) is None  # no vessel reaches the shutter
+    unseen = _shutter_rows(50)
+    image[unseen] = 0.0  # what the shutter hides is not in the frame
+    rays = truncated_rays(image, unseen, VIEW_2)
+    # the vessel pixels of the TRUNCATION_REACH_PX rows next to the shutter, one ray each
+    expected = np.count_nonzero(image[50:50 + TRUNCATION_REACH_PX] > 0)
+    assert expected > 0 and len(rays.weights) == expected and rays.directions.shape == (expected, 3)
+    with pytest.raises(EpipolarError, match="unseen-pixel image"):
+        truncated_rays(image, unseen[:64], VIEW_2)
+
+
+def test_planes_through_truncated_rays_are_left_out_and_no_others():
+    centre = CENTRES.mean(axis=0)
+    unseen = _shutter_rows(50)
+    image_2 = blob_image(VIEW_2)
+    image_2[unseen] = 0.0
+    rays_1, rays_2 = rays_of(blob_image(VIEW_1), VIEW_1), rays_of(image_2, VIEW_2)
+    cut = truncated_rays(image_2, unseen, VIEW_2)
+    blur = 1.0
+    every = plane_sampling(rays_1, rays_2, blur, centre)
+    kept = plane_sampling(rays_1, rays_2, blur, centre, truncated=(None, cut))
+    n0, m = epipolar_frame(rays_1.source_mm, rays_2.source_mm, centre)
+    cut_kappa = plane_angles(cut, rays_1.source_mm, n0, m)
+    epsilon = blur / float(np.linalg.norm(rays_1.source_mm - centre))
+    distance = np.abs(every[:, None] - cut_kappa[None, :]).min(axis=1)
+    np.testing.assert_array_equal(kept, every[distance > TRUNCATION_PLANE_MARGIN * epsilon])
+    assert 0 < len(kept) < len(every)
+    # without truncated rays: every plane, as before
+    np.testing.assert_array_equal(plane_sampling(rays_1, rays_2, blur, centre, truncated=(None, None)), every)
+
+
+def test_a_shutter_that_touches_no_vessel_changes_nothing_in_the_motion_search():
+    true_rotation, true_translation = np.array([0.8, -0.6, 0.0]), np.array([0.0, 0.0, 1.5])
+    seen = blob_image(VIEW_2.with_object_motion(true_rotation, true_translation))
+    plain = estimate_motion(VIEW_1, blob_image(VIEW_1), VIEW_2, seen, np.zeros(3))
+    shuttered = estimate_motion(VIEW_1, blob_image(VIEW_1), VIEW_2, seen, np.zeros(3), unseen=(_shutter_rows(2), None))
+    np.testing.assert_array_equal(shuttered.added, plain.added)
+    assert shuttered.truncated_pixels == (0, 0) and shuttered.planes_compared == plain.planes_compared == 256
+
+
+def test_a_pair_truncated_on_almost_every_plane_is_not_measured():
+    image_2 = blob_image(VIEW_2.with_object_motion((0.5, 0.0, 0.0), (0.0, 0.0, 1.0)))
+    unseen = ~(image_2 > 0)  # every vessel pixel next to what the view cannot see
+    estimate = estimate_motion(VIEW_1, blob_image(VIEW_1), VIEW_2, image_2, np.zeros(3), unseen=(None, unseen))
+    assert not estimate.measured and estimate.planes_compared < MIN_UNTRUNCATED_PLANES
+    np.testing.assert_array_equal(estimate.added, np.zeros(6))
+    np.testing.assert_array_equal(estimate.rotation_deg, VIEW_2.object_rotation_deg)
+    # the vessel pixels within the reach (taxicab, as the dilation counts it) of a pixel the view cannot see
+    rim = (image_2 > 0) & (ndimage.distance_transform_cdt(image_2 > 0, metric="taxicab") <= TRUNCATION_REACH_PX)
+    assert estimate.truncated_pixels == (0, int(np.count_nonzero(rim)))
