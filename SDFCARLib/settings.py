@@ -276,7 +276,7 @@ class CalibrationSettings:
     calibration_min_consistency_gain: float = 2.0
     # ... comparing only the epipolar planes on which no vessel runs into a view's collimator, clipped part or image
     # edge (their integrals miss what the view cannot see). On collimated static pairs every plane let the search turn
-    # two views of twenty by 3–3.8° that were not there (−44 clDice points each); skipping the truncated planes stops
+    # two views of twenty by 3–3.8° that were not there (−44, −43 clDice points); skipping the truncated planes stops
     # that, but with motion it found poses that scored lower on 14 of 20 cases (RESULTS §91): off, measured
     calibration_skip_truncated_planes: bool = False
     calibrate: bool = False  # the search by re-fitting the field per candidate pose (minutes per view)
