@@ -53,7 +53,7 @@ from .geometry import Geometry
 from .hull import support_mask
 from .losses import (DistanceSettings, GeometricLoss, ViewTarget, excess_path_loss, frame_target, make_target,
                      occupancy_loss, partial_occupancy_loss)
-from .consistency import consistency_warnings, view_consistency, view_separation_warnings
+from .consistency import agreement_warnings, view_agreement, view_separation_warnings
 from .evidence import (EvidenceError, EvidenceSettings, assumed_frame_intensity, is_binary_image, unreadable_intensity,
                        view_evidence)
 from .mask_checks import mask_warnings, support_masks
@@ -177,6 +177,8 @@ class Problem:
     mask_targets: Optional[List[ViewTarget]] = None
     # per view, bool (H, W): the pixels whose 0 is no evidence (``unknown_pixels``), None: every pixel known
     unknown: Optional[List[np.ndarray]] = None
+    # per view: share of its centreline that runs where another view cannot see (consistency.view_agreement)
+    one_view_shares: List[float] = field(default_factory=list)
 
 
 def _normalised_points(geometry: Geometry, flat: np.ndarray, device: torch.device) -> torch.Tensor:
@@ -300,6 +302,8 @@ def build_problem(geometry: Geometry, targets: Sequence[np.ndarray], settings: S
     pixels = vessel_pixels(arrays, target_kind)
     warnings: List[str] = []
     consistency: List[float] = []
+    one_view_shares: List[float] = []
+    unseen_read = None  # frames_unseen's answer, read once for the checks and the unknown pixels
     # Hundreds of specks would each add a cone to the support (and time to every step), and, having
     # no partner in the other views, would read as a wrong geometry in the consistency check.
     despeckled, left_out = support_masks(pixels, geometry.views, grid)
@@ -308,8 +312,11 @@ def build_problem(geometry: Geometry, targets: Sequence[np.ndarray], settings: S
             warnings += mask_warnings(mask, view.pixel_spacing_mm, source=f"view {n}")
         # Seconds to catch a wrong angle sign or a mask of the wrong view before minutes of work.
         warnings += view_separation_warnings(geometry)
-        consistency = view_consistency(geometry, despeckled)
-        warnings += consistency_warnings(consistency)
+        unseen_read = frames_unseen(frames, geometry, target_kind)
+        agreements = view_agreement(geometry, despeckled, unseen_read[0])
+        consistency = [a.consistency for a in agreements]
+        one_view_shares = [a.one_view_share for a in agreements]
+        warnings += agreement_warnings(agreements)
     if settings.region.support == "hull":
         pixels = despeckled
         warnings += left_out
@@ -327,7 +334,7 @@ def build_problem(geometry: Geometry, targets: Sequence[np.ndarray], settings: S
                   for a, e in zip(arrays, evidence_images)]
     unknown = None
     if settings.region.frames_unseen_unknown:
-        unknown, unreadable = unknown_pixels(frames, pixels, geometry, target_kind)
+        unknown, unreadable = unknown_pixels(frames, pixels, geometry, target_kind, unseen_read)
         warnings += unreadable
     for message in warnings:
         _report(progress, phase="warning", message=message, step=0, total=settings.optimisation.total_steps,
@@ -392,29 +399,45 @@ def build_problem(geometry: Geometry, targets: Sequence[np.ndarray], settings: S
             record["excess_tolerance_mm"] = settings.loss.frame_excess_tolerance_mm
     return Problem(geometry, settings, target_kind, arrays, support, voxels, device, device_reason, needed_bytes,
                    projectors, view_targets, geometric, time.perf_counter() - t_start, warnings, consistency, record,
-                   mask_targets=mask_targets, unknown=unknown)
+                   mask_targets=mask_targets, unknown=unknown, one_view_shares=one_view_shares)
 
 
-def unknown_pixels(frames: Optional[Sequence[Optional[np.ndarray]]], masks: Sequence[np.ndarray], geometry: Geometry,
-                   target_kind: str) -> Tuple[Optional[List[np.ndarray]], List[str]]:
-    """Per view, the pixels whose mask value says nothing (``frames_unseen_unknown``): those its frame cannot show a
-    vessel in (``masks.unseen_pixels``) that the mask leaves empty — a pixel the mask marks stays evidence — and the
-    warnings of views whose frame could not be read (every pixel of those stays known). None where there is nothing
-    to read them off: no frames, line-integral targets, or binary "frames" (masks)."""
+def frames_unseen(frames: Optional[Sequence[Optional[np.ndarray]]], geometry: Geometry,
+                  target_kind: str) -> Tuple[Optional[List[Optional[np.ndarray]]], List[str]]:
+    """Per view, the pixels its frame cannot show a vessel in (``masks.unseen_pixels``: collimator, clipped parts),
+    None for a view whose frame could not be read, with a warning each. None where there is nothing to read them
+    off: no frames, line-integral targets, or binary "frames" (masks)."""
     if frames is None or target_kind != "mask" or len(frames) != len(geometry.views):
         return None, []
     if any(frame is None or np.shape(frame) != tuple(view.detector_shape) or is_binary_image(frame)
            for frame, view in zip(frames, geometry.views)):
         return None, []
-    unknown, warnings = [], []
-    for n, (frame, mask, view) in enumerate(zip(frames, masks, geometry.views), start=1):
-        mask = np.asarray(mask, bool)
+    unseen: List[Optional[np.ndarray]] = []
+    warnings = []
+    for n, (frame, view) in enumerate(zip(frames, geometry.views), start=1):
         try:
-            unknown.append(unseen_pixels(frame, view.pixel_spacing_mm, view.magnification) & ~mask)
+            unseen.append(unseen_pixels(frame, view.pixel_spacing_mm, view.magnification))
         except MaskError as exc:
-            unknown.append(np.zeros_like(mask))
+            unseen.append(None)
             warnings.append(f"view {n}: its frame's collimator and clipped parts could not be read ({exc}); every pixel of "
                             "its mask is taken as seen")
+    return unseen, warnings
+
+
+def unknown_pixels(frames: Optional[Sequence[Optional[np.ndarray]]], masks: Sequence[np.ndarray], geometry: Geometry,
+                   target_kind: str, unseen: Optional[Tuple[Optional[List[Optional[np.ndarray]]], List[str]]] = None,
+                   ) -> Tuple[Optional[List[np.ndarray]], List[str]]:
+    """Per view, the pixels whose mask value says nothing (``frames_unseen_unknown``): those its frame cannot show a
+    vessel in (``frames_unseen``; ``unseen``: its answer, when already read) that the mask leaves empty — a pixel the
+    mask marks stays evidence — and the warnings of views whose frame could not be read (every pixel of those stays
+    known). None where there is nothing to read them off."""
+    images, warnings = unseen if unseen is not None else frames_unseen(frames, geometry, target_kind)
+    if images is None:
+        return None, warnings
+    unknown = []
+    for image, mask in zip(images, masks):
+        mask = np.asarray(mask, bool)
+        unknown.append(np.zeros_like(mask) if image is None else image & ~mask)
     return unknown, warnings
 
 
@@ -791,6 +814,8 @@ def finish(problem: Problem, model: ImplicitField, history: List[Dict[str, float
                       "total": time.perf_counter() - t_start, "per_step": optimise_s / steps},
         "warnings": list(problem.warnings) + qa_warned,
         "view_consistency": list(problem.consistency),
+        # per view, the share of its vessel centreline that runs where another view cannot show it (seen by one view)
+        "one_view_share": [round(v, 4) for v in problem.one_view_shares],
         "frame_evidence": problem.evidence,
         # per view, the share of the detector whose mask value was taken as unknown (None: every pixel known)
         "unknown_pixel_fraction": None if problem.unknown is None else [round(float(u.mean()), 4) for u in problem.unknown],

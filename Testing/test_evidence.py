@@ -274,10 +274,28 @@ def test_what_a_collimator_hides_from_one_view_is_unknown_to_it_not_background()
     result = reconstruct(geometry, masks, make_settings("fast", steps=10, warmup_steps=2, frames_unseen_unknown=True),
                          "mask", frames=frames)
     assert result.report["unknown_pixel_fraction"] == [round(float((u & ~m).mean()), 4) for u, m in zip(unseen, masks)]
+    assert result.report["one_view_share"][0] > 0.3 and result.report["one_view_share"][1] == 0.0
     # the reprojection QA (its numbers and its pictures) counts only what each view could see
     projected = [p for p, _ in result.qa_masks]
     assert not any(np.any(p & u & ~m) for p, u, m in zip(projected, unseen, masks))
     assert result.report["reprojection_qa"][1]["pixels"]["result_only"] == int((projected[1] & ~masks[1]).sum())
+
+
+def test_a_vessel_behind_the_other_views_collimator_is_named_as_such_not_as_a_wrong_geometry():
+    label, silhouettes, frames = _one_vessel_frames((0.0, 0.25))  # view 2 collimated tightly
+    unseen = [unseen_pixels(f, v.pixel_spacing_mm, v.magnification) for f, v in zip(frames, VIEWS)]
+    masks = [s & ~u for s, u in zip(silhouettes, unseen)]
+    geometry = Geometry(GRID, VIEWS)
+    problem = build_problem(geometry, masks, make_settings("fast"), "mask", frames=frames)
+    assert problem.consistency[0] < 0.9  # most of view 1's vessel has no partner in view 2's mask
+    assert problem.one_view_shares[0] > 0.3 and problem.one_view_shares[1] == 0.0
+    named = [w for w in problem.warnings if "where view 2 cannot show them (behind a collimator" in w]
+    assert len(named) == 1 and named[0].startswith("view 1: ") and "no partner" in named[0]
+    assert not any(w.startswith("view 1: only") for w in problem.warnings)  # not the bare geometry warning
+    # masks handed over as the frames: the collimator cannot be read, and the missing partners are what they were
+    as_masks = build_problem(geometry, masks, make_settings("fast"), "mask", frames=[m.astype(np.uint8) * 255 for m in masks])
+    assert as_masks.one_view_shares == [0.0, 0.0]
+    assert any(w.startswith("view 1: only") and "angle signs" in w and "collimator" in w for w in as_masks.warnings)
 
 
 def test_occupancy_loss_fits_the_frames_then_the_masks_when_asked(angiogram_case):
