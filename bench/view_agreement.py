@@ -9,7 +9,8 @@ Per case and view: the consistency (centreline with a partner in the other view)
 detector) and the views hiding it; with the frames' unseen parts read as a run reads them (``masks.unseen_pixels``).
 ``--fault VIEW FIELD VALUE`` gives one view a wrong value (e.g. a flipped secondary angle) after the simulation, to
 see whether a wrong geometry still gets the geometry checks named. Then the tally over the cases: how many get the
-bare geometry warning, the one-view message with the geometry checks, and the one-view message alone. No fit runs.
+bare geometry warning, the one-view message with the geometry checks, and the one-view message alone (a case counts
+under each its views' messages fall in). No fit runs.
 """
 
 from __future__ import annotations
@@ -64,9 +65,9 @@ def main() -> None:
         kinds = {("one view + geometry checks" if "cannot show them" in w else
                   "one view alone" if "cannot show it" in w else "geometry") for w in warnings
                  if GEOMETRY_CHECKS in w or "cannot show" in w}
-        kind = ("geometry" if "geometry" in kinds else "one view + geometry checks" if "one view + geometry checks" in kinds
-                else "one view alone" if kinds else "nothing")
-        tally[kind] += 1
+        for kind in kinds or {"nothing"}:  # a case counts in every kind one of its views' messages is
+            tally[kind] += 1
+        kind = ", ".join(sorted(kinds)) or "nothing"
         per_view = "  ".join(f"view {n}: consistency {a.consistency:.3f}, one view only {a.one_view_share:.3f}"
                              f"{' (hidden by view ' + ', '.join(map(str, a.hidden_by)) + ')' if a.hidden_by else ''}"
                              for n, a in enumerate(agreements, start=1))
