@@ -88,12 +88,15 @@ def _unseen_distance_px(unseen: Optional[np.ndarray], shape: Sequence[int]) -> n
     return ndimage.distance_transform_edt(~padded)[1:-1, 1:-1]
 
 
-def _read(image: np.ndarray, view: CArmView, points: np.ndarray, outside: float) -> np.ndarray:
+def _pixel_coordinates(view: CArmView, points: np.ndarray) -> np.ndarray:
+    """(2, N) row and column of the points' projections (far off the detector where they have none)."""
     row, col, _ = view.project(points.reshape(-1, 3))
     inside = np.isfinite(row) & np.isfinite(col)
-    coords = np.vstack([np.where(inside, row, -1e6), np.where(inside, col, -1e6)])
-    values = ndimage.map_coordinates(image, coords, order=1, mode="constant", cval=outside)
-    return values.reshape(points.shape[:-1])
+    return np.vstack([np.where(inside, row, -1e6), np.where(inside, col, -1e6)])
+
+
+def _read(image: np.ndarray, coordinates: np.ndarray, outside: float, shape: Tuple[int, ...]) -> np.ndarray:
+    return ndimage.map_coordinates(image, coordinates, order=1, mode="constant", cval=outside).reshape(shape)
 
 
 def view_agreement(geometry: Geometry, masks: Sequence[np.ndarray],
@@ -139,15 +142,15 @@ def view_agreement(geometry: Geometry, masks: Sequence[np.ndarray],
             along = (centre - origin) @ direction.T
             points = origin + (along[:, None] + depths[None, :])[..., None] * direction[:, None, :]
             agreement = np.ones(points.shape[:2])
-            for j, other in enumerate(views):
-                if j != k:
-                    # Off the detector a view shows no vessel: far from its vessels.
-                    agreement *= np.exp(-0.5 * (_read(distance_mm[j], other, points, 1e3) / options.sigma_mm) ** 2)
+            coordinates = {j: _pixel_coordinates(views[j], points) for j in edge_px}
+            for j, at in coordinates.items():
+                # Off the detector a view shows no vessel: far from its vessels.
+                agreement *= np.exp(-0.5 * (_read(distance_mm[j], at, 1e3, agreement.shape) / options.sigma_mm) ** 2)
             partner[start:start + r.size] = agreement.max(axis=1)
             meets = agreement >= 0.5
             if meets.any():
-                for j in edge_px:
-                    near = np.where(meets, _read(unseen_px[j], views[j], points, 0.0), np.inf)
+                for j, at in coordinates.items():
+                    near = np.where(meets, _read(unseen_px[j], at, 0.0, agreement.shape), np.inf)
                     edge_px[j][start:start + r.size] = near.min(axis=1)
         explained = np.zeros(rows.size, dtype=bool)
         hidden_by: List[int] = []
