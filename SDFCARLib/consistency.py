@@ -20,7 +20,9 @@ Vessels one view cannot see
     its detector has no partner there, though nothing is wrong. Its centreline loses the partner
     where it enters: the partnered pixels just before the stretch have a partner next to that view's
     unseen part. Such stretches (``ViewAgreement.one_view_share``) are named for what they are
-    (``agreement_warnings``: missing from the result, or placed by one view). A wrong angle behind
+    (``agreement_warnings``: missing from the result, or placed by one view); their centreline pixels
+    (``ViewAgreement.one_view_pixels_rc``) are drawn on the view's QA overlay (``qa.py``). The rule is
+    strict: it finds a part of such vessels, mostly right (RESULTS §93). A wrong angle behind
     a collimator can look the same (lonely stretches next to partners at the shutter's edge: on
     collimated pairs with a flipped secondary angle most were explained so, RESULTS §92), so the
     geometry checks are still named whenever the consistency is low.
@@ -38,7 +40,7 @@ What it cannot see
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import List, Optional, Sequence, Tuple
 
 import numpy as np
@@ -78,6 +80,15 @@ class ViewAgreement:
     hidden_by: Tuple[int, ...]  # the views (numbered from 1) whose unseen part those vessels run into
     # the consistency with those pixels counted as partnered: whether they explain what has no partner
     visible_consistency: float
+    # (2, N) row and column of those centreline pixels, for the QA overlay (``qa.qa_overlay_rgb``)
+    one_view_pixels_rc: np.ndarray = field(default_factory=lambda: np.zeros((2, 0), dtype=np.int64),
+                                           compare=False, repr=False)
+
+    def one_view_image(self, shape: Sequence[int]) -> np.ndarray:
+        """Bool image (the view's detector ``shape``) of its centreline pixels seen by it alone."""
+        image = np.zeros(tuple(shape), dtype=bool)
+        image[self.one_view_pixels_rc[0], self.one_view_pixels_rc[1]] = True
+        return image
 
 
 def _unseen_distance_px(unseen: Optional[np.ndarray], shape: Sequence[int]) -> np.ndarray:
@@ -175,7 +186,8 @@ def view_agreement(geometry: Geometry, masks: Sequence[np.ndarray],
                     explained |= np.isin(labels[rows, cols], touching)
                     hidden_by.append(j + 1)
         out.append(ViewAgreement(float(partner.mean()), float(explained.mean()), tuple(hidden_by),
-                                 float(np.where(explained, 1.0, partner).mean())))
+                                 float(np.where(explained, 1.0, partner).mean()),
+                                 np.vstack([rows[explained], cols[explained]]).astype(np.int64)))
     return out
 
 

@@ -144,6 +144,9 @@ class Reconstruction:
     history: List[Dict[str, float]] = field(default_factory=list)
     # Per view (projected segmentation, vessel mask), bool: outputs.py draws qa_view<n>.png from them.
     qa_masks: List[Tuple[np.ndarray, np.ndarray]] = field(default_factory=list)
+    # Per view, bool: its centreline pixels that only it can show (``consistency.view_agreement``), marked on
+    # qa_view<n>.png; empty where the check did not run
+    one_view_pixels: List[np.ndarray] = field(default_factory=list)
 
 
 @dataclass
@@ -179,6 +182,7 @@ class Problem:
     unknown: Optional[List[np.ndarray]] = None
     # per view: share of its centreline that runs where another view cannot see (consistency.view_agreement)
     one_view_shares: List[float] = field(default_factory=list)
+    one_view_pixels: List[np.ndarray] = field(default_factory=list)  # per view, bool (H, W): those centreline pixels
 
 
 def _normalised_points(geometry: Geometry, flat: np.ndarray, device: torch.device) -> torch.Tensor:
@@ -303,6 +307,7 @@ def build_problem(geometry: Geometry, targets: Sequence[np.ndarray], settings: S
     warnings: List[str] = []
     consistency: List[float] = []
     one_view_shares: List[float] = []
+    one_view_pixels: List[np.ndarray] = []
     unseen_read = None  # frames_unseen's answer, read once for the checks and the unknown pixels
     # Hundreds of specks would each add a cone to the support (and time to every step), and, having
     # no partner in the other views, would read as a wrong geometry in the consistency check.
@@ -316,6 +321,7 @@ def build_problem(geometry: Geometry, targets: Sequence[np.ndarray], settings: S
         agreements = view_agreement(geometry, despeckled, unseen_read[0])
         consistency = [a.consistency for a in agreements]
         one_view_shares = [a.one_view_share for a in agreements]
+        one_view_pixels = [a.one_view_image(v.detector_shape) for a, v in zip(agreements, geometry.views)]
         warnings += agreement_warnings(agreements)
     if settings.region.support == "hull":
         pixels = despeckled
@@ -399,7 +405,8 @@ def build_problem(geometry: Geometry, targets: Sequence[np.ndarray], settings: S
             record["excess_tolerance_mm"] = settings.loss.frame_excess_tolerance_mm
     return Problem(geometry, settings, target_kind, arrays, support, voxels, device, device_reason, needed_bytes,
                    projectors, view_targets, geometric, time.perf_counter() - t_start, warnings, consistency, record,
-                   mask_targets=mask_targets, unknown=unknown, one_view_shares=one_view_shares)
+                   mask_targets=mask_targets, unknown=unknown, one_view_shares=one_view_shares,
+                   one_view_pixels=one_view_pixels)
 
 
 def frames_unseen(frames: Optional[Sequence[Optional[np.ndarray]]], geometry: Geometry,
@@ -777,7 +784,8 @@ def finish(problem: Problem, model: ImplicitField, history: List[Dict[str, float
         raise ReconstructionCancelled("cancelled after reprojecting the result")
     if problem.unknown is not None:  # only what each view could see: a vessel behind its collimator disagrees with nothing
         projected = [p & ~u for p, u in zip(projected, problem.unknown)]
-    qa = [reprojection_qa(p, m, v) for p, m, v in zip(projected, references, geometry.views)]
+    one_view = problem.one_view_pixels or [None] * len(geometry.views)
+    qa = [reprojection_qa(p, m, v, o) for p, m, v, o in zip(projected, references, geometry.views, one_view)]
     qa_warned = qa_warnings(qa)
     for message in qa_warned:
         _report(progress, phase="warning", message=message, step=steps, total=steps, elapsed_s=optimise_s,
@@ -821,7 +829,7 @@ def finish(problem: Problem, model: ImplicitField, history: List[Dict[str, float
         "unknown_pixel_fraction": None if problem.unknown is None else [round(float(u.mean()), 4) for u in problem.unknown],
     }
     return Reconstruction(geometry, settings, occupancy_volume, field_volume, segmentation, problem.support, report, history,
-                          list(zip(projected, references)))
+                          list(zip(projected, references)), list(problem.one_view_pixels))
 
 
 def grown_segmentation(segmentation: np.ndarray, occupancy: np.ndarray, region: RegionSettings) -> np.ndarray:

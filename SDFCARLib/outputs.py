@@ -298,9 +298,11 @@ def write_reconstruction(
             "SDFCAR.geometryDigest": result.geometry.digest(),
             "SDFCAR.coordinateSystem": "LPS",
         }
+        one_view = list(getattr(result, "one_view_pixels", []))
         for n, (projected, mask) in enumerate(qa_masks, start=1):
             title = qa_title(n, qa_numbers[n - 1]) if n <= len(qa_numbers) else f"view {n}"
-            write_qa_png(staging / qa_file_name(n), None, projected, mask, title)
+            write_qa_png(staging / qa_file_name(n), None, projected, mask, title,
+                         one_view[n - 1] if n <= len(one_view) else None)
         scene = _write_scene(staging, name, result, attributes)
         if not scene["written"]:
             report_warnings.append(f"scene.mrml was not written: {scene['reason']}")

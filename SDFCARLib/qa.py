@@ -9,6 +9,11 @@ size of the disagreement can. Per view (``reprojection_qa``) the pixels split in
 * mask only    — the mask shows vessel the result does not explain (a vessel only this view
                  shows, a mask drawn on another frame or cardiac phase, wrong angles).
 
+Where the check before the run found vessels that only this view can show (they run where another
+view's collimator, clipped frame or detector edge hides them: ``consistency.view_agreement``), their
+centreline is drawn over the colours, and a mask-only blob lying along it is named as such: one view
+cannot place a vessel in depth, so a blob there is expected, not a sign of a wrong mask or angle.
+
 Areas are in mm² at the isocenter plane (pixel count × the view's isocenter pixel spacings), so
 that views of different magnification compare. The largest disagreeing blob of each kind is an
 8-connected component of that kind after an opening with a 3 × 3 square: the one-pixel rims that
@@ -37,18 +42,23 @@ AGREE_RGB = (0, 158, 115)  # bluish green
 RESULT_ONLY_RGB = (213, 94, 0)  # vermillion
 MASK_ONLY_RGB = (0, 114, 178)  # blue
 OUTLINE_RGB = (240, 228, 66)  # yellow: the box around the largest blob of each kind
+ONE_VIEW_RGB = (204, 121, 167)  # reddish purple: the centreline of vessels only this view can show
 LEGEND_BACKGROUND_RGB = (0, 0, 0)
 LEGEND_TEXT_RGB = (255, 255, 255)
 FRAME_GREY_MAX = 150  # the frame underneath stays darker than the colours drawn over it
 
 LEGEND = (("both", AGREE_RGB), ("result only", RESULT_ONLY_RGB), ("mask only", MASK_ONLY_RGB),
-          ("largest blob", OUTLINE_RGB))
+          ("seen by this view only", ONE_VIEW_RGB), ("largest blob", OUTLINE_RGB))
 LEGEND_LINE_PX = 12
 LEGEND_HEIGHT_PX = LEGEND_LINE_PX * (len(LEGEND) + 1) + 4  # a title line and one line per entry
 LEGEND_WIDTH_PX = 200
 
 WARN_SHARE = 0.10  # result-only or mask-only area above this share of the mask's area
 WARN_BLOB_MM2 = 5.0  # a disagreeing blob (after the opening) larger than this at the isocenter
+# a mask pixel this close (pixels) to the centreline of a vessel only this view shows belongs to that vessel
+# (the widest coronary vessels are about 6 pixels across at 0.3 mm)
+ONE_VIEW_NEAR_PX = 4
+ONE_VIEW_BLOB_SHARE = 0.5  # a mask-only blob mostly along such a vessel is named as one
 
 _EIGHT = np.ones((3, 3), dtype=bool)
 KINDS = ("result_only", "mask_only")
@@ -68,8 +78,11 @@ def _as_bool(image: np.ndarray, name: str, shape: Optional[Tuple[int, ...]] = No
     return a != 0
 
 
-def largest_blob(disagreement: np.ndarray, pixel_area_mm2: float) -> Optional[Dict[str, Any]]:
-    """The largest 8-connected blob of ``disagreement`` after a 3 × 3 opening, or None when none is left."""
+def largest_blob(disagreement: np.ndarray, pixel_area_mm2: float,
+                 one_view_near: Optional[np.ndarray] = None) -> Optional[Dict[str, Any]]:
+    """The largest 8-connected blob of ``disagreement`` after a 3 × 3 opening, or None when none is left;
+    with ``one_view_near`` (bool image: the pixels of vessels only this view shows) also the share of the
+    blob's pixels that lie there."""
     opened = ndimage.binary_opening(disagreement, structure=_EIGHT)
     labels, count = ndimage.label(opened, structure=_EIGHT)
     if count == 0:
@@ -77,17 +90,36 @@ def largest_blob(disagreement: np.ndarray, pixel_area_mm2: float) -> Optional[Di
     sizes = np.bincount(labels.reshape(-1), minlength=count + 1)[1:]
     index = int(np.argmax(sizes)) + 1
     rows, cols = np.nonzero(labels == index)
-    return {
+    blob: Dict[str, Any] = {
         "pixels": int(rows.size),
         "area_mm2": float(rows.size * pixel_area_mm2),
         "centroid_rc": [float(rows.mean()), float(cols.mean())],
         # inclusive pixel bounds: [row_min, col_min, row_max, col_max]
         "bbox_rc": [int(rows.min()), int(cols.min()), int(rows.max()), int(cols.max())],
     }
+    if one_view_near is not None:
+        blob["one_view_share"] = float(one_view_near[rows, cols].mean())
+    return blob
 
 
-def reprojection_qa(projected_mask: np.ndarray, mask: np.ndarray, view: CArmView) -> Dict[str, Any]:
-    """Agreement of one view's mask with the projection of the result (see the module docstring)."""
+def one_view_region(one_view: Optional[np.ndarray], mask: np.ndarray) -> Optional[np.ndarray]:
+    """The mask's pixels within ``ONE_VIEW_NEAR_PX`` of the centreline pixels only this view shows (None: none)."""
+    if one_view is None:
+        return None
+    centreline = _as_bool(one_view, "the one-view centreline image", mask.shape)
+    if not centreline.any():
+        return np.zeros(mask.shape, dtype=bool)
+    return (ndimage.distance_transform_edt(~centreline) <= ONE_VIEW_NEAR_PX) & mask
+
+
+def reprojection_qa(projected_mask: np.ndarray, mask: np.ndarray, view: CArmView,
+                    one_view: Optional[np.ndarray] = None) -> Dict[str, Any]:
+    """Agreement of one view's mask with the projection of the result (see the module docstring).
+
+    ``one_view``: bool image of the centreline pixels of vessels only this view shows
+    (``consistency.ViewAgreement.one_view_image``); with it each largest blob carries the share of its
+    pixels along those vessels (``one_view_share``), and ``one_view_area_mm2`` the area of the mask there
+    (``mask``) and of the mask-only pixels there (``mask_only``)."""
     projected = _as_bool(projected_mask, "the projected mask")
     reference = _as_bool(mask, "the mask", projected.shape)
     if projected.shape != tuple(view.detector_shape):
@@ -109,9 +141,17 @@ def reprojection_qa(projected_mask: np.ndarray, mask: np.ndarray, view: CArmView
         # Empty on both sides is perfect agreement.
         "dice": 2.0 * counts["agree"] / total if total else 1.0,
         "share_of_mask": {k: counts[k] / mask_pixels if mask_pixels else float(counts[k] > 0) for k in KINDS},
-        "largest_blob": {k: largest_blob(parts[k], pixel_area) for k in KINDS},
     }
+    near = one_view_region(one_view, reference)
+    out["largest_blob"] = {k: largest_blob(parts[k], pixel_area, near) for k in KINDS}
+    if near is not None:
+        out["one_view_area_mm2"] = {"mask": int(near.sum()) * pixel_area,
+                                    "mask_only": int((near & parts["mask_only"]).sum()) * pixel_area}
     return out
+
+
+_ONE_VIEW_WHY = ("their centreline reddish purple: the check before the run traced them into a part another view "
+                 "cannot show, and one view cannot place a vessel in depth")
 
 
 def qa_warnings(per_view: Sequence[Dict[str, Any]], share: float = WARN_SHARE,
@@ -130,9 +170,17 @@ def qa_warnings(per_view: Sequence[Dict[str, Any]], share: float = WARN_SHARE,
                 r, c = blob["centroid_rc"]
                 where = f"; its largest blob, {blob['area_mm2']:.1f} mm², is at row {r:.0f}, column {c:.0f}"
             amount = f"{qa['area_mm2'][kind]:.1f} mm² ({100 * qa['share_of_mask'][kind]:.0f} % of the mask's area)"
-            if kind == "mask_only":
+            one_view_mm2 = qa.get("one_view_area_mm2", {}).get("mask_only", 0.0)
+            if kind == "mask_only" and blob is not None and blob.get("one_view_share", 0.0) >= ONE_VIEW_BLOB_SHARE:
                 out.append(
                     f"view {n}: the result does not explain {amount} of the mask{where} ({qa_file_name(n)}, blue); "
+                    f"it lies along vessels that only this view shows ({_ONE_VIEW_WHY}). A view whose field includes "
+                    "them would; if the other views do show them, check the angles and masks instead")
+            elif kind == "mask_only":
+                along = (f"; {one_view_mm2:.1f} mm² of it lies along vessels that only this view shows ({_ONE_VIEW_WHY})"
+                         if one_view_mm2 > 0 else "")
+                out.append(
+                    f"view {n}: the result does not explain {amount} of the mask{where} ({qa_file_name(n)}, blue){along}; "
                     "check that the mask was drawn on this view's frame and cardiac phase, the view's angles "
                     "(LAO +, RAO −, CRA +, CAU −) and SID/SOD, or whether that vessel is seen in this view only")
             else:
@@ -180,8 +228,11 @@ def _legend(width: int, title: str) -> np.ndarray:
 
 
 def qa_overlay_rgb(frame: Optional[np.ndarray], projected_mask: np.ndarray, mask: np.ndarray,
-                   title: str = "") -> np.ndarray:
+                   title: str = "", one_view: Optional[np.ndarray] = None) -> np.ndarray:
     """RGB uint8 image: the detector (rows × cols, colours as in ``LEGEND``) above a legend strip.
+
+    ``one_view``: bool image of the centreline pixels of vessels only this view shows, drawn over the
+    other colours one pixel wide (the colours either side still say whether the result explains them).
 
     The image is ``(rows + LEGEND_HEIGHT_PX, max(cols, LEGEND_WIDTH_PX, title width), 3)``; detector pixel
     (r, c) is image pixel (r, c). Without a frame the background is black.
@@ -196,6 +247,8 @@ def qa_overlay_rgb(frame: Optional[np.ndarray], projected_mask: np.ndarray, mask
     detector[projected & reference] = AGREE_RGB
     detector[parts["result_only"]] = RESULT_ONLY_RGB
     detector[parts["mask_only"]] = MASK_ONLY_RGB
+    if one_view is not None:
+        detector[_as_bool(one_view, "the one-view centreline image", projected.shape)] = ONE_VIEW_RGB
     for kind in KINDS:
         blob = largest_blob(parts[kind], 1.0)
         if blob is not None:
@@ -215,12 +268,12 @@ def qa_title(view_number: int, qa: Dict[str, Any]) -> str:
 
 
 def write_qa_png(path: Union[str, Path], frame: Optional[np.ndarray], projected_mask: np.ndarray, mask: np.ndarray,
-                 title: str = "") -> Path:
+                 title: str = "", one_view: Optional[np.ndarray] = None) -> Path:
     """Write ``qa_overlay_rgb`` as a PNG; returns the path."""
     import imageio.v3 as iio  # as in io.py: the PNG writer is only needed when writing
 
     path = Path(path)
-    iio.imwrite(path, qa_overlay_rgb(frame, projected_mask, mask, title), extension=".png")
+    iio.imwrite(path, qa_overlay_rgb(frame, projected_mask, mask, title, one_view), extension=".png")
     return path
 
 
@@ -235,8 +288,9 @@ def qa_summary(report: Dict[str, Any]) -> List[Dict[str, Any]]:
 
     One dict per view, in view order: ``view``, ``dice``, ``result_only_mm2``, ``mask_only_mm2``,
     ``result_only_share``, ``mask_only_share`` (of the mask's area), ``largest_blob_mm2`` (the larger
-    of the two kinds, or None), ``file`` (the overlay's name) and ``warnings``. [] for a report
-    without reprojection QA (written before it existed).
+    of the two kinds, or None), ``one_view_mask_only_mm2`` (the mask-only area along vessels only this
+    view shows, or None where the check did not run), ``file`` (the overlay's name) and ``warnings``.
+    [] for a report without reprojection QA (written before it existed).
     """
     per_view = report.get("reprojection_qa") or []
     warnings = report.get("warnings") or []
@@ -255,6 +309,7 @@ def qa_summary(report: Dict[str, Any]) -> List[Dict[str, Any]]:
             "result_only_share": shares.get("result_only"),
             "mask_only_share": shares.get("mask_only"),
             "largest_blob_mm2": max(blobs) if blobs else None,
+            "one_view_mask_only_mm2": (qa.get("one_view_area_mm2") or {}).get("mask_only"),
             "file": qa_file_name(n),
             "warnings": view_warnings(warnings, n),
         })
@@ -274,6 +329,8 @@ def qa_summary_lines(report: Dict[str, Any]) -> List[str]:
                 f"({_formatted(row['result_only_share'], '{:.0f}', 100)} % of the mask), "
                 f"mask only {_formatted(row['mask_only_mm2'], '{:.1f}')} mm² "
                 f"({_formatted(row['mask_only_share'], '{:.0f}', 100)} %)")
+        if row["one_view_mask_only_mm2"]:
+            line += f", {_formatted(row['one_view_mask_only_mm2'], '{:.1f}')} mm² of it where only this view sees"
         if row["warnings"]:
             line += f"; {len(row['warnings'])} warning(s)"
         lines.append(line)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from skimage.morphology import skeletonize
 
 from SDFCARLib.consistency import (ConsistencyOptions, agreement_warnings, consistency_warnings, view_agreement,
                                      view_consistency)
@@ -115,6 +116,11 @@ def test_a_vessel_behind_one_views_shutter_is_named_and_not_blamed_on_the_geomet
     assert seen[1].visible_consistency >= ConsistencyOptions().warn_below
     assert seen[1].visible_consistency == pytest.approx(seen[1].consistency + seen[1].one_view_share, abs=0.02)
     assert seen[0].one_view_share == 0.0  # view 1 shows nothing view 2 cannot
+    # the pixels themselves, for the QA overlay: view 2's centreline, as many as the share says, none for view 1
+    found = seen[1].one_view_image(masks[1].shape)
+    assert found.sum() == round(seen[1].one_view_share * skeletonize(masks[1]).sum())
+    assert not (found & ~skeletonize(masks[1])).any() and not seen[0].one_view_image(masks[0].shape).any()
+    assert not blind[1].one_view_image(masks[1].shape).any()
     (message,) = agreement_warnings(seen)  # what is missing, why, and what would make it a wrong geometry
     assert message.startswith(f"view 2: {100 * (1 - seen[1].consistency):.0f} % of its vessel centreline has no partner")
     assert "where view 1 cannot show them (behind a collimator" in message and "angle signs" in message

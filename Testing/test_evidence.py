@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import math
+import sys
 
+import imageio.v3 as iio
 import numpy as np
 import pytest
 import torch
@@ -17,7 +19,9 @@ from SDFCARLib.losses import make_target, frame_target, occupancy_loss
 from SDFCARLib.masks import segment_angiogram, unseen_pixels
 from SDFCARLib.line_integral_consistency import equal_total_factors, rays_of
 from SDFCARLib.optimiser import build_problem, occupancy_targets, occupancy_terms, read_frame_evidence, reconstruct
+from SDFCARLib.outputs import write_reconstruction
 from SDFCARLib.phantoms import Branch, CentrelineTree, simulate_views, voxelize
+from SDFCARLib.qa import ONE_VIEW_RGB
 from SDFCARLib.settings import ReconstructionError, make_settings
 
 MU = 0.25
@@ -235,7 +239,7 @@ def test_reconstruction_fits_the_frames_when_asked(angiogram_case):
     assert overlap > 0.6 and result.segmentation.sum() < 2.0 * label.sum()
 
 
-def test_what_a_collimator_hides_from_one_view_is_unknown_to_it_not_background():
+def test_what_a_collimator_hides_from_one_view_is_unknown_to_it_not_background(tmp_path, monkeypatch):
     label, silhouettes, frames = _one_vessel_frames((0.0, 0.25))  # view 2 collimated tightly
     unseen = [unseen_pixels(f, v.pixel_spacing_mm, v.magnification) for f, v in zip(frames, VIEWS)]
     masks = [s & ~u for s, u in zip(silhouettes, unseen)]  # a mask shows nothing where its frame does not
@@ -279,6 +283,18 @@ def test_what_a_collimator_hides_from_one_view_is_unknown_to_it_not_background()
     projected = [p for p, _ in result.qa_masks]
     assert not any(np.any(p & u & ~m) for p, u, m in zip(projected, unseen, masks))
     assert result.report["reprojection_qa"][1]["pixels"]["result_only"] == int((projected[1] & ~masks[1]).sum())
+    # what view 1 alone shows is marked on its QA overlay and measured in its QA numbers; view 2 has none
+    one_view = result.one_view_pixels
+    assert one_view[0].any() and not (one_view[0] & ~masks[0]).any() and not one_view[1].any()
+    along = [qa["one_view_area_mm2"]["mask"] for qa in result.report["reprojection_qa"]]
+    assert along[0] > 0.0 == along[1]
+    monkeypatch.setitem(sys.modules, "SDFCARLib.mrml", None)  # no scene: not what is tested here
+    files = write_reconstruction(result, tmp_path / "result")
+    for n, expected in ((1, one_view[0]), (2, one_view[1])):
+        image = iio.imread(files[f"qa_view{n}"])[:128, :128]
+        drawn = np.all(image == ONE_VIEW_RGB, axis=-1)
+        # every marked pixel (a largest blob's yellow box may cross a few)
+        assert not (drawn & ~expected).any() and drawn.sum() >= 0.9 * expected.sum()
 
 
 def test_a_vessel_behind_the_other_views_collimator_is_named_as_such_not_as_a_wrong_geometry():

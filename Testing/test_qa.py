@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 
 from SDFCARLib.geometry import CArmView
-from SDFCARLib.qa import (AGREE_RGB, LEGEND, LEGEND_HEIGHT_PX, MASK_ONLY_RGB, OUTLINE_RGB, RESULT_ONLY_RGB,
-                          qa_overlay_rgb, qa_warnings, reprojection_qa)
+from SDFCARLib.qa import (AGREE_RGB, LEGEND, LEGEND_HEIGHT_PX, MASK_ONLY_RGB, ONE_VIEW_RGB, OUTLINE_RGB,
+                          RESULT_ONLY_RGB, qa_overlay_rgb, qa_summary, qa_summary_lines, qa_warnings, reprojection_qa)
 
 # Magnification 1000 / 800 = 1.25: 0.5 mm detector pixels are 0.4 mm at the isocenter, 0.16 mm².
 VIEW = CArmView(0.0, 0.0, 1000.0, 800.0, (0.5, 0.5), (60, 80))
@@ -79,6 +79,48 @@ def test_warning_names_the_view_the_place_and_what_to_check():
     assert "frame" in missing and "angles" in missing and "this view only" in missing
 
 
+def _one_view_centreline(rows=slice(41, 42), cols=slice(10, 40)):
+    """The centreline of the mask-only bar (rows 40–43): a vessel the check before the run found only this view shows."""
+    centreline = np.zeros((60, 80), dtype=bool)
+    centreline[rows, cols] = True
+    return centreline
+
+
+def test_a_blob_along_a_vessel_only_this_view_shows_is_named_as_such():
+    projected, mask = _constructed()
+    plain = reprojection_qa(projected, mask, VIEW)
+    assert "one_view_area_mm2" not in plain and "one_view_share" not in plain["largest_blob"]["mask_only"]
+    qa = reprojection_qa(projected, mask, VIEW, _one_view_centreline())
+    assert qa["pixels"] == plain["pixels"] and qa["dice"] == plain["dice"]  # the numbers do not change
+    # the bar's every pixel is within reach of its centreline, and the result explains none of it
+    assert qa["one_view_area_mm2"] == pytest.approx({"mask": 120 * PIXEL_MM2, "mask_only": 120 * PIXEL_MM2})
+    assert qa["largest_blob"]["mask_only"]["one_view_share"] == 1.0
+    assert qa["largest_blob"]["result_only"]["one_view_share"] == 0.0
+    good = reprojection_qa(mask, mask, VIEW)
+    ghost, missing = qa_warnings([good, qa])
+    assert ghost == qa_warnings([good, plain])[0]
+    assert missing.startswith("view 2: the result does not explain 19.2 mm²") and "row 42, column 24" in missing
+    assert "only this view shows" in missing and "reddish purple" in missing and "check the angles" in missing
+    assert missing != qa_warnings([good, plain])[1]
+    # the centreline of another vessel (the one both show): the blob is not along it, the old warning stands
+    elsewhere = reprojection_qa(projected, mask, VIEW, _one_view_centreline(slice(12, 13), slice(5, 55)))
+    assert elsewhere["largest_blob"]["mask_only"]["one_view_share"] == 0.0
+    assert elsewhere["one_view_area_mm2"]["mask_only"] == 0.0 < elsewhere["one_view_area_mm2"]["mask"]
+    assert qa_warnings([good, elsewhere]) == qa_warnings([good, plain])
+    # a short stretch of the bar: the largest blob is not mostly along it, but the area there is named
+    part = reprojection_qa(projected, mask, VIEW, _one_view_centreline(slice(41, 42), slice(10, 14)))
+    assert part["largest_blob"]["mask_only"]["one_view_share"] < 0.5
+    (_, partly) = qa_warnings([good, part])
+    assert partly.startswith(qa_warnings([good, plain])[1].split("; check")[0])
+    assert f"; {part['one_view_area_mm2']['mask_only']:.1f} mm² of it lies along vessels that only this view shows" in partly
+    with pytest.raises(ValueError, match="one-view centreline image"):
+        reprojection_qa(projected, mask, VIEW, _one_view_centreline()[:50])
+    # the status panel's line (Slicer's Results section) says it too, and only where there is such an area
+    plain_line, marked_line, elsewhere_line = (qa_summary_lines({"reprojection_qa": [q]})[0] for q in (plain, qa, elsewhere))
+    assert marked_line == plain_line + ", 19.2 mm² of it where only this view sees" and elsewhere_line == plain_line
+    assert qa_summary({"reprojection_qa": [plain]})[0]["one_view_mask_only_mm2"] is None
+
+
 def test_shape_mismatch_is_refused():
     projected, mask = _constructed()
     with pytest.raises(ValueError, match="shape"):
@@ -114,6 +156,21 @@ def test_overlay_has_the_palette_in_place_the_outlines_and_a_legend():
     for _, colour in LEGEND:
         assert np.all(legend == colour, axis=-1).sum() >= 50, colour  # a swatch of 10 × 9 pixels
     assert (legend.min(axis=-1) > 200).sum() > 100  # the text, white (anti-aliased)
+
+
+def test_overlay_draws_the_centreline_of_vessels_only_this_view_shows_over_the_colours():
+    projected, mask = _constructed()
+    centreline = _one_view_centreline()
+    plain = qa_overlay_rgb(None, projected, mask)
+    marked = qa_overlay_rgb(None, projected, mask, one_view=centreline)
+    assert plain.shape == marked.shape
+    detector = marked[:60, :80]
+    assert np.all(detector[centreline] == ONE_VIEW_RGB)
+    assert _colour(detector, 40, 24) == _colour(detector, 42, 24) == MASK_ONLY_RGB  # the vessel's colour either side
+    np.testing.assert_array_equal(detector[~centreline], plain[:60, :80][~centreline])
+    assert not np.all(plain[:60, :80] == ONE_VIEW_RGB, axis=-1).any()
+    with pytest.raises(ValueError, match="one-view centreline image"):
+        qa_overlay_rgb(None, projected, mask, one_view=centreline[:, :10])
 
 
 def test_overlay_shows_the_frame_in_grey_under_the_colours():
