@@ -224,7 +224,9 @@ def _rounded(value: float, digits: int) -> Optional[float]:
 
 def calibrate_from_frames(geometry: Geometry, line_integrals: Sequence[np.ndarray], progress=None,
                           min_consistency_gain: float = CalibrationSettings.calibration_min_consistency_gain,
-                          unseen: Optional[Sequence[Optional[np.ndarray]]] = None) -> Calibration:
+                          unseen: Optional[Sequence[Optional[np.ndarray]]] = None,
+                          confirm_unseen: Optional[Sequence[Optional[np.ndarray]]] = None,
+                          min_untruncated_gain: float = CalibrationSettings.calibration_min_untruncated_gain) -> Calibration:
     """Each view's object motion against view 1 from the epipolar consistency of the frames' vessel
     line integrals (``line_integral_consistency.py``), in seconds: with two views the three motions
     that pair observes; with three or more, all six of each view over every pair of views at once.
@@ -232,9 +234,13 @@ def calibrate_from_frames(geometry: Geometry, line_integrals: Sequence[np.ndarra
     A motion is applied only where it divides the inconsistency by ``min_consistency_gain`` or more;
     a smaller gain is what noise in the frames and masks alone allows the search (no motion to find).
     ``unseen``: per view None or a bool image, True where its frame cannot show a vessel (collimator, clipped or
-    image edge, ``masks.unseen_pixels``): the epipolar planes through vessels that run into it are not compared."""
+    image edge, ``masks.unseen_pixels``): the epipolar planes through vessels that run into it are not compared.
+    ``confirm_unseen`` (the same kind of images): a motion found for a view matched to view 1 alone is applied only
+    where it also divides the inconsistency on the planes those vessels leave untruncated by ``min_untruncated_gain``
+    (``line_integral_consistency.untruncated_gain``; a turn that hides what a collimator cuts makes them no more
+    consistent); 0 or no images: not checked, nor where fewer than ``MIN_UNTRUNCATED_PLANES`` planes are left."""
     from .line_integral_consistency import (ALL_MOTIONS, MIN_UNTRUNCATED_PLANES, OBSERVED_MOTIONS, WEAK_MOTIONS,
-                                            estimate_motions, motion_axes)
+                                            estimate_motions, motion_axes, untruncated_gain)
     from .optimiser import _report
 
     t0 = time.perf_counter()
@@ -291,7 +297,23 @@ def calibrate_from_frames(geometry: Geometry, line_integrals: Sequence[np.ndarra
                     f"the motion found made the views only {gain:.2f}× more consistent (at least {min_consistency_gain:g}× "
                     "asked): no more than noise in the frames and masks allows without any motion"))
             else:
-                views[k] = moved(views[k], estimate.added[:3], estimate.added[3:], centre)
+                confirmed = None
+                if confirm_unseen is not None and min_untruncated_gain > 0 and len(group) == 2:
+                    confirmed = untruncated_gain(views[0], line_integrals[0], views[k], line_integrals[k], centre,
+                                                 estimate.added, (confirm_unseen[0], confirm_unseen[k]))
+                if confirmed is not None:
+                    entry.update(untruncated_consistency_gain=_rounded(confirmed[0], 2), untruncated_planes=confirmed[1])
+                    if confirmed[1] < MIN_UNTRUNCATED_PLANES:  # too few to tell: the search's own gain decides
+                        entry["untruncated_check"] = (f"not made: only {confirmed[1]} planes are untruncated "
+                                                      f"({MIN_UNTRUNCATED_PLANES} needed)")
+                        confirmed = None
+                if confirmed is not None and confirmed[0] < min_untruncated_gain:
+                    entry.update(left_as_given=True, why_left_as_given=(
+                        f"the motion found made the views {gain:.2f}× more consistent, but on the epipolar planes no "
+                        f"vessel running into a collimator or the image's edge lies on only {confirmed[0]:.2f}× (at least "
+                        f"{min_untruncated_gain:g}× asked): it hides what the field of view cuts rather than undoing a motion"))
+                else:
+                    views[k] = moved(views[k], estimate.added[:3], estimate.added[3:], centre)
             entry.update(consistency_before=_rounded(estimate.cost_before, 5), consistency_after=_rounded(estimate.cost_after, 5),
                          consistency_gain=_rounded(gain, 2),
                          truncated_pixels=list(estimate.truncated_pixels), planes_compared=estimate.planes_compared,

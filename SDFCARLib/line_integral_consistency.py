@@ -38,7 +38,10 @@ Truncation
     vessel pixels next to it), the planes through those rays are left out of the comparison. That
     stops the spurious turns on static pairs, but a vessel hidden further along still reaches planes
     that are compared, and with real motion the poses found so scored lower (§91): the run asks for it
-    only with ``calibration_skip_truncated_planes``.
+    only with ``calibration_skip_truncated_planes``. What the run does instead: it searches every plane,
+    then scores the motion found on the untruncated planes alone (``untruncated_gain``). A real motion
+    makes those planes more consistent too; a turn that only hides what a collimator cuts does not
+    (on the collimated static pairs it made them less consistent, §93), and is not applied.
 
 Three views or more
     Each pair has its own baseline, so what view 1–k cannot see moves view k across the planes of
@@ -271,6 +274,25 @@ def consistency(a: LineIntegralImage, b: LineIntegralImage, blur_mm: float, cent
     scale = 0.5 * float(np.sum(rho_a ** 2 + rho_b ** 2))
     cost = float(np.sum((rho_a - rho_b) ** 2) / scale) if scale > 0 else float("nan")
     return {"cost": cost, "kappa": kappa, "rho_a": rho_a, "rho_b": rho_b, "scale": scale}
+
+
+def untruncated_gain(reference: CArmView, reference_image: np.ndarray, view: CArmView, image: np.ndarray,
+                     centre_mm: Sequence[float], added: np.ndarray, unseen: Sequence[Optional[np.ndarray]],
+                     blur_mm: float = SEARCH_BLURS_MM[-1]) -> Optional[Tuple[float, int]]:
+    """How much the motion ``added`` (``MotionEstimate.added``, of ``view``'s object) divides the two views'
+    inconsistency on the epipolar planes no truncated vessel ray lies on (``truncated_rays`` of ``unseen``, moved
+    with the view), and the fewest planes so compared; None where no vessel of either view runs into its unseen part
+    (then every plane is untruncated: the search's own gain says it)."""
+    centre = np.asarray(centre_mm, float)
+    cut = (truncated_rays(reference_image, unseen[0], reference), truncated_rays(image, unseen[1], view))
+    if cut[0] is None and cut[1] is None:
+        return None
+    ref_rays, view_rays = with_equal_totals([rays_of(reference_image, reference), rays_of(image, view)], centre)
+    added = np.asarray(added, float)
+    before = consistency(ref_rays, view_rays, blur_mm, centre, truncated=cut)
+    after = consistency(ref_rays, view_rays.moved(added[:3], added[3:], centre), blur_mm, centre,
+                        truncated=(cut[0], _moved(cut[1], added, centre)))
+    return before["cost"] / max(after["cost"], 1e-12), min(len(before["kappa"]), len(after["kappa"]))
 
 
 @dataclass

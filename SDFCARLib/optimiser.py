@@ -291,13 +291,14 @@ def _frame_evidence(frames: Optional[Sequence[np.ndarray]], masks: Sequence[np.n
 
 def build_problem(geometry: Geometry, targets: Sequence[np.ndarray], settings: Settings, target_kind: str,
                   progress: Progress = None, check_masks: bool = True,
-                  frames: Optional[Sequence[np.ndarray]] = None, evidence: Optional[FrameEvidence] = None) -> Problem:
+                  frames: Optional[Sequence[np.ndarray]] = None, evidence: Optional[FrameEvidence] = None,
+                  unseen_read: Optional[Tuple[Optional[List[Optional[np.ndarray]]], List[str]]] = None) -> Problem:
     """Step 1: check the inputs, choose support and device, build projectors and losses.
 
     ``check_masks=False`` skips the mask and consistency checks (for the calibration's repeated
     short fits of the same masks, which the run itself checks once). ``frames``: the X-ray frames
     the masks were made from, one per view, for ``frame_evidence`` (``evidence``: their line
-    integrals already read, by ``read_frame_evidence``)."""
+    integrals already read, by ``read_frame_evidence``; ``unseen_read``: ``frames_unseen``'s answer, already read)."""
     t_start = time.perf_counter()
     arrays = validate_targets(targets, geometry, target_kind)
     _report(progress, phase="setup", step=0, total=settings.optimisation.total_steps, elapsed_s=0.0, eta_s=None,
@@ -308,7 +309,7 @@ def build_problem(geometry: Geometry, targets: Sequence[np.ndarray], settings: S
     consistency: List[float] = []
     one_view_shares: List[float] = []
     one_view_pixels: List[np.ndarray] = []
-    unseen_read = None  # frames_unseen's answer, read once for the checks and the unknown pixels
+    # frames_unseen's answer, read once for the calibration, the checks and the unknown pixels
     # Hundreds of specks would each add a cone to the support (and time to every step), and, having
     # no partner in the other views, would read as a wrong geometry in the consistency check.
     despeckled, left_out = support_masks(pixels, geometry.views, grid)
@@ -317,7 +318,8 @@ def build_problem(geometry: Geometry, targets: Sequence[np.ndarray], settings: S
             warnings += mask_warnings(mask, view.pixel_spacing_mm, source=f"view {n}")
         # Seconds to catch a wrong angle sign or a mask of the wrong view before minutes of work.
         warnings += view_separation_warnings(geometry)
-        unseen_read = frames_unseen(frames, geometry, target_kind)
+        if unseen_read is None:
+            unseen_read = frames_unseen(frames, geometry, target_kind)
         agreements = view_agreement(geometry, despeckled, unseen_read[0])
         consistency = [a.consistency for a in agreements]
         one_view_shares = [a.one_view_share for a in agreements]
@@ -996,13 +998,16 @@ def fit_field(geometry: Geometry, targets: Sequence[np.ndarray], settings: Setti
     np.random.seed(settings.run.seed % (2**32))
     evidence = read_frame_evidence(frames, targets, geometry, settings, target_kind, frame_intensity)
     calibrations = []
+    unseen_read = None
     if settings.calibration.calibrate_from_frames and len(geometry.views) > 1 and evidence.images is not None:
         from .calibration import calibrate_from_frames
 
-        unseen = (unknown_pixels(frames, targets, geometry, target_kind)[0]
-                  if settings.calibration.calibration_skip_truncated_planes else None)
-        calibrations.append(calibrate_from_frames(geometry, evidence.images, progress,
-                                                  settings.calibration.calibration_min_consistency_gain, unseen))
+        unseen_read = frames_unseen(frames, geometry, target_kind)
+        unseen = unknown_pixels(frames, targets, geometry, target_kind, unseen_read)[0]
+        calibrations.append(calibrate_from_frames(
+            geometry, evidence.images, progress, settings.calibration.calibration_min_consistency_gain,
+            unseen if settings.calibration.calibration_skip_truncated_planes else None, confirm_unseen=unseen,
+            min_untruncated_gain=settings.calibration.calibration_min_untruncated_gain))
         geometry = calibrations[-1].geometry
     if settings.calibration.calibrate and len(geometry.views) > 1:
         from .calibration import calibrate
@@ -1010,7 +1015,8 @@ def fit_field(geometry: Geometry, targets: Sequence[np.ndarray], settings: Setti
         calibrations.append(calibrate(geometry, targets, settings, target_kind, progress=progress, cancel=cancel))
         geometry = calibrations[-1].geometry
         torch.manual_seed(settings.run.seed)
-    problem = build_problem(geometry, targets, settings, target_kind, progress, frames=frames, evidence=evidence)
+    problem = build_problem(geometry, targets, settings, target_kind, progress, frames=frames, evidence=evidence,
+                            unseen_read=unseen_read)
     if _is_cancelled(cancel):
         raise ReconstructionCancelled("cancelled before the optimisation started")
     model = ImplicitField(field_config(settings)).to(problem.device)

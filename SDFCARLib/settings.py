@@ -279,6 +279,10 @@ class CalibrationSettings:
     # two views of twenty by 3–3.8° that were not there (−44, −43 clDice points); skipping the truncated planes stops
     # that, but with motion it found poses that scored lower on 14 of 20 cases (RESULTS §91): off, measured
     calibration_skip_truncated_planes: bool = False
+    # ... and, searched on every plane, applied only where the motion found also divides the inconsistency by at least
+    # this on the planes no such vessel lies on (two views; a turn that hides what a collimator cuts makes them no more
+    # consistent: 0.50× and 0.91× on the two spurious static turns, 2.0–66× where the views moved, RESULTS §93). 0: off
+    calibration_min_untruncated_gain: float = 1.5
     calibrate: bool = False  # the search by re-fitting the field per candidate pose (minutes per view)
     calibration_range_mm: float = 4.0  # shift candidates within ± this
     # rotation candidates within ± this; 0 (the default) searches the shift only: on masks segmented from
@@ -490,6 +494,11 @@ class Settings:
             raise ReconstructionError(
                 f"calibration_min_consistency_gain must be at least 1 (default 2: the found motion must halve the views' "
                 f"inconsistency; 1 applies whatever is found), got {cal.calibration_min_consistency_gain}")
+        if not (math.isfinite(cal.calibration_min_untruncated_gain) and cal.calibration_min_untruncated_gain >= 0):
+            raise ReconstructionError(
+                "calibration_min_untruncated_gain must be 0 (no check) or more (default 1.5: the motion found must make "
+                "the epipolar planes no collimator cuts 1.5× more consistent too), got "
+                f"{cal.calibration_min_untruncated_gain}")
         if run.threads is not None and run.threads < 1:
             raise ReconstructionError(f"threads must be at least 1, got {run.threads}")
 

@@ -277,6 +277,64 @@ def test_calibrate_from_frames_leaves_a_pose_beyond_its_range_as_given_and_warns
     assert len(result.warnings) == 1 and "end of its range" in result.warnings[0] and "view 2" in result.warnings[0]
 
 
+def _behind_a_shutter(image, shutter):
+    return np.where(shutter, 0.0, image)  # the frame shows nothing where the collimator is
+
+
+def test_a_turn_that_only_hides_what_a_collimator_cuts_is_not_applied_and_a_real_motion_still_is():
+    from blob_phantom import VIEW_1, VIEW_2, blob_image
+    from SDFCARLib.calibration import calibrate_from_frames
+    from SDFCARLib.line_integral_consistency import untruncated_gain
+
+    grid = VolumeGrid((32, 32, 32), (2.0, 2.0, 2.0), (0.0, 0.0, 0.0))
+    geometry = Geometry(grid, (VIEW_1, VIEW_2))
+    shutter = np.zeros(VIEW_2.detector_shape, bool)
+    shutter[-60:] = True  # view 2's lower collimator blade cuts blobs
+    static = [blob_image(VIEW_1), _behind_a_shutter(blob_image(VIEW_2), shutter)]
+    moved = [blob_image(VIEW_1), _behind_a_shutter(blob_image(VIEW_2.with_object_motion((0.0, 0.0, 0.0), (0.0, 0.0, 1.5))),
+                                                   shutter)]
+
+    # no motion: searched on every plane, the cut makes a turn look like a gain over the gate, as on collimated pairs
+    blind = calibrate_from_frames(geometry, static)
+    assert blind.views[0]["consistency_gain"] >= 2.0 and blind.geometry.views[1] != VIEW_2
+    checked = calibrate_from_frames(geometry, static, confirm_unseen=[None, shutter])
+    (entry,) = checked.views
+    assert checked.geometry.views == (VIEW_1, VIEW_2) and entry["left_as_given"] is True
+    assert entry["untruncated_consistency_gain"] < 1.5 and entry["untruncated_planes"] >= 64
+    assert "hides what the field of view cuts" in entry["why_left_as_given"] and not checked.warnings
+    off = calibrate_from_frames(geometry, static, confirm_unseen=[None, shutter], min_untruncated_gain=0.0)
+    assert off.geometry.views[1] == blind.geometry.views[1] and "untruncated_consistency_gain" not in off.views[0]
+
+    # the views moved: the planes the shutter leaves whole agree far better after the motion found, so it is applied
+    found = calibrate_from_frames(geometry, moved, confirm_unseen=[None, shutter])
+    (entry,) = found.views
+    assert "left_as_given" not in entry and entry["untruncated_consistency_gain"] > 5
+    assert found.geometry.views[1] == calibrate_from_frames(geometry, moved).geometry.views[1]
+
+    # nothing runs into the shutter (none given, or one that cuts no vessel): nothing to check
+    centre = (0.0, 0.0, 0.0)
+    assert untruncated_gain(VIEW_1, static[0], VIEW_2, static[1], centre, np.zeros(6), (None, None)) is None
+    edge = np.zeros(VIEW_2.detector_shape, bool)
+    edge[:2] = True
+    assert untruncated_gain(VIEW_1, static[0], VIEW_2, static[1], centre, np.zeros(6), (None, edge)) is None
+    gain, planes = untruncated_gain(VIEW_1, static[0], VIEW_2, static[1], centre, np.zeros(6), (None, shutter))
+    assert gain == pytest.approx(1.0) and 64 <= planes < 256  # no motion, no change; the cut planes left out
+
+
+def test_too_few_untruncated_planes_leave_the_search_to_decide():
+    from blob_phantom import VIEW_1, VIEW_2, blob_image
+    from SDFCARLib.calibration import calibrate_from_frames
+
+    geometry = Geometry(VolumeGrid((32, 32, 32), (2.0, 2.0, 2.0), (0.0, 0.0, 0.0)), (VIEW_1, VIEW_2))
+    shutter = np.zeros(VIEW_2.detector_shape, bool)
+    shutter[:, -30:] = True  # across the epipolar lines: most planes are cut
+    images = [blob_image(VIEW_1), _behind_a_shutter(blob_image(VIEW_2), shutter)]
+    checked = calibrate_from_frames(geometry, images, confirm_unseen=[None, shutter])
+    (entry,) = checked.views
+    assert entry["untruncated_planes"] < 64 and entry["untruncated_check"].startswith("not made: only")
+    assert checked.geometry.views[1] == calibrate_from_frames(geometry, images).geometry.views[1]
+
+
 def test_calibrate_from_frames_leaves_a_view_whose_vessels_run_into_its_collimator_everywhere_as_given_and_warns():
     from blob_phantom import VIEW_1, VIEW_2, blob_image
     from SDFCARLib.calibration import calibrate_from_frames

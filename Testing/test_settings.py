@@ -116,6 +116,8 @@ def test_overrides_and_none_values():
     (dict(min_fragment_volume_mm3=-1.0), "min_fragment_volume_mm3 must be 0 (off) or a volume in mm³"),
     (dict(one_view_reach_mm=-1.0), "one_view_reach_mm is how far (mm) the support follows a single view"),
     (dict(frames_unseen_reach_mm=-0.5), "frames_unseen_reach_mm is how far (mm)"),
+    (dict(calibration_min_untruncated_gain=-1.0), "calibration_min_untruncated_gain must be 0 (no check) or more"),
+    (dict(calibration_min_untruncated_gain=float("nan")), "calibration_min_untruncated_gain"),
 ])
 def test_bad_settings(kwargs, fragment):
     kwargs = dict(kwargs)
