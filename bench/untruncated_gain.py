@@ -23,28 +23,23 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import numpy as np  # noqa: E402
 
-from SDFCARLib.benchmark import BenchmarkConfig, GridOptions, build_cases, prepare_case  # noqa: E402
 from SDFCARLib.benchmark.report import machine_info  # noqa: E402
 from SDFCARLib.calibration import calibrate_from_frames  # noqa: E402
 from SDFCARLib.optimiser import frames_unseen, read_frame_evidence, unknown_pixels  # noqa: E402
-from SDFCARLib.settings import PROTOCOLS, make_settings  # noqa: E402
+from SDFCARLib.settings import make_settings  # noqa: E402
+from suite_cases import add_case_arguments, prepared_cases  # noqa: E402
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--protocol", required=True, choices=list(PROTOCOLS))
-    parser.add_argument("--suite", required=True, choices=("lad", "rca"))
-    parser.add_argument("--cases", type=int, default=10)
-    parser.add_argument("--masks", default="{}", help="JSON: realistic.RealisticOptions fields over the protocol's")
+    add_case_arguments(parser)
     args = parser.parse_args()
     overrides = json.loads(args.masks)
     print(f"machine: {machine_info()}; {args.protocol} {args.suite} cases 0–{args.cases - 1}, "
           f"masks {overrides or 'as the protocol'}", flush=True)
-    specs = build_cases(BenchmarkConfig(args.suite, Path("unused"), cases=args.cases, grid=GridOptions(),
-                                        protocol=args.protocol))
-    changed = 0
-    for spec in specs[:args.cases]:
-        case = prepare_case(spec, args.protocol, GridOptions(), overrides or None)
+    changed = cases = 0
+    for spec, case in prepared_cases(args):
+        cases += 1
         geometry = case.geometry
         if len(geometry.views) != 2:
             raise SystemExit("two-view protocols only: the check is made on a view matched to view 1 alone")
@@ -72,7 +67,7 @@ def main() -> None:
               f"{'—' if untruncated is None else untruncated} ({entry.get('untruncated_planes', '—')} planes); "
               f"{'applied' if applied else 'left as given: ' + str(entry.get('why_left_as_given', ''))[:60]}"
               f"{' (the check)' if stopped else ''}; truth motion {truth_text}; {seconds:.0f} s", flush=True)
-    print(f"left as given by the untruncated check: {changed} of {min(args.cases, len(specs))}")
+    print(f"left as given by the untruncated check: {changed} of {cases}")
 
 
 if __name__ == "__main__":

@@ -35,12 +35,11 @@ import numpy as np  # noqa: E402
 from scipy import ndimage  # noqa: E402
 from skimage.morphology import skeletonize  # noqa: E402
 
-from SDFCARLib.benchmark import BenchmarkConfig, GridOptions, build_cases, prepare_case  # noqa: E402
 from SDFCARLib.benchmark.report import machine_info  # noqa: E402
 from SDFCARLib.consistency import GEOMETRY_CHECKS, ConsistencyOptions, agreement_warnings, view_agreement  # noqa: E402
 from SDFCARLib.geometry import Geometry  # noqa: E402
 from SDFCARLib.masks import unseen_pixels  # noqa: E402
-from SDFCARLib.settings import PROTOCOLS  # noqa: E402
+from suite_cases import add_case_arguments, prepared_cases  # noqa: E402
 
 
 NEAR_PX = 2
@@ -85,10 +84,7 @@ def truth_scores(case, views, unseen, masks, agreements):
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--protocol", required=True, choices=list(PROTOCOLS))
-    parser.add_argument("--suite", required=True, choices=("lad", "rca"))
-    parser.add_argument("--cases", type=int, default=10)
-    parser.add_argument("--masks", default="{}", help="JSON: realistic.RealisticOptions fields over the protocol's")
+    add_case_arguments(parser)
     parser.add_argument("--fault", nargs=3, metavar=("VIEW", "FIELD", "VALUE"),
                         help="give view VIEW (from 1) the value VALUE of CArmView field FIELD after the simulation")
     parser.add_argument("--options", default="{}", help="JSON: consistency.ConsistencyOptions fields over the defaults")
@@ -102,10 +98,7 @@ def main() -> None:
           f"fault {args.fault or 'none'}, options {json.loads(args.options) or 'the defaults'}", flush=True)
     tally = {"geometry": 0, "one view + geometry checks": 0, "one view alone": 0, "nothing": 0}
     marked_total = right_total = truth_total = found_total = 0  # pixels over every case and view (--truth)
-    specs = build_cases(BenchmarkConfig(args.suite, Path("unused"), cases=args.cases, grid=GridOptions(),
-                                        protocol=args.protocol))
-    for spec in specs[:args.cases]:
-        case = prepare_case(spec, args.protocol, GridOptions(), overrides or None)
+    for spec, case in prepared_cases(args):
         views = list(case.geometry.views)
         unseen = [unseen_pixels(f, v.pixel_spacing_mm, v.magnification) for f, v in zip(case.frames, views)]
         if args.fault:
