@@ -1301,6 +1301,7 @@ class SDFCARLogic(ScriptedLoadableModuleLogic):
     def resultQAText(self, resultNode):
         """(text for the Results section: per-view QA numbers and the run's warnings, number of views)."""
         from SDFCARLib import mrml
+        from SDFCARLib.calibration import calibration_lines
         from SDFCARLib.qa import ensemble_choice_line, qa_summary_lines
 
         try:
@@ -1312,7 +1313,8 @@ class SDFCARLogic(ScriptedLoadableModuleLogic):
         if not lines:
             lines = ["This result has no reprojection QA (made by an SDFCAR version before it existed)."]
         choice = ensemble_choice_line(report)  # which of several fits was kept, by this QA
-        return "\n".join(lines + ([choice] if choice else []) + _warningLines(report)), views
+        poses = calibration_lines(report)  # what the frames' motion search corrected, or why not
+        return "\n".join(lines + ([choice] if choice else []) + poses + _warningLines(report)), views
 
     @staticmethod
     def analysisText(resultNode):

@@ -325,3 +325,34 @@ def calibrate_from_frames(geometry: Geometry, line_integrals: Sequence[np.ndarra
     found.sort(key=lambda entry: entry["view"])
     return Calibration(Geometry(geometry.volume, views), found, time.perf_counter() - t0, warnings,
                        method="epipolar consistency of the frames' vessel line integrals")
+
+
+def calibration_lines(report: Dict[str, Any]) -> List[str]:
+    """One line per view whose pose a run searched (report.json → ``calibration``, and ``first`` where the frames'
+    search ran before the re-fit one): the correction applied, or why the view was left as given. [] where none ran."""
+    calibration = report.get("calibration")
+    if not isinstance(calibration, dict) or calibration.get("method", "none") == "none":
+        return []
+    stages = ([calibration["first"]] if isinstance(calibration.get("first"), dict) else []) + [calibration]
+    lines = []
+    for stage in stages:
+        source = "from the frames" if "frames" in str(stage.get("method", "")) else "by re-fitting"
+        for entry in stage.get("views") or []:
+            if not isinstance(entry, dict):
+                continue
+            view = entry.get("view", "?")
+            if entry.get("skipped"):
+                lines.append(f"View {view}: pose not searched {source} ({entry['skipped']}).")
+            elif entry.get("left_as_given"):
+                lines.append(f"View {view}: pose left as given {source}: {entry.get('why_left_as_given', 'see report.json')}.")
+            else:
+                rotation = float(np.linalg.norm(entry.get("object_rotation_deg") or [0.0]))
+                shift = float(np.linalg.norm(entry.get("object_translation_mm") or [0.0]))
+                gains = []
+                if isinstance(entry.get("consistency_gain"), (int, float)):
+                    gains.append(f"the views {entry['consistency_gain']:.2f}× more consistent")
+                if isinstance(entry.get("untruncated_consistency_gain"), (int, float)):
+                    gains.append(f"{entry['untruncated_consistency_gain']:.2f}× on the planes no collimator cuts")
+                lines.append(f"View {view}: pose corrected {source}: its object turned {rotation:.2f}° and moved "
+                             f"{shift:.2f} mm{' (' + '; '.join(gains) + ')' if gains else ''}.")
+    return lines

@@ -311,6 +311,17 @@ def test_a_turn_that_only_hides_what_a_collimator_cuts_is_not_applied_and_a_real
     assert "left_as_given" not in entry and entry["untruncated_consistency_gain"] > 5
     assert found.geometry.views[1] == calibrate_from_frames(geometry, moved).geometry.views[1]
 
+    # what the command line and the Slicer module say of it
+    from SDFCARLib.calibration import calibration_lines
+
+    (said,) = calibration_lines({"calibration": checked.report()})
+    assert said.startswith("View 2: pose left as given from the frames: the motion found made the views")
+    (said,) = calibration_lines({"calibration": found.report()})
+    rotation, shift = (float(np.linalg.norm(found.geometry.views[1].object_rotation_deg)),
+                       float(np.linalg.norm(found.geometry.views[1].object_translation_mm)))
+    assert said.startswith(f"View 2: pose corrected from the frames: its object turned {rotation:.2f}° and moved {shift:.2f} mm")
+    assert f"{entry['untruncated_consistency_gain']:.2f}× on the planes no collimator cuts" in said
+
     # nothing runs into the shutter (none given, or one that cuts no vessel): nothing to check
     centre = (0.0, 0.0, 0.0)
     assert untruncated_gain(VIEW_1, static[0], VIEW_2, static[1], centre, np.zeros(6), (None, None)) is None
@@ -353,3 +364,18 @@ def test_calibrate_from_frames_leaves_a_view_whose_vessels_run_into_its_collimat
     open_field = calibrate_from_frames(geometry, images, unseen=[None, None])
     assert open_field.geometry.views[1] != VIEW_2 and open_field.views[0]["planes_compared"] == 256
     assert open_field.views[0]["truncated_pixels"] == [0, 0]
+
+
+def test_calibration_lines_say_per_view_what_each_search_did():
+    from SDFCARLib.calibration import calibration_lines
+
+    assert calibration_lines({}) == [] and calibration_lines({"calibration": {"method": "none", "why": "no frames"}}) == []
+    refit = {"method": "search of the observable rigid motion, re-fitted field per candidate", "views": [
+        {"view": 2, "shift_mm": 1.5, "object_rotation_deg": [0.0, 0.0, 0.0], "object_translation_mm": [0.0, 1.2, 0.9]},
+        {"view": 3, "skipped": "looks along the same line as view 1"}]}
+    frames = {"method": "epipolar consistency of the frames' vessel line integrals", "views": [
+        {"view": 2, "left_as_given": True, "why_left_as_given": "the motion found reached the end of its range"}]}
+    lines = calibration_lines({"calibration": {**refit, "first": frames}})
+    assert lines == ["View 2: pose left as given from the frames: the motion found reached the end of its range.",
+                     "View 2: pose corrected by re-fitting: its object turned 0.00° and moved 1.50 mm.",
+                     "View 3: pose not searched by re-fitting (looks along the same line as view 1)."]

@@ -739,3 +739,17 @@ def test_overwrite_replaces_the_previous_results_analysis_and_keeps_the_users_fi
     assert not (out / "analysis").exists() and not (out / "analysis-2").exists()
     assert (out / "analysis-3" / "my notes.txt").read_text() == "mine" and (out / "mine.txt").read_text() == "mine"
     assert (out / "report.json").is_file()
+
+
+def test_the_summary_says_what_the_pose_search_did(tmp_path, capsys):
+    from SDFCARLib.cli.common import print_summary
+
+    report = tmp_path / "report.json"
+    report.write_text(json.dumps({"method": "sdfcar", "reprojection_dice": [0.9, 0.9], "calibration": {
+        "method": "epipolar consistency of the frames' vessel line integrals", "views": [
+            {"view": 2, "left_as_given": True, "consistency_gain": 2.47, "untruncated_consistency_gain": 0.91,
+             "why_left_as_given": "the motion found made the views 2.47× more consistent, but on the epipolar planes no "
+                                  "vessel running into a collimator or the image's edge lies on only 0.91×"}]}}))
+    print_summary({"report": report})
+    out = capsys.readouterr().out
+    assert "View 2: pose left as given from the frames: the motion found made the views 2.47× more consistent" in out

@@ -533,7 +533,11 @@ def _result_node(tmp_path, with_analysis=False):
     qa = {"dice": 0.9, "area_mm2": {"result_only": 2.0, "mask_only": 9.5}, "share_of_mask": {"result_only": 0.01,
                                                                                              "mask_only": 0.12},
           "largest_blob": {"result_only": None, "mask_only": {"area_mm2": 6.0}}}
-    (folder / "report.json").write_text(json.dumps({"reprojection_qa": [qa, qa, qa],
+    calibration = {"method": "epipolar consistency of the frames' vessel line integrals", "views": [
+        {"view": 2, "object_rotation_deg": [0.6, 0.8, 0.0], "object_translation_mm": [0.0, 0.0, 1.2],
+         "consistency_gain": 4.1, "untruncated_consistency_gain": 3.2},
+        {"view": 3, "left_as_given": True, "why_left_as_given": "the motion found reached the end of its range"}]}
+    (folder / "report.json").write_text(json.dumps({"reprojection_qa": [qa, qa, qa], "calibration": calibration,
                                                     "warnings": ["view 3: the result does not explain 9.5 mm²"]}))
     node = _node("vtkMRMLSegmentationNode", "Tree")
     node.SetAttribute("SDFCAR.resultFolder", str(folder))
@@ -555,6 +559,10 @@ def test_results_panel_shows_the_qa_of_each_view(sdfcar, tmp_path):
     widget._checkCanApply()
     text = widget.ui.qaLabel.text
     assert text.splitlines()[0].startswith("View 1: Dice 0.900") and "View 3" in text and "1 warning(s):" in text
+    # what the frames' motion search did to each view's pose, before the warnings
+    assert ("View 2: pose corrected from the frames: its object turned 1.00° and moved 1.20 mm (the views 4.10× more "
+            "consistent; 3.20× on the planes no collimator cuts).") in text.splitlines()
+    assert "View 3: pose left as given from the frames: the motion found reached the end of its range." in text
     assert widget.ui.qaViewSpinBox.maximum == 3
     assert widget.ui.analyseButton.enabled and widget.ui.showQAButton.enabled and not widget.ui.suggestedViewButton.enabled
     assert widget.ui.analysisLabel.text.startswith("Not analysed yet")

@@ -12,6 +12,7 @@ from typing import Any, Dict, Optional
 
 import numpy as np
 
+from ..calibration import calibration_lines
 from ..settings import GROUND_TRUTH_METRICS, METRICS, make_settings, parse_setting_overrides
 from ..qa import ensemble_choice_line
 
@@ -227,6 +228,8 @@ def print_summary(files: Dict[str, Path]) -> None:
     choice = ensemble_choice_line(report)
     if choice:
         print(choice)
+    for line in calibration_lines(report):
+        print(line)
     if "metrics" in report:
         print_metrics(report["metrics"])
     for message in report.get("warnings", []):
