@@ -298,7 +298,8 @@ def build_problem(geometry: Geometry, targets: Sequence[np.ndarray], settings: S
     ``check_masks=False`` skips the mask and consistency checks (for the calibration's repeated
     short fits of the same masks, which the run itself checks once). ``frames``: the X-ray frames
     the masks were made from, one per view, for ``frame_evidence`` (``evidence``: their line
-    integrals already read, by ``read_frame_evidence``; ``unseen_read``: ``frames_unseen``'s answer, already read)."""
+    integrals already read, by ``read_frame_evidence``; ``unseen_read``: ``frames_unseen``'s answer, already read
+    for the frames' motion search: read once per run for it, the checks and the unknown pixels)."""
     t_start = time.perf_counter()
     arrays = validate_targets(targets, geometry, target_kind)
     _report(progress, phase="setup", step=0, total=settings.optimisation.total_steps, elapsed_s=0.0, eta_s=None,
@@ -309,7 +310,6 @@ def build_problem(geometry: Geometry, targets: Sequence[np.ndarray], settings: S
     consistency: List[float] = []
     one_view_shares: List[float] = []
     one_view_pixels: List[np.ndarray] = []
-    # frames_unseen's answer, read once for the calibration, the checks and the unknown pixels
     # Hundreds of specks would each add a cone to the support (and time to every step), and, having
     # no partner in the other views, would read as a wrong geometry in the consistency check.
     despeckled, left_out = support_masks(pixels, geometry.views, grid)
