@@ -11,8 +11,9 @@ size of the disagreement can. Per view (``reprojection_qa``) the pixels split in
 
 Where the check before the run found vessels that only this view can show (they run where another
 view's collimator, clipped frame or detector edge hides them: ``consistency.view_agreement``), their
-centreline is drawn over the colours, and a mask-only blob lying along it is named as such: one view
-cannot place a vessel in depth, so a blob there is expected, not a sign of a wrong mask or angle.
+centreline is drawn over the colours, and the mask-only area along it (and a largest blob mostly
+there) is named as such: one view cannot place a vessel in depth, so a blob there is expected. The
+check's marks are mostly, not always, right (RESULTS §93a), so the warning still names what to check.
 
 Areas are in mm² at the isocenter plane (pixel count × the view's isocenter pixel spacings), so
 that views of different magnification compare. The largest disagreeing blob of each kind is an
