@@ -45,22 +45,24 @@ from suite_cases import add_case_arguments, prepared_cases  # noqa: E402
 NEAR_PX = 2
 
 
-def _projected_image(view, points: np.ndarray) -> np.ndarray:
+def _nearest_pixels(view, points: np.ndarray):
+    """(rows, cols) of the pixel each point projects onto, and which points project onto the detector at all."""
     rows, cols, _ = view.project(points)
     r, c = np.rint(rows), np.rint(cols)
     inside = np.isfinite(r) & np.isfinite(c) & (r >= 0) & (r < view.detector_shape[0]) & (c >= 0) & (c < view.detector_shape[1])
+    return np.where(inside, r, 0).astype(int), np.where(inside, c, 0).astype(int), inside
+
+
+def _projected_image(view, points: np.ndarray) -> np.ndarray:
+    r, c, inside = _nearest_pixels(view, points)
     image = np.zeros(view.detector_shape, dtype=bool)
-    image[r[inside].astype(int), c[inside].astype(int)] = True
+    image[r[inside], c[inside]] = True
     return image
 
 
 def _seen(view, points: np.ndarray, unseen: np.ndarray) -> np.ndarray:
-    rows, cols, _ = view.project(points)
-    r, c = np.rint(rows), np.rint(cols)
-    inside = np.isfinite(r) & np.isfinite(c) & (r >= 0) & (r < view.detector_shape[0]) & (c >= 0) & (c < view.detector_shape[1])
-    seen = np.zeros(len(points), dtype=bool)
-    seen[inside] = ~unseen[r[inside].astype(int), c[inside].astype(int)]
-    return seen
+    r, c, inside = _nearest_pixels(view, points)
+    return inside & ~unseen[r, c]
 
 
 def truth_scores(case, views, unseen, masks, agreements):
