@@ -753,3 +753,28 @@ def test_the_summary_says_what_the_pose_search_did(tmp_path, capsys):
     print_summary({"report": report})
     out = capsys.readouterr().out
     assert "View 2: pose left as given from the frames: the motion found made the views 2.47× more consistent" in out
+
+
+def test_grid_coverage_warning_names_the_cause_that_fits_how_the_grid_was_made(tmp_path, tiny_case, capsys):
+    from SDFCARLib.cli.reconstruct import grid_coverage_warnings
+    from SDFCARLib.io import write_mask_png
+
+    assert grid_coverage_warnings([0.95, 0.91], placed=True) == [] == grid_coverage_warnings([0.9, 1.0], placed=False)
+    # a grid placed on the masks cannot cut the tree: the views disagree, and --auto-volume would change nothing
+    (placed,) = grid_coverage_warnings([0.95, 0.79], placed=True)
+    assert placed.startswith("the grid's visual hull explains only 79 % of view 2's mask pixels")
+    assert "the views disagree" in placed and "--auto-volume" not in placed
+    (given,) = grid_coverage_warnings([0.5, 0.95], placed=False)
+    assert "view 1's" in given and "the grid cuts the tree" in given and "--auto-volume" in given
+    # end to end: view 2's mask moved across the epipolar lines (rows), the grid placed on the masks
+    masks = [write_mask_png(tmp_path / "m1.png", tiny_case.masks[0]),
+             write_mask_png(tmp_path / "m2.png", np.roll(tiny_case.masks[1], 12, axis=0))]
+    data = tiny_geometry_dict()
+    data["volume"] = {"auto": True, "spacing_mm": 2.0}
+    args = ["reconstruct", "--geometry", str(write_json(tmp_path / "auto.json", data)), "--mask1", str(masks[0]),
+            "--mask2", str(masks[1]), "--steps", "2", "--no-progress", "--threads", "1", "--out", str(tmp_path / "out")]
+    assert main(args) == 0
+    err = capsys.readouterr().err
+    report = json.loads((tmp_path / "out" / "report.json").read_text())
+    assert min(report["grid"]["mask_coverage"]) < 0.9
+    assert "the views disagree" in err and "place it on the masks with --auto-volume" not in err

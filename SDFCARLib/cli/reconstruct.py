@@ -126,16 +126,32 @@ def _place_grid(geometry, masks, request, provenance: Optional[Dict[str, Any]]):
     return Geometry(volume=grid, views=geometry.views), placement, source
 
 
-def _grid_record(geometry, masks, source: str, placement=None) -> Tuple[Dict[str, Any], List[str]]:
+def grid_coverage_warnings(coverage: List[float], placed: bool) -> List[str]:
+    """The warnings for the views whose mask the grid's visual hull explains poorly (under 90 %).
+
+    ``placed``: the grid was placed on the masks' region, so it does not cut the tree: what the hull leaves
+    unexplained are rays that meet no other view's mask — the views disagree there."""
+    if placed:
+        cause = ("the grid was placed on the masks, so the views disagree there: part of the vessels lies where another "
+                 "view does not show it (a collimator's shutter, the detector's edge, a vessel its mask misses) or the "
+                 "geometry does not align the views (check the angles, distances and pixel spacing; with the frames given, "
+                 "the pose search may correct a shift: see the calibration lines after the run)")
+    else:
+        cause = ("the grid cuts the tree (place it on the masks with --auto-volume, or move/enlarge the volume) or the "
+                 "geometry does not align the views (check the angles, distances and pixel spacing)")
+    return [f"the grid's visual hull explains only {100 * c:.0f} % of view {n}'s mask pixels: {cause}"
+            for n, c in enumerate(coverage, start=1) if c < 0.9]
+
+
+def _grid_record(geometry, masks, source: str, placement=None, placed: Optional[bool] = None
+                 ) -> Tuple[Dict[str, Any], List[str]]:
     """report.json's ``grid`` entry (where the grid came from, how much of each mask its hull
-    explains) and the warnings for views it explains poorly; the warnings are printed at once."""
+    explains) and the warnings for views it explains poorly; the warnings are printed at once.
+    ``placed``: the grid was placed on the masks (default: a ``placement`` is given)."""
     from ..region import mask_coverage
 
     coverage = mask_coverage(masks, geometry.views, geometry.volume)
-    warnings = [f"the grid's visual hull explains only {100 * c:.0f} % of view {n}'s mask pixels: the grid cuts the tree "
-                "(place it on the masks with --auto-volume, or move/enlarge the volume) or the geometry does not align "
-                "the views (check the angles, distances and pixel spacing)"
-                for n, c in enumerate(coverage, start=1) if c < 0.9]
+    warnings = grid_coverage_warnings(coverage, placement is not None if placed is None else placed)
     for message in warnings:
         print(f"warning: {message}", file=sys.stderr)
     record = {"source": source, "mask_coverage": coverage, "placement": placement.to_dict() if placement else None}
@@ -163,7 +179,7 @@ def cmd_geometry(args: argparse.Namespace) -> int:
         source = provenance["volume"]["source"]
         if request is not None:
             geometry, _, source = _place_grid(geometry, masks, request, provenance)
-        record, _ = _grid_record(geometry, masks, source)
+        record, _ = _grid_record(geometry, masks, source, placed=request is not None)
         provenance["volume"]["mask_coverage"] = record["mask_coverage"]
     elif request is not None:
         provenance["volume"]["source"] += ("; no masks were given, so the grid could not be placed on the vessels: "
