@@ -229,7 +229,9 @@ def calibrate_from_frames(geometry: Geometry, line_integrals: Sequence[np.ndarra
                           min_untruncated_gain: float = CalibrationSettings.calibration_min_untruncated_gain) -> Calibration:
     """Each view's object motion against view 1 from the epipolar consistency of the frames' vessel
     line integrals (``line_integral_consistency.py``), in seconds: with two views the three motions
-    that pair observes; with three or more, all six of each view over every pair of views at once.
+    that pair observes; with three or more, all six of each view over every pair of views at once — or, where that
+    joint search cannot be used (it ends at the end of its range, or a pair has too few untruncated planes), each
+    view's three against view 1 alone (``estimate_motions``; the entry's ``joint_search`` and a warning say why).
 
     A motion is applied only where it divides the inconsistency by ``min_consistency_gain`` or more;
     a smaller gain is what noise in the frames and masks alone allows the search (no motion to find).
@@ -269,11 +271,17 @@ def calibrate_from_frames(geometry: Geometry, line_integrals: Sequence[np.ndarra
         estimates = estimate_motions([views[k] for k in group], [line_integrals[k] for k in group], centre,
                                      FRAME_CALIBRATION_LIMITS["deg"], FRAME_CALIBRATION_LIMITS["mm"], progress=told,
                                      unseen=[unseen[k] for k in group])
-        searched = ALL_MOTIONS if len(group) > 2 else OBSERVED_MOTIONS
+        fallbacks = {e.joint_fallback for e in estimates if e.joint_fallback}
+        for why in sorted(fallbacks):
+            warnings.append(f"the frames' pose search over all {len(group)} views at once could not be used: {why}; "
+                            "each view was matched to view 1 alone instead (a motion two views cannot see stays uncorrected)")
         for k, estimate in zip(group[1:], estimates):
+            searched = ALL_MOTIONS if estimate.jointly else OBSERVED_MOTIONS
             axes = motion_axes(views[0], views[k], centre)
             entry: Dict[str, Any] = {"view": k + 1, "rotation_centre_mm": [round(float(v), 3) for v in centre],
-                                     "matched_with": [i + 1 for i in group if i != k]}
+                                     "matched_with": [i + 1 for i in group if i != k] if estimate.jointly else [1]}
+            if estimate.joint_fallback:
+                entry["joint_search"] = f"not used: {estimate.joint_fallback}"
             for name in searched:
                 rotation = bool(np.any(axes[name][:3]))
                 entry[name] = {"value": round(estimate.parameters[name], 3), "unit": "deg" if rotation else "mm",
@@ -298,7 +306,7 @@ def calibrate_from_frames(geometry: Geometry, line_integrals: Sequence[np.ndarra
                     "asked): no more than noise in the frames and masks allows without any motion"))
             else:
                 confirmed = None
-                if confirm_unseen is not None and min_untruncated_gain > 0 and len(group) == 2:
+                if confirm_unseen is not None and min_untruncated_gain > 0 and not estimate.jointly:
                     confirmed = untruncated_gain(views[0], line_integrals[0], views[k], line_integrals[k], centre,
                                                  estimate.added, (confirm_unseen[0], confirm_unseen[k]))
                 if confirmed is not None:
@@ -318,7 +326,7 @@ def calibrate_from_frames(geometry: Geometry, line_integrals: Sequence[np.ndarra
                          consistency_gain=_rounded(gain, 2),
                          truncated_pixels=list(estimate.truncated_pixels), planes_compared=estimate.planes_compared,
                          not_observed=(["a shift of every other view together along view 1's axis (kept near zero)"]
-                                       if len(group) > 2 else list(WEAK_MOTIONS) + ["shift_along_baseline"]),
+                                       if estimate.jointly else list(WEAK_MOTIONS) + ["shift_along_baseline"]),
                          object_rotation_deg=[round(float(v), 4) for v in views[k].object_rotation_deg],
                          object_translation_mm=[round(float(v), 4) for v in views[k].object_translation_mm])
             found.append(entry)

@@ -54,13 +54,16 @@ Three views or more
     the motion is not recovered exactly (section 17 of the results). Even the true line integrals
     leave those three combinations about a millimetre off (§68): they change the planes' integrals
     only through the perspective, a hundredth as strongly as the motions the pairs observe.
+    Where the joint search ends at the end of its range for any view, each view keeps what matching
+    it to view 1 found: on the real three-run phantom the tags' poses disagree by more than the range
+    allows in the joint parametrisation, and the joint result left every view as given (§94).
 """
 
 from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any, Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
@@ -314,6 +317,10 @@ class MotionEstimate:
     # the fewest epipolar planes compared at any blur (truncated ones left out); below ``MIN_UNTRUNCATED_PLANES``
     # nothing was searched and the motion is none
     planes_compared: int = 0
+    # found over every pair of views at once (all six motions); False: matched to the reference view alone
+    jointly: bool = False
+    # why a view of three or more was matched to the reference alone ("" where it was not, or there are two views)
+    joint_fallback: str = ""
 
     @property
     def measured(self) -> bool:
@@ -413,7 +420,10 @@ def estimate_motions(views: Sequence[CArmView], images: Sequence[np.ndarray], ce
     six motions of each view: the shift along view 1–k's baseline, invisible to that pair, moves view
     k across the planes of its pair with a third view. ``progress(k, total, message)`` is told each step.
     ``unseen``: per view None or its bool image of what it cannot show (``estimate_motion``); where a pair has too
-    few planes left for the joint search, each view keeps what matching it to view 1 found."""
+    few planes left for the joint search, each view keeps what matching it to view 1 found — and so where the joint
+    search ends at the end of its range for any view: its motions are found together, so one motion forced to the
+    limit (the views' poses disagree beyond what it can undo, or the search ran into a wrong minimum) leaves the others
+    suspect too, while each view matched to view 1 alone is still judged on its own (``joint_fallback`` says why)."""
     from .calibration import moved
 
     t0 = time.perf_counter()
@@ -469,7 +479,8 @@ def estimate_motions(views: Sequence[CArmView], images: Sequence[np.ndarray], ce
     fewest = min(len(plane_sampling(rays[i], rays[j], blur, centre, truncated=(cut[i], cut[j])))
                  for i, j in pairs for blur in joint_blurs_mm)
     if fewest < MIN_UNTRUNCATED_PLANES:
-        return pairwise
+        return [replace(e, joint_fallback=f"a pair of views has only {fewest} epipolar planes no collimator or image "
+                                          f"edge cuts ({MIN_UNTRUNCATED_PLANES} needed)") for e in pairwise]
     before = pair_cost(np.zeros_like(params), joint_blurs_mm[-1])
     for blur in joint_blurs_mm:
         # Gauss–Newton on the plane derivatives' differences, the planes and scales held for the stage
@@ -488,5 +499,10 @@ def estimate_motions(views: Sequence[CArmView], images: Sequence[np.ndarray], ce
                     if abs(value) >= 0.99 * limit]
         out.append(MotionEstimate(np.asarray(final.object_rotation_deg), np.asarray(final.object_translation_mm), centre,
                                   motion, {name: float(v) for name, v in zip(ALL_MOTIONS, own)}, at_limit,
-                                  before, after, seconds, tuple(0 if c is None else len(c.weights) for c in cut), fewest))
+                                  before, after, seconds, tuple(0 if c is None else len(c.weights) for c in cut), fewest,
+                                  jointly=True))
+    limited = [f"view {k + 2}: {', '.join(n.replace('_', ' ') for n in e.at_limit)}" for k, e in enumerate(out) if e.at_limit]
+    if limited:
+        return [replace(e, joint_fallback=f"the search over every pair of views at once reached the end of its range "
+                                          f"({'; '.join(limited)})") for e in pairwise]
     return out

@@ -13,7 +13,7 @@ from SDFCARLib.calibration import moved
 from SDFCARLib.geometry import rotation_matrix
 from SDFCARLib.line_integral_consistency import (MIN_UNTRUNCATED_PLANES, TRUNCATION_PLANE_MARGIN,
                                                   TRUNCATION_REACH_PX, EpipolarError, consistency, epipolar_frame,
-                                                  estimate_motion, equal_total_factors, estimate_motions, plane_angles,
+                                                  estimate_motion, equal_total_factors, estimate_motions, motion_axes, plane_angles,
                                                   plane_derivatives, plane_sampling, rays_of, truncated_rays,
                                                   with_equal_totals)
 
@@ -231,3 +231,27 @@ def test_a_pair_truncated_on_almost_every_plane_is_not_measured():
     # the vessel pixels within the reach (taxicab, as the dilation counts it) of a pixel the view cannot see
     rim = (image_2 > 0) & (ndimage.distance_transform_cdt(image_2 > 0, metric="taxicab") <= TRUNCATION_REACH_PX)
     assert estimate.truncated_pixels == (0, int(np.count_nonzero(rim)))
+
+
+def test_a_joint_search_that_ends_at_its_range_gives_way_to_each_view_matched_to_view_1():
+    centre = np.zeros(3)
+    across_2 = motion_axes(VIEW_1, VIEW_2, centre)["shift_across"][3:]
+    along_3 = motion_axes(VIEW_1, VIEW_3, centre)["shift_along_baseline"][3:]
+    # view 3 moved along its baseline with view 1 by far more than the range: only the joint search sees it,
+    # and it can only end at the limit; view 2 moved across its planes with view 1, within the range
+    images = [blob_image(VIEW_1), blob_image(VIEW_2.with_object_motion((0.0, 0.0, 0.0), 1.5 * across_2)),
+              blob_image(VIEW_3.with_object_motion((0.0, 0.0, 0.0), 9.0 * along_3))]
+    views = [VIEW_1, VIEW_2, VIEW_3]
+    estimates = estimate_motions(views, images, centre, max_translation_mm=2.0)
+    alone = [estimate_motion(VIEW_1, images[0], v, image, centre, max_translation_mm=2.0)
+             for v, image in zip(views[1:], images[1:])]
+    for estimate, own in zip(estimates, alone):
+        assert not estimate.jointly and estimate.joint_fallback.startswith(
+            "the search over every pair of views at once reached the end of its range (")
+        assert "shift along baseline" in estimate.joint_fallback
+        assert set(estimate.parameters) == {"shift_across", "rotation_about_baseline", "rotation_about_depth"}
+        np.testing.assert_allclose(estimate.added, own.added)
+    assert estimates[0].parameters["shift_across"] == pytest.approx(1.5, abs=0.1)
+    # within the range the joint search is used, as before
+    inside = estimate_motions(views, images, centre)
+    assert all(e.jointly and not e.joint_fallback for e in inside)
