@@ -405,3 +405,22 @@ def test_calibrate_from_frames_matches_each_view_to_view_1_where_the_joint_searc
     assert "left_as_given" not in second and second["shift_across"]["value"] == pytest.approx(1.5, abs=0.1)
     np.testing.assert_allclose(result.geometry.views[1].object_translation_mm, 1.5 * across_2, atol=0.15)
     assert third["left_as_given"] is True and result.geometry.views[2] == VIEW_3
+
+
+def test_calibrate_from_frames_with_a_third_view_cut_on_almost_every_plane_matches_each_view_to_view_1():
+    from blob_phantom import VIEW_1, VIEW_2, VIEW_3, blob_image
+    from SDFCARLib.calibration import calibrate_from_frames
+    from SDFCARLib.line_integral_consistency import motion_axes
+
+    grid = VolumeGrid((32, 32, 32), (2.0, 2.0, 2.0), (0.0, 0.0, 0.0))
+    across_2 = motion_axes(VIEW_1, VIEW_2, np.zeros(3))["shift_across"][3:]
+    images = [blob_image(VIEW_1), blob_image(VIEW_2.with_object_motion((0.0, 0.0, 0.0), 1.5 * across_2)),
+              blob_image(VIEW_3)]
+    unseen = [None, None, ~(images[2] > 0)]  # every vessel pixel of view 3 next to what it cannot see
+    result = calibrate_from_frames(Geometry(grid, (VIEW_1, VIEW_2, VIEW_3)), images, unseen=unseen)
+    second, third = result.views
+    for entry in (second, third):
+        assert entry["matched_with"] == [1] and "epipolar planes no collimator or image edge cuts" in entry["joint_search"]
+    assert second["shift_across"]["value"] == pytest.approx(1.5, abs=0.1) and "left_as_given" not in second
+    assert third["left_as_given"] is True and "epipolar planes" in third["why_left_as_given"]
+    assert any("could not be used" in w for w in result.warnings) and any("view 3" in w for w in result.warnings)
