@@ -231,7 +231,8 @@ def calibrate_from_frames(geometry: Geometry, line_integrals: Sequence[np.ndarra
     line integrals (``line_integral_consistency.py``), in seconds: with two views the three motions
     that pair observes; with three or more, all six of each view over every pair of views at once — or, where that
     joint search cannot be used (it ends at the end of its range, or a pair has too few untruncated planes), each
-    view's three against view 1 alone (``estimate_motions``; the entry's ``joint_search`` and a warning say why).
+    view's three against one other view, the best-agreeing pair first, starting from view 1 (``estimate_motions``;
+    the entry's ``matched_with`` and ``joint_search`` and a warning say which and why).
 
     A motion is applied only where it divides the inconsistency by ``min_consistency_gain`` or more;
     a smaller gain is what noise in the frames and masks alone allows the search (no motion to find).
@@ -270,18 +271,33 @@ def calibrate_from_frames(geometry: Geometry, line_integrals: Sequence[np.ndarra
     for group in groups:
         estimates = estimate_motions([views[k] for k in group], [line_integrals[k] for k in group], centre,
                                      FRAME_CALIBRATION_LIMITS["deg"], FRAME_CALIBRATION_LIMITS["mm"], progress=told,
-                                     unseen=[unseen[k] for k in group])
+                                     unseen=[unseen[k] for k in group], min_gain=min_consistency_gain)
         fallbacks = {e.joint_fallback for e in estimates if e.joint_fallback}
         for why in sorted(fallbacks):
             warnings.append(f"the frames' pose search over all {len(group)} views at once could not be used: {why}; "
-                            "each view was matched to view 1 alone instead (a motion two views cannot see stays uncorrected)")
-        for k, estimate in zip(group[1:], estimates):
+                            "each view was matched to one other view instead, the best-agreeing pair first (report.json: "
+                            "calibration → matched_with; a motion two views cannot see stays uncorrected)")
+        # a view matched to another corrected view comes after it: its pose is judged against that view's corrected one
+        by_view = dict(zip(group[1:], estimates))
+        done = {group[0]}
+        ordered: List[int] = []
+        while len(ordered) < len(by_view):
+            ready = [k for k in by_view if k not in done
+                     and (by_view[k].jointly or group[by_view[k].reference_view] in done)]
+            k = min(ready) if ready else min(set(by_view) - done)
+            ordered.append(k)
+            done.add(k)
+        for k in ordered:
+            estimate = by_view[k]
+            partner = group[estimate.reference_view]
             searched = ALL_MOTIONS if estimate.jointly else OBSERVED_MOTIONS
-            axes = motion_axes(views[0], views[k], centre)
+            axes = motion_axes(views[partner], views[k], centre)
             entry: Dict[str, Any] = {"view": k + 1, "rotation_centre_mm": [round(float(v), 3) for v in centre],
-                                     "matched_with": [i + 1 for i in group if i != k] if estimate.jointly else [1]}
+                                     "matched_with": [i + 1 for i in group if i != k] if estimate.jointly else [partner + 1]}
             if estimate.joint_fallback:
                 entry["joint_search"] = f"not used: {estimate.joint_fallback}"
+            elif estimate.joint_start:
+                entry["joint_search"] = f"started from {estimate.joint_start}"
             for name in searched:
                 rotation = bool(np.any(axes[name][:3]))
                 entry[name] = {"value": round(estimate.parameters[name], 3), "unit": "deg" if rotation else "mm",
@@ -307,8 +323,8 @@ def calibrate_from_frames(geometry: Geometry, line_integrals: Sequence[np.ndarra
             else:
                 confirmed = None
                 if confirm_unseen is not None and min_untruncated_gain > 0 and not estimate.jointly:
-                    confirmed = untruncated_gain(views[0], line_integrals[0], views[k], line_integrals[k], centre,
-                                                 estimate.added, (confirm_unseen[0], confirm_unseen[k]))
+                    confirmed = untruncated_gain(views[partner], line_integrals[partner], views[k], line_integrals[k],
+                                                 centre, estimate.added, (confirm_unseen[partner], confirm_unseen[k]))
                 if confirmed is not None:
                     entry.update(untruncated_consistency_gain=_rounded(confirmed[0], 2), untruncated_planes=confirmed[1])
                     if confirmed[1] < MIN_UNTRUNCATED_PLANES:  # too few to tell: the search's own gain decides

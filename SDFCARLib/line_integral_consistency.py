@@ -319,8 +319,12 @@ class MotionEstimate:
     planes_compared: int = 0
     # found over every pair of views at once (all six motions); False: matched to the reference view alone
     jointly: bool = False
-    # why a view of three or more was matched to the reference alone ("" where it was not, or there are two views)
+    # why a view of three or more was matched to one other view ("" where it was not, or there are two views)
     joint_fallback: str = ""
+    # the view (0-based) it was matched to where not found jointly: the reference, or an already corrected view
+    reference_view: int = 0
+    # where the joint search started, when not from each view matched to the reference ("" otherwise)
+    joint_start: str = ""
 
     @property
     def measured(self) -> bool:
@@ -412,18 +416,26 @@ def estimate_motions(views: Sequence[CArmView], images: Sequence[np.ndarray], ce
                      max_rotation_deg: float = 4.0, max_translation_mm: float = 6.0,
                      blurs_mm: Sequence[float] = SEARCH_BLURS_MM, joint_blurs_mm: Sequence[float] = JOINT_BLURS_MM,
                      prior_weight: float = MOTION_PRIOR_WEIGHT, progress=None,
-                     unseen: Optional[Sequence[Optional[np.ndarray]]] = None) -> List[MotionEstimate]:
+                     unseen: Optional[Sequence[Optional[np.ndarray]]] = None,
+                     min_gain: float = 1.0) -> List[MotionEstimate]:
     """The object motion of every view after the first (the reference), one estimate each.
 
     Each view is first matched to view 1 alone (``estimate_motion``: the three motions that pair
     observes). With three views or more, every pair of views is then made consistent at once over all
     six motions of each view: the shift along view 1–k's baseline, invisible to that pair, moves view
     k across the planes of its pair with a third view. ``progress(k, total, message)`` is told each step.
-    ``unseen``: per view None or its bool image of what it cannot show (``estimate_motion``); where a pair has too
-    few planes left for the joint search, each view keeps what matching it to view 1 found — and so where the joint
-    search ends at the end of its range for any view: its motions are found together, so one motion forced to the
-    limit (the views' poses disagree beyond what it can undo, or the search ran into a wrong minimum) leaves the others
-    suspect too, while each view matched to view 1 alone is still judged on its own (``joint_fallback`` says why)."""
+    ``unseen``: per view None or its bool image of what it cannot show (``estimate_motion``).
+
+    Where the joint search cannot be used — a pair has too few planes left, or it ends at the end of its range for
+    any view (its motions are found together, so one motion forced to the limit leaves the others suspect too) —
+    the views are matched one pair at a time instead (``joint_fallback`` says why): starting from view 1, the view
+    not yet placed whose match to a placed view (its pose as corrected) agrees best after the correction is placed
+    next, against that view (``reference_view``); a match that ends at its range or has too few planes is not
+    used, and a view with none left is matched to view 1. A placed view whose correction makes its pair less than
+    ``min_gain`` times more consistent stays as given for the views placed after it, as the caller leaves it. Where
+    the joint search ended at its range, it is run once more from the poses so matched (a start far from the views'
+    agreement can end in a wrong minimum at the limit); only if that ends at the range too are the matches in turn
+    kept (``joint_start`` says when the joint result came from that second start)."""
     from .calibration import moved
 
     t0 = time.perf_counter()
@@ -474,35 +486,85 @@ def estimate_motions(views: Sequence[CArmView], images: Sequence[np.ndarray], ce
             parts.append((found["rho_a"] - found["rho_b"]) / math.sqrt(scale))
         return np.concatenate(parts + [math.sqrt(prior_weight) * params])
 
-    params = np.clip(np.concatenate([basis @ estimate.added for basis, estimate in zip(bases, pairwise)]),
-                     -0.98 * limits, 0.98 * limits)
+    def starting_point(estimates: Sequence[MotionEstimate]) -> np.ndarray:
+        return np.clip(np.concatenate([basis @ e.added for basis, e in zip(bases, estimates)]), -0.98 * limits, 0.98 * limits)
+
     fewest = min(len(plane_sampling(rays[i], rays[j], blur, centre, truncated=(cut[i], cut[j])))
                  for i, j in pairs for blur in joint_blurs_mm)
+    chain_options = dict(max_rotation_deg=max_rotation_deg, max_translation_mm=max_translation_mm, blurs_mm=blurs_mm,
+                         unseen=unseen, min_gain=min_gain)
     if fewest < MIN_UNTRUNCATED_PLANES:
-        return [replace(e, joint_fallback=f"a pair of views has only {fewest} epipolar planes no collimator or image "
-                                          f"edge cuts ({MIN_UNTRUNCATED_PLANES} needed)") for e in pairwise]
-    before = pair_cost(np.zeros_like(params), joint_blurs_mm[-1])
-    for blur in joint_blurs_mm:
-        # Gauss–Newton on the plane derivatives' differences, the planes and scales held for the stage
-        current, edges = moved_rays(params), moved_cut(params)
-        planes = [plane_sampling(current[i], current[j], blur, centre, truncated=(edges[i], edges[j])) for i, j in pairs]
-        scales = [consistency(current[i], current[j], blur, centre, kappa=k)["scale"] for (i, j), k in zip(pairs, planes)]
-        params = least_squares(residuals, params, args=(blur, planes, scales), bounds=(-limits, limits),
-                               diff_step=JOINT_DIFF_STEP, x_scale=1.0, max_nfev=JOINT_MAX_EVALUATIONS).x
-    after = pair_cost(params, joint_blurs_mm[-1])
-    seconds = time.perf_counter() - t0
-    out = []
-    for k, (motion, view) in enumerate(zip(motions(params)[1:], views[1:])):
-        own = params[size * k:size * (k + 1)]
-        final = moved(view, motion[:3], motion[3:], centre)
-        at_limit = [name for name, value, limit in zip(ALL_MOTIONS, own, limits[size * k:size * (k + 1)])
-                    if abs(value) >= 0.99 * limit]
-        out.append(MotionEstimate(np.asarray(final.object_rotation_deg), np.asarray(final.object_translation_mm), centre,
-                                  motion, {name: float(v) for name, v in zip(ALL_MOTIONS, own)}, at_limit,
-                                  before, after, seconds, tuple(0 if c is None else len(c.weights) for c in cut), fewest,
-                                  jointly=True))
-    limited = [f"view {k + 2}: {', '.join(n.replace('_', ' ') for n in e.at_limit)}" for k, e in enumerate(out) if e.at_limit]
-    if limited:
-        return [replace(e, joint_fallback=f"the search over every pair of views at once reached the end of its range "
-                                          f"({'; '.join(limited)})") for e in pairwise]
-    return out
+        return _matched_in_turn(views, images, centre, pairwise, f"a pair of views has only {fewest} epipolar planes no "
+                                f"collimator or image edge cuts ({MIN_UNTRUNCATED_PLANES} needed)", **chain_options)
+    before = pair_cost(np.zeros(len(limits)), joint_blurs_mm[-1])
+
+    def joint_search(params: np.ndarray) -> List[MotionEstimate]:
+        for blur in joint_blurs_mm:
+            # Gauss–Newton on the plane derivatives' differences, the planes and scales held for the stage
+            current, edges = moved_rays(params), moved_cut(params)
+            planes = [plane_sampling(current[i], current[j], blur, centre, truncated=(edges[i], edges[j])) for i, j in pairs]
+            scales = [consistency(current[i], current[j], blur, centre, kappa=k)["scale"] for (i, j), k in zip(pairs, planes)]
+            params = least_squares(residuals, params, args=(blur, planes, scales), bounds=(-limits, limits),
+                                   diff_step=JOINT_DIFF_STEP, x_scale=1.0, max_nfev=JOINT_MAX_EVALUATIONS).x
+        after = pair_cost(params, joint_blurs_mm[-1])
+        seconds = time.perf_counter() - t0
+        out = []
+        for k, (motion, view) in enumerate(zip(motions(params)[1:], views[1:])):
+            own = params[size * k:size * (k + 1)]
+            final = moved(view, motion[:3], motion[3:], centre)
+            at_limit = [name for name, value, limit in zip(ALL_MOTIONS, own, limits[size * k:size * (k + 1)])
+                        if abs(value) >= 0.99 * limit]
+            out.append(MotionEstimate(np.asarray(final.object_rotation_deg), np.asarray(final.object_translation_mm),
+                                      centre, motion, {name: float(v) for name, v in zip(ALL_MOTIONS, own)}, at_limit,
+                                      before, after, seconds, tuple(0 if c is None else len(c.weights) for c in cut),
+                                      fewest, jointly=True))
+        return out
+
+    def limited(estimates: Sequence[MotionEstimate]) -> str:
+        return "; ".join(f"view {k + 2}: {', '.join(n.replace('_', ' ') for n in e.at_limit)}"
+                         for k, e in enumerate(estimates) if e.at_limit)
+
+    out = joint_search(starting_point(pairwise))
+    if not limited(out):
+        return out
+    why = f"the search over every pair of views at once reached the end of its range ({limited(out)})"
+    chained = _matched_in_turn(views, images, centre, pairwise, why, **chain_options)
+    # the joint search again, from the poses the views matched in turn found: a start inside the range may end there
+    again = joint_search(starting_point(chained))
+    if not limited(again):
+        return [replace(e, joint_start="the views matched in turn (the search from each view matched to view 1 "
+                                       f"reached the end of its range: {limited(out)})") for e in again]
+    return chained
+
+
+def _matched_in_turn(views: Sequence[CArmView], images: Sequence[np.ndarray], centre: np.ndarray,
+                     to_first: Sequence[MotionEstimate], why: str, max_rotation_deg: float, max_translation_mm: float,
+                     blurs_mm: Sequence[float], unseen: Sequence[Optional[np.ndarray]], min_gain: float) -> List[MotionEstimate]:
+    """Each view after the first matched to one placed view, the best-agreeing match first (``estimate_motions``).
+    ``to_first``: each view's match to view 1, already found."""
+    from .calibration import moved
+
+    current = list(views)  # the placed views as corrected
+    matches: Dict[Tuple[int, int], MotionEstimate] = {(0, k): e for k, e in enumerate(to_first, start=1)}
+    placed, pending = [0], list(range(1, len(views)))
+    chosen: Dict[int, MotionEstimate] = {}
+    while pending:
+        usable = []
+        for k in pending:
+            for j in placed:
+                if (j, k) not in matches:
+                    matches[(j, k)] = estimate_motion(current[j], images[j], views[k], images[k], centre, max_rotation_deg,
+                                                      max_translation_mm, blurs_mm, unseen=(unseen[j], unseen[k]))
+                match = matches[(j, k)]
+                if match.measured and not match.at_limit:
+                    usable.append((match.cost_after, k, j))
+        if not usable:
+            chosen.update({k: matches[(0, k)] for k in pending})
+            break
+        _, k, j = min(usable)
+        match = chosen[k] = replace(matches[(j, k)], reference_view=j)
+        if match.cost_before >= min_gain * match.cost_after:
+            current[k] = moved(views[k], match.added[:3], match.added[3:], centre)
+        placed.append(k)
+        pending.remove(k)
+    return [replace(chosen[k], joint_fallback=why) for k in range(1, len(views))]

@@ -381,30 +381,28 @@ def test_calibration_lines_say_per_view_what_each_search_did():
                      "View 3: pose not searched by re-fitting (looks along the same line as view 1)."]
 
 
-def test_calibrate_from_frames_matches_each_view_to_view_1_where_the_joint_search_ends_at_its_range(monkeypatch):
-    from blob_phantom import VIEW_1, VIEW_2, VIEW_3, blob_image
+def test_calibrate_from_frames_matches_a_view_to_another_corrected_view_where_the_joint_search_ends_at_its_range(
+        monkeypatch):
+    from blob_phantom import VIEW_1, VIEW_2, VIEW_3
+    from test_line_integral_consistency import _beyond_view_1s_range
     from SDFCARLib import calibration
     from SDFCARLib.line_integral_consistency import motion_axes
 
     grid = VolumeGrid((32, 32, 32), (2.0, 2.0, 2.0), (0.0, 0.0, 0.0))
     centre = np.zeros(3)
-    across_2 = motion_axes(VIEW_1, VIEW_2, centre)["shift_across"][3:]
-    along_3 = motion_axes(VIEW_1, VIEW_3, centre)["shift_along_baseline"][3:]
-    images = [blob_image(VIEW_1), blob_image(VIEW_2.with_object_motion((0.0, 0.0, 0.0), 1.5 * across_2)),
-              blob_image(VIEW_3.with_object_motion((0.0, 0.0, 0.0), 9.0 * along_3))]
     monkeypatch.setitem(calibration.FRAME_CALIBRATION_LIMITS, "mm", 2.0)
-    result = calibration.calibrate_from_frames(Geometry(grid, (VIEW_1, VIEW_2, VIEW_3)), images)
+    result = calibration.calibrate_from_frames(Geometry(grid, (VIEW_1, VIEW_2, VIEW_3)), _beyond_view_1s_range(centre))
     (warning,) = result.warnings
     assert warning.startswith("the frames' pose search over all 3 views at once could not be used: the search over every "
-                              "pair of views at once reached the end of its range") and "matched to view 1 alone" in warning
+                              "pair of views at once reached the end of its range") and "matched to one other view" in warning
     second, third = result.views
+    assert second["matched_with"] == [1] and third["matched_with"] == [2]
     for entry in (second, third):
-        assert entry["matched_with"] == [1] and entry["joint_search"].startswith("not used: ")
-        assert "shift_along_baseline" not in entry and "shift_along_baseline" in entry["not_observed"]
-    # what view 1 and view 2 see of view 2's motion is still corrected; view 3's invisible shift is left as given
-    assert "left_as_given" not in second and second["shift_across"]["value"] == pytest.approx(1.5, abs=0.1)
-    np.testing.assert_allclose(result.geometry.views[1].object_translation_mm, 1.5 * across_2, atol=0.15)
-    assert third["left_as_given"] is True and result.geometry.views[2] == VIEW_3
+        assert entry["joint_search"].startswith("not used: ") and "shift_along_baseline" not in entry
+    # view 2 did not move (left as given); view 3 gets what view 2 sees of its motion: 1 mm across their planes
+    assert second["left_as_given"] is True and "left_as_given" not in third
+    across_23 = motion_axes(VIEW_2, VIEW_3, centre)["shift_across"][3:]
+    assert float(np.asarray(result.geometry.views[2].object_translation_mm) @ across_23) == pytest.approx(1.0, abs=0.15)
 
 
 def test_calibrate_from_frames_with_a_third_view_cut_on_almost_every_plane_matches_each_view_to_view_1():

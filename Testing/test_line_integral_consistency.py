@@ -233,25 +233,29 @@ def test_a_pair_truncated_on_almost_every_plane_is_not_measured():
     assert estimate.truncated_pixels == (0, int(np.count_nonzero(rim)))
 
 
-def test_a_joint_search_that_ends_at_its_range_gives_way_to_each_view_matched_to_view_1():
+def _beyond_view_1s_range(centre):
+    """View 3 moved along its baseline with view 2 (invisible to that pair) by 4 mm, which crosses view 1–3's
+    epipolar planes by 3.7 mm, and 1 mm across view 2–3's planes; view 2 not moved."""
+    along_23 = motion_axes(VIEW_2, VIEW_3, centre)["shift_along_baseline"][3:]
+    across_23 = motion_axes(VIEW_2, VIEW_3, centre)["shift_across"][3:]
+    return [blob_image(VIEW_1), blob_image(VIEW_2), blob_image(VIEW_3.with_object_motion((0.0, 0.0, 0.0),
+                                                                                         4.0 * along_23 + across_23))]
+
+
+def test_a_view_the_joint_search_cannot_place_within_its_range_is_matched_to_the_view_it_agrees_with():
     centre = np.zeros(3)
-    across_2 = motion_axes(VIEW_1, VIEW_2, centre)["shift_across"][3:]
-    along_3 = motion_axes(VIEW_1, VIEW_3, centre)["shift_along_baseline"][3:]
-    # view 3 moved along its baseline with view 1 by far more than the range: only the joint search sees it,
-    # and it can only end at the limit; view 2 moved across its planes with view 1, within the range
-    images = [blob_image(VIEW_1), blob_image(VIEW_2.with_object_motion((0.0, 0.0, 0.0), 1.5 * across_2)),
-              blob_image(VIEW_3.with_object_motion((0.0, 0.0, 0.0), 9.0 * along_3))]
-    views = [VIEW_1, VIEW_2, VIEW_3]
-    estimates = estimate_motions(views, images, centre, max_translation_mm=2.0)
-    alone = [estimate_motion(VIEW_1, images[0], v, image, centre, max_translation_mm=2.0)
-             for v, image in zip(views[1:], images[1:])]
-    for estimate, own in zip(estimates, alone):
+    views, images = [VIEW_1, VIEW_2, VIEW_3], _beyond_view_1s_range(centre)
+    second, third = estimate_motions(views, images, centre, max_translation_mm=2.0)  # a 2 mm range
+    for estimate in (second, third):
         assert not estimate.jointly and estimate.joint_fallback.startswith(
             "the search over every pair of views at once reached the end of its range (")
-        assert "shift along baseline" in estimate.joint_fallback
         assert set(estimate.parameters) == {"shift_across", "rotation_about_baseline", "rotation_about_depth"}
-        np.testing.assert_allclose(estimate.added, own.added)
-    assert estimates[0].parameters["shift_across"] == pytest.approx(1.5, abs=0.1)
-    # within the range the joint search is used, as before
-    inside = estimate_motions(views, images, centre)
-    assert all(e.jointly and not e.joint_fallback for e in inside)
+    # matched to view 1, view 3 ends at the limit; matched to view 2 it does not, and that pair's 1 mm is found
+    to_view_1 = estimate_motion(VIEW_1, images[0], VIEW_3, images[2], centre, max_translation_mm=2.0)
+    assert "shift_across" in to_view_1.at_limit and not third.at_limit
+    assert second.reference_view == 0 and third.reference_view == 1
+    np.testing.assert_allclose(second.added, estimate_motion(VIEW_1, images[0], VIEW_2, images[1], centre,
+                                                             max_translation_mm=2.0).added)
+    assert abs(third.parameters["shift_across"]) == pytest.approx(1.0, abs=0.1)
+    # with the range wide enough the joint search places every view, as before
+    assert all(e.jointly and not e.joint_fallback for e in estimate_motions(views, images, centre))
