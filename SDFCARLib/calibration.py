@@ -377,6 +377,9 @@ def calibration_lines(report: Dict[str, Any]) -> List[str]:
                     gains.append(f"the views {entry['consistency_gain']:.2f}× more consistent")
                 if isinstance(entry.get("untruncated_consistency_gain"), (int, float)):
                     gains.append(f"{entry['untruncated_consistency_gain']:.2f}× on the planes no collimator cuts")
+                if str(entry.get("joint_search", "")).startswith("not used") and entry.get("matched_with"):
+                    gains.append(f"matched to view {entry['matched_with'][0]} alone: the search over all views at once "
+                                 "could not be used")
                 lines.append(f"View {view}: pose corrected {source}: its object turned {rotation:.2f}° and moved "
                              f"{shift:.2f} mm{' (' + '; '.join(gains) + ')' if gains else ''}.")
     return lines

@@ -379,6 +379,12 @@ def test_calibration_lines_say_per_view_what_each_search_did():
     assert lines == ["View 2: pose left as given from the frames: the motion found reached the end of its range.",
                      "View 2: pose corrected by re-fitting: its object turned 0.00° and moved 1.50 mm.",
                      "View 3: pose not searched by re-fitting (looks along the same line as view 1)."]
+    in_turn = {"method": "epipolar consistency of the frames' vessel line integrals", "views": [
+        {"view": 3, "matched_with": [2], "joint_search": "not used: the search … reached the end of its range",
+         "consistency_gain": 30.4, "object_rotation_deg": [0.0, 0.0, 0.0], "object_translation_mm": [0.0, 3.0, 4.0]}]}
+    assert calibration_lines({"calibration": in_turn}) == [
+        "View 3: pose corrected from the frames: its object turned 0.00° and moved 5.00 mm (the views 30.40× more "
+        "consistent; matched to view 2 alone: the search over all views at once could not be used)."]
 
 
 def test_calibrate_from_frames_matches_a_view_to_another_corrected_view_where_the_joint_search_ends_at_its_range(
