@@ -151,6 +151,7 @@ def test_three_views_are_made_consistent_in_every_pair_where_matching_each_to_vi
     each_to_view_1 = _pair_costs(views, images, alone, centre)
     assert each_to_view_1[(1, 2)] < 1e-3 and each_to_view_1[(1, 3)] < 1e-3 and each_to_view_1[(2, 3)] > 0.1
     estimates = estimate_motions(views, images, centre)
+    assert all(e.jointly and not e.joint_fallback and not e.joint_start for e in estimates)
     assert len(estimates) == 2 and set(estimates[0].parameters) == {
         "shift_across", "rotation_about_baseline", "rotation_about_depth", "rotation_about_normal",
         "shift_in_depth", "shift_along_baseline"}
@@ -242,20 +243,24 @@ def _beyond_view_1s_range(centre):
                                                                                          4.0 * along_23 + across_23))]
 
 
+#: one blur per search stage instead of three: the tests of what happens at the range's end need the mechanism, not
+#: the coarse-to-fine accuracy (a third of the time)
+ONE_STAGE = {"blurs_mm": (1.0,), "joint_blurs_mm": (1.0,)}
+
+
 def test_a_view_the_joint_search_cannot_place_within_its_range_is_matched_to_the_view_it_agrees_with():
     centre = np.zeros(3)
     views, images = [VIEW_1, VIEW_2, VIEW_3], _beyond_view_1s_range(centre)
-    second, third = estimate_motions(views, images, centre, max_translation_mm=2.0)  # a 2 mm range
+    second, third = estimate_motions(views, images, centre, max_translation_mm=2.0, **ONE_STAGE)  # a 2 mm range
     for estimate in (second, third):
         assert not estimate.jointly and estimate.joint_fallback.startswith(
             "the search over every pair of views at once reached the end of its range (")
         assert set(estimate.parameters) == {"shift_across", "rotation_about_baseline", "rotation_about_depth"}
     # matched to view 1, view 3 ends at the limit; matched to view 2 it does not, and that pair's 1 mm is found
-    to_view_1 = estimate_motion(VIEW_1, images[0], VIEW_3, images[2], centre, max_translation_mm=2.0)
+    to_view_1 = estimate_motion(VIEW_1, images[0], VIEW_3, images[2], centre, max_translation_mm=2.0,
+                                blurs_mm=ONE_STAGE["blurs_mm"])
     assert "shift_across" in to_view_1.at_limit and not third.at_limit
     assert second.reference_view == 0 and third.reference_view == 1
     np.testing.assert_allclose(second.added, estimate_motion(VIEW_1, images[0], VIEW_2, images[1], centre,
-                                                             max_translation_mm=2.0).added)
+                                                             max_translation_mm=2.0, blurs_mm=ONE_STAGE["blurs_mm"]).added)
     assert abs(third.parameters["shift_across"]) == pytest.approx(1.0, abs=0.1)
-    # with the range wide enough the joint search places every view, as before
-    assert all(e.jointly and not e.joint_fallback for e in estimate_motions(views, images, centre))
