@@ -390,7 +390,7 @@ def test_calibration_lines_say_per_view_what_each_search_did():
 def test_calibrate_from_frames_matches_a_view_to_another_corrected_view_where_the_joint_search_ends_at_its_range(
         monkeypatch):
     from blob_phantom import VIEW_1, VIEW_2, VIEW_3
-    from test_line_integral_consistency import ONE_STAGE, _beyond_view_1s_range
+    from test_line_integral_consistency import JOINT_EVALUATIONS_TO_THE_LIMIT, ONE_STAGE, _beyond_view_1s_range
     from SDFCARLib import calibration, line_integral_consistency
     from SDFCARLib.line_integral_consistency import motion_axes
 
@@ -399,6 +399,7 @@ def test_calibrate_from_frames_matches_a_view_to_another_corrected_view_where_th
     monkeypatch.setitem(calibration.FRAME_CALIBRATION_LIMITS, "mm", 2.0)
     searched = line_integral_consistency.estimate_motions
     monkeypatch.setattr(line_integral_consistency, "estimate_motions", lambda *a, **k: searched(*a, **k, **ONE_STAGE))
+    monkeypatch.setattr(line_integral_consistency, "JOINT_MAX_EVALUATIONS", JOINT_EVALUATIONS_TO_THE_LIMIT)
     result = calibration.calibrate_from_frames(Geometry(grid, (VIEW_1, VIEW_2, VIEW_3)), _beyond_view_1s_range(centre))
     (warning,) = result.warnings
     assert warning.startswith("the frames' pose search over all 3 views at once could not be used: the search over every "
