@@ -54,9 +54,11 @@ Three views or more
     the motion is not recovered exactly (section 17 of the results). Even the true line integrals
     leave those three combinations about a millimetre off (§68): they change the planes' integrals
     only through the perspective, a hundredth as strongly as the motions the pairs observe.
-    Where the joint search ends at the end of its range for any view, each view keeps what matching
-    it to view 1 found: on the real three-run phantom the tags' poses disagree by more than the range
-    allows in the joint parametrisation, and the joint result left every view as given (§94).
+    Where the joint search ends at the end of its range for any view, the views are matched one pair
+    at a time (each to the already corrected view it agrees with best) and the joint search runs
+    again from there; only if that ends at the range too are those matches kept. On the real
+    three-run phantom the search from each view matched to view 1 ended at the range and left every
+    view as given; from the matches in turn it ends inside it (§94).
 """
 
 from __future__ import annotations
