@@ -14,9 +14,9 @@ from SDFCARLib.calibration import moved
 from SDFCARLib.geometry import rotation_matrix
 from SDFCARLib.line_integral_consistency import (MIN_UNTRUNCATED_PLANES, TRUNCATION_PLANE_MARGIN,
                                                   TRUNCATION_REACH_PX, EpipolarError, consistency, epipolar_frame,
-                                                  estimate_motion, equal_total_factors, estimate_motions, motion_axes, plane_angles,
-                                                  plane_derivatives, plane_sampling, rays_of, truncated_rays,
-                                                  with_equal_totals)
+                                                  estimate_motion, equal_total_factors, estimate_motions, motion_axes,
+                                                  plane_angles, plane_derivatives, plane_sampling, rays_of,
+                                                  truncated_rays, with_equal_totals)
 
 #: VIEW_1 with pixels a third the size: its rays are pooled 3 × 3 (``RAY_PIXEL_MM``)
 FINE_VIEW_1 = dataclasses.replace(VIEW_1, pixel_spacing_mm=(0.8 / 3, 0.8 / 3), detector_shape=(384, 384))

@@ -158,7 +158,7 @@ def three_views(args) -> int:
         for prior in priors:
             options = {} if prior is None else {"prior_weight": prior}
             estimates = estimate_motions(views, evidence, centre, **options)
-            if estimates[0].joint_fallback:  # each view matched alone instead (``estimate_motions``)
+            if estimates[0].joint_fallback:  # the views matched in turn instead (``estimate_motions``)
                 print(f"{name} joint search not used: {estimates[0].joint_fallback}", flush=True)
             found["joint" if prior is None else f"joint{prior:g}"] = (
                 [about_centre(e.rotation_deg, e.translation_mm, centre) for e in estimates], estimates[0].seconds)
