@@ -6,6 +6,13 @@ LAO 30 / RAO 30 pair on a 96² detector at 1 mm: every view sees it, and simulat
 
 from __future__ import annotations
 
+import os
+
+# Under pytest-xdist each worker would run torch and BLAS on every core, so `make test`'s two workers ran four threads
+# on two cores; one thread per worker instead (read by torch and OpenBLAS when they load, hence before the imports).
+if int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1")) > 1:
+    os.environ.setdefault("OMP_NUM_THREADS", "1")
+
 import json
 from pathlib import Path
 from typing import Any, Dict

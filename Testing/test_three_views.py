@@ -45,7 +45,7 @@ def test_three_views_reconstruct_without_the_ghost_two_views_keep(crossing_case)
     truth, ghost, masks = crossing_case
     results = {}
     for views in ((AP, LAO90), (AP, LAO90, LAO45)):
-        settings = make_settings("fast", steps=150, prune=False, reconnect=False, seed=1, threads=2)
+        settings = make_settings("fast", steps=100, prune=False, reconnect=False, seed=1, threads=1)
         targets = [m.astype(np.float32) for m in masks[:len(views)]]
         segmentation = reconstruct(Geometry(GRID, views), targets, settings, "mask").segmentation
         results[len(views)] = (mask_dice(segmentation, truth), int((segmentation & ghost).sum()))
