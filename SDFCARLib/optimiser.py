@@ -666,7 +666,7 @@ def _exclude_disagreeing_pieces(problem: Problem, model: ImplicitField, step: in
         checked, finishing = finishing_removals(segmentation, references, geometry, region, traced, problem.unknown)
     kept, record = disagreeing_pieces(checked, references, geometry, region.width_agreement_min_ratio,
                                       region.prune_piece_mm, keep_connected=True, measure=region.width_agreement_measure,
-                                      unknown=problem.unknown)
+                                      unknown=problem.unknown, views=region.width_agreement_views)
     zone = removal_zone(segmentation, kept, geometry.volume.spacing_mm)
     problem.excluded = zone if problem.excluded is None else problem.excluded | zone
     problem.exclusion = problem.exclusion or {"exclusions": []}
@@ -768,7 +768,7 @@ def finish(problem: Problem, model: ImplicitField, history: List[Dict[str, float
         kept, width_check = disagreeing_pieces(segmentation, references, geometry,
                                                settings.region.width_agreement_min_ratio, settings.region.prune_piece_mm,
                                                keep_connected=True, measure=settings.region.width_agreement_measure,
-                                               unknown=problem.unknown)
+                                               unknown=problem.unknown, views=settings.region.width_agreement_views)
         segmentation = erase_removed(segmentation, kept, occupancy_volume, field_volume, geometry, settings)
     small: Optional[Dict[str, Any]] = None
     if settings.region.min_fragment_volume_mm3 and segmentation.any():

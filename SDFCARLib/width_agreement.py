@@ -20,7 +20,10 @@ Method
        vessel's half-width there: a free end's cap has no width of its own.
     2. Per segmented voxel, each view's half-width at the voxel's projection, in mm at the voxel's
        depth (pixel spacing × depth / SID); the voxel's agreement is the smallest over the largest
-       of those half-widths (1: the views agree; a ghost of a 3 mm and a 1.5 mm vessel reads 0.5).
+       of those half-widths (1: the views agree; a ghost of a 3 mm and a 1.5 mm vessel reads 0.5). With three
+       views or more, ``views="best_pair"`` takes the best-agreeing pair's ratio instead: a vessel that another
+       crosses in one view reads that view's wider shadow, and a third view, which rules ghosts out on its own
+       (its mask), need not also agree on the width.
     3. The segmentation is cut into the skeleton pieces pruning weighs (``pruning.skeleton_pieces``,
        ``piece_mm``); a piece whose median agreement is below ``min_ratio`` is removed whole (single
        voxels are too noisy: a mask's border is a pixel off either way).
@@ -124,24 +127,42 @@ def half_widths_mm(half_width_px: np.ndarray, view: CArmView, points_mm: np.ndar
     return half_width_px[rows, cols] * pixel_mm * np.asarray(depth_mm, float) / view.sid_mm
 
 
+#: which views' half-widths a point's agreement compares: "all", the smallest over the largest of every view's; "best_pair",
+#: with three views or more, the best-agreeing pair's (the same as "all" with two). A true vessel crossed by another
+#: vessel in one of three views reads that view's wider shadow, which "all" takes for a ghost's; a ghost of three views
+#: needs two of them to see one vessel's width by chance.
+AGREEMENT_VIEWS = ("all", "best_pair")
+
+
 def width_agreement(masks: Sequence[np.ndarray], geometry: Geometry, points_mm: np.ndarray,
-                    measure: str = "centreline", unknown: Optional[Sequence[Optional[np.ndarray]]] = None) -> np.ndarray:
-    """Per point: the smallest over the largest of the views' half-widths at its projections (0–1);
-    ``measure``: how a view's half-width map is made (``HALF_WIDTH_MEASURES``, module docstring). ``unknown``: per
-    view None or a bool detector image, True where the view could not see (its mask's 0 there is no width): a
-    point projecting there is unread (NaN)."""
+                    measure: str = "centreline", unknown: Optional[Sequence[Optional[np.ndarray]]] = None,
+                    views: str = "all") -> np.ndarray:
+    """Per point: the smallest over the largest of the views' half-widths at its projections (0–1), of every view
+    or of the best-agreeing pair (``views``, ``AGREEMENT_VIEWS``); ``measure``: how a view's half-width map is made
+    (``HALF_WIDTH_MEASURES``, module docstring). ``unknown``: per view None or a bool detector image, True where the
+    view could not see (its mask's 0 there is no width): a point projecting there is unread (NaN) — with
+    "best_pair", read by the pairs of views that see it."""
     if len(masks) != len(geometry.views):
         raise ValueError(f"{len(masks)} masks for {len(geometry.views)} views: give one mask per view, in the views' order")
     if measure not in HALF_WIDTH_MEASURES:
         raise ValueError(f"unknown half-width measure {measure!r}: choose one of {', '.join(HALF_WIDTH_MEASURES)}")
+    if views not in AGREEMENT_VIEWS:
+        raise ValueError(f"unknown choice of views {views!r}: choose one of {', '.join(AGREEMENT_VIEWS)}")
     half_width_px = HALF_WIDTH_MEASURES[measure]
     unseen = list(unknown) if unknown is not None else [None] * len(masks)
     if len(unseen) != len(masks):
         raise ValueError(f"{len(unseen)} unknown-pixel images for {len(masks)} masks: give one per view (None: all known)")
     widths = np.stack([half_widths_mm(half_width_px(m) if u is None else np.where(u, np.nan, half_width_px(m)), v, points_mm)
                        for m, v, u in zip(masks, geometry.views, unseen)])
-    # NaN where a view leaves the width unread (open_ends): the point has no agreement
-    return widths.min(axis=0) / np.maximum(widths.max(axis=0), 1e-9)
+    if views == "all" or len(masks) < 3:
+        # NaN where a view leaves the width unread (open_ends): the point has no agreement
+        return widths.min(axis=0) / np.maximum(widths.max(axis=0), 1e-9)
+    best = np.full(widths.shape[1], np.nan)
+    for i in range(len(masks)):
+        for j in range(i + 1, len(masks)):
+            pair = widths[[i, j]]
+            best = np.fmax(best, pair.min(axis=0) / np.maximum(pair.max(axis=0), 1e-9))  # fmax: an unread pair abstains
+    return best
 
 
 def _median_read(values: np.ndarray) -> float:
@@ -168,9 +189,10 @@ def _splits_its_component(kept: np.ndarray, labels: np.ndarray, piece: np.ndarra
 def disagreeing_pieces(segmentation: np.ndarray, masks: Sequence[np.ndarray], geometry: Geometry,
                        min_ratio: float, piece_mm: float = 6.0,
                        keep_connected: bool = False, measure: str = "centreline",
-                       unknown: Optional[Sequence[Optional[np.ndarray]]] = None) -> Tuple[np.ndarray, Dict[str, Any]]:
+                       unknown: Optional[Sequence[Optional[np.ndarray]]] = None,
+                       views: str = "all") -> Tuple[np.ndarray, Dict[str, Any]]:
     """The segmentation without its pieces whose median width agreement is below ``min_ratio``
-    (``unknown``: as for ``width_agreement``; a piece no point of which every view sees is kept).
+    (``unknown``, ``views``: as for ``width_agreement``; a piece no point of which is read is kept).
 
     ``keep_connected``: a piece is removed only where the rest of its component stays in one part
     (the least agreeing first, each decision on what is left, repeated until nothing more goes): a
@@ -183,13 +205,14 @@ def disagreeing_pieces(segmentation: np.ndarray, masks: Sequence[np.ndarray], ge
     if not 0.0 <= min_ratio <= 1.0:
         raise ValueError(f"min_ratio {min_ratio} is not an agreement: give a value from 0 (keep every piece) to 1")
     voxels = np.argwhere(segmentation)
-    info: Dict[str, Any] = {"min_ratio": float(min_ratio), "measure": measure, "pieces": 0, "removed_pieces": 0, "removed_voxels": 0}
+    info: Dict[str, Any] = {"min_ratio": float(min_ratio), "measure": measure, "views": views, "pieces": 0,
+                            "removed_pieces": 0, "removed_voxels": 0}
     if not len(voxels):
         info["seconds"] = time.perf_counter() - t0
         return segmentation.copy(), info
     agreement = np.ones(segmentation.shape)
     agreement[tuple(voxels.T)] = width_agreement(masks, geometry, geometry.volume.index_to_world(voxels.astype(float)),
-                                                 measure, unknown)
+                                                 measure, unknown, views)
     pieces, count = skeleton_pieces(segmentation, geometry.volume.spacing_mm, piece_mm)
     medians = np.ones(count + 1)
     if count and np.isnan(agreement).any():  # the median of the points read; a piece with none is kept

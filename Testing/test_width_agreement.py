@@ -136,6 +136,41 @@ def test_a_piece_a_view_could_not_see_is_not_judged_by_it():
         width_agreement(masks, geometry, _interior(hidden), unknown=unknown[:1])
 
 
+def test_with_three_views_a_vessel_widened_in_one_view_by_a_crossing_is_kept_and_a_ghost_still_goes():
+    """``views="best_pair"``: a true tube whose shadow in the third view is widened (a vessel running across it there)
+    agrees in the other two views and is kept; a ghost the three views see at three different widths is removed;
+    with two views the choice changes nothing."""
+    import dataclasses
+
+    views = VIEWS + (dataclasses.replace(VIEWS[0], primary_deg=0.0, secondary_deg=30.0),)  # AP cranial 30
+    true_tube, ghost = _tube(2.5, x_mm=-8.0), _tube(2.5, x_mm=8.0)
+    both = CentrelineTree(true_tube.tree.branches + ghost.tree.branches)
+    grid = grid_around(both, 0.4)
+    segmentation = voxelize_exact(both, grid)
+    truth_only = voxelize_exact(true_tube.tree, grid)
+    geometry = Geometry(grid, views)
+    # the true tube: 2.5 mm in views 1 and 2, 5 mm wide in view 3; the ghost's place: 3, 1.5 and 0.8 mm
+    masks = [render_mask(_tube(true_width, x_mm=-8.0).tree, v) | render_mask(_tube(ghost_width, x_mm=8.0).tree, v)
+             for v, true_width, ghost_width in zip(views, (2.5, 2.5, 5.0), (3.0, 1.5, 0.8))]
+
+    every_view, _ = disagreeing_pieces(segmentation, masks, geometry, min_ratio=0.7)
+    assert (every_view & truth_only).sum() < 0.5 * truth_only.sum()  # every view's: the true tube read as a ghost
+    kept, info = disagreeing_pieces(segmentation, masks, geometry, min_ratio=0.7, views="best_pair")
+    assert info["views"] == "best_pair"
+    assert (kept & truth_only).sum() == truth_only.sum()  # the true tube whole
+    assert not (kept & ~truth_only).any()  # the ghost gone: no two views agree on its width
+    agreement = width_agreement(masks, geometry, _interior(true_tube), views="best_pair")
+    assert np.median(agreement) >= 0.8 and np.median(width_agreement(masks, geometry, _interior(true_tube))) < 0.6
+
+    pair = Geometry(grid, views[:2])
+    assert np.array_equal(width_agreement(masks[:2], pair, _interior(ghost), views="best_pair"),
+                          width_agreement(masks[:2], pair, _interior(ghost)))
+    with pytest.raises(ValueError, match="choose one of all, best_pair"):
+        width_agreement(masks, geometry, _interior(ghost), views="median")
+    with pytest.raises(ReconstructionError, match="width_agreement_views"):
+        make_settings("fast", width_agreement_views="median")
+
+
 def _segment(start_mm, end_mm, diameter_mm):
     points = np.linspace(start_mm, end_mm, 13)
     return Branch(points, np.full(len(points), diameter_mm / 2))
@@ -217,6 +252,8 @@ def test_fast_checks_the_views_widths_at_0_7_and_takes_them_out_of_the_fit_at_60
     from SDFCARLib.settings import make_settings
 
     assert make_settings("fast").region.width_agreement_min_ratio == 0.7
+    assert make_settings("fast").region.width_agreement_views == "best_pair"  # three views or more: the best pair's
+    assert make_settings("paper").region.width_agreement_views == "all"
     assert make_settings("fast").region.width_exclusion_fraction == 0.6
     assert exclusion_schedule(make_settings("fast")) == [240]  # of 400 steps
     assert make_settings("paper").region.width_agreement_min_ratio == 0.0  # the published recipe has no such step
