@@ -127,10 +127,10 @@ def half_widths_mm(half_width_px: np.ndarray, view: CArmView, points_mm: np.ndar
     return half_width_px[rows, cols] * pixel_mm * np.asarray(depth_mm, float) / view.sid_mm
 
 
-#: which views' half-widths a point's agreement compares: "all", the smallest over the largest of every view's; "best_pair",
-#: with three views or more, the best-agreeing pair's (the same as "all" with two). A true vessel crossed by another
-#: vessel in one of three views reads that view's wider shadow, which "all" takes for a ghost's; a ghost of three views
-#: needs two of them to see one vessel's width by chance.
+#: which views' half-widths a point's agreement compares: "all", the smallest over the largest of every view's;
+#: "best_pair", with three views or more, the best-agreeing pair's (the same as "all" with two). A true vessel crossed
+#: by another vessel in one of three views reads that view's wider shadow, which "all" takes for a ghost's; a ghost of
+#: three views needs two of them to see one vessel's width by chance.
 AGREEMENT_VIEWS = ("all", "best_pair")
 
 
