@@ -228,7 +228,8 @@ class RegionSettings:
     width_agreement_min_ratio: float = 0.0
     # how each view's half-width map is read (width_agreement.py): "centreline", the distance map at the nearest
     # skeleton pixel; "thickness", the mask's local thickness (a free end's cap reads the vessel behind it);
-    # "open_ends", the centreline's, unread at a skeleton end's cap
+    # "open_ends", the centreline's, unread at a skeleton end's cap; "axis", the distance to the mask's edge read at the
+    # projections of the segmentation's 3D skeleton (a vessel merged with a neighbour in one view reads its own width)
     width_agreement_measure: str = "centreline"
     # whose half-widths a voxel's agreement compares (width_agreement.AGREEMENT_VIEWS): "all" the views', or with three
     # views or more "best_pair", the best-agreeing pair's (one view's crossing vessel no longer removes a true one)
@@ -476,9 +477,9 @@ class Settings:
             raise ReconstructionError(f"width_agreement_views is whose half-widths a voxel's width check compares: 'all' "
                                       f"(every view's) or 'best_pair' (with three views or more, the best-agreeing "
                                       f"pair's), got {r.width_agreement_views!r}")
-        if r.width_agreement_measure not in ("centreline", "thickness", "open_ends"):
+        if r.width_agreement_measure not in ("centreline", "thickness", "open_ends", "axis"):
             raise ReconstructionError(f"width_agreement_measure is how the masks' half-widths are read: 'centreline', "
-                                      f"'thickness' or 'open_ends', got {r.width_agreement_measure!r}")
+                                      f"'thickness', 'open_ends' or 'axis', got {r.width_agreement_measure!r}")
         if not 0 <= r.width_agreement_min_ratio < 1:
             raise ReconstructionError(f"width_agreement_min_ratio must be 0 (off) or an agreement of the views' widths "
                                       f"below 1 (smaller / larger), got {r.width_agreement_min_ratio}")

@@ -17,7 +17,11 @@ Method
        the thin tip, while the cap's pixels lie in the disks of the full-width vessel behind it. Or
        (``measure="open_ends"``) the centreline's, unread (NaN) where the nearest skeleton pixel lies
        within ``END_CAP_WIDTHS`` half-widths of a skeleton end and reads less than ``END_CAP_SHARE`` of the
-       vessel's half-width there: a free end's cap has no width of its own.
+       vessel's half-width there: a free end's cap has no width of its own. Or (``measure="axis"``) the
+       in-mask distance map itself, its largest value within a voxel's projected half-diagonal, read at the
+       projections of the segmentation's 3D skeleton only: a vessel that runs alongside another in one
+       view, the two merged into one wide band there, reads its own edge's distance instead of the band's
+       half-width, while a ghost's axis still projects onto the middles of two different vessels.
     2. Per segmented voxel, each view's half-width at the voxel's projection, in mm at the voxel's
        depth (pixel spacing × depth / SID); the voxel's agreement is the smallest over the largest
        of those half-widths (1: the views agree; a ghost of a 3 mm and a 1.5 mm vessel reads 0.5). With three
@@ -114,8 +118,32 @@ def open_ends_half_width_px(mask: np.ndarray) -> np.ndarray:
     return _at_nearest(skeleton, np.where(cap, np.nan, inside_px))
 
 
+def in_mask_distance_px(mask: np.ndarray) -> np.ndarray:
+    """Per detector pixel: its distance (pixels) to the nearest pixel outside the mask (0 outside)."""
+    return ndimage.distance_transform_edt(np.asarray(mask, bool))
+
+
 HALF_WIDTH_MEASURES = {"centreline": centreline_half_width_px, "thickness": local_thickness_px,
-                       "open_ends": open_ends_half_width_px}
+                       "open_ends": open_ends_half_width_px, "axis": in_mask_distance_px}
+#: the measures read at the projections of the segmentation's 3D skeleton only (``disagreeing_pieces``)
+AXIS_MEASURES = ("axis",)
+
+
+def _largest_within(values: np.ndarray, radius_px: float) -> np.ndarray:
+    """Per pixel: the largest of ``values`` within ``radius_px`` (a disk)."""
+    reach = int(np.floor(radius_px))
+    if reach < 1:
+        return values
+    offsets = np.arange(-reach, reach + 1)
+    disk = offsets[:, None] ** 2 + offsets[None, :] ** 2 <= radius_px ** 2
+    return ndimage.grey_dilation(values, footprint=disk, mode="nearest")
+
+
+def voxel_reach_px(geometry: Geometry, view: CArmView) -> float:
+    """Half a voxel's diagonal projected at the isocenter, in detector pixels: how far a 3D skeleton voxel's
+    projection may lie from the true axis's on voxel quantisation alone."""
+    half_diagonal_mm = 0.5 * float(np.linalg.norm(geometry.volume.spacing_mm))
+    return half_diagonal_mm * view.sid_mm / view.sod_mm / float(np.mean(view.pixel_spacing_mm))
 
 
 def half_widths_mm(half_width_px: np.ndarray, view: CArmView, points_mm: np.ndarray) -> np.ndarray:
@@ -148,11 +176,16 @@ def width_agreement(masks: Sequence[np.ndarray], geometry: Geometry, points_mm: 
         raise ValueError(f"unknown half-width measure {measure!r}: choose one of {', '.join(HALF_WIDTH_MEASURES)}")
     if views not in AGREEMENT_VIEWS:
         raise ValueError(f"unknown choice of views {views!r}: choose one of {', '.join(AGREEMENT_VIEWS)}")
-    half_width_px = HALF_WIDTH_MEASURES[measure]
     unseen = list(unknown) if unknown is not None else [None] * len(masks)
     if len(unseen) != len(masks):
         raise ValueError(f"{len(unseen)} unknown-pixel images for {len(masks)} masks: give one per view (None: all known)")
-    widths = np.stack([half_widths_mm(half_width_px(m) if u is None else np.where(u, np.nan, half_width_px(m)), v, points_mm)
+
+    def half_width_px(mask: np.ndarray, view: CArmView) -> np.ndarray:
+        read = HALF_WIDTH_MEASURES[measure](mask)
+        return _largest_within(read, voxel_reach_px(geometry, view)) if measure in AXIS_MEASURES else read
+
+    widths = np.stack([half_widths_mm(half_width_px(m, v) if u is None else np.where(u, np.nan, half_width_px(m, v)),
+                                      v, points_mm)
                        for m, v, u in zip(masks, geometry.views, unseen)])
     if views == "all" or len(masks) < 3:
         # NaN where a view leaves the width unread (open_ends): the point has no agreement
@@ -210,10 +243,18 @@ def disagreeing_pieces(segmentation: np.ndarray, masks: Sequence[np.ndarray], ge
     if not len(voxels):
         info["seconds"] = time.perf_counter() - t0
         return segmentation.copy(), info
-    agreement = np.ones(segmentation.shape)
+    pieces, count = skeleton_pieces(segmentation, geometry.volume.spacing_mm, piece_mm)
+    if measure in AXIS_MEASURES:
+        # read on the pieces' axes (a piece too thin to have one: on all of it); every other voxel unread
+        axis = skeletonize(segmentation).astype(bool)
+        without_axis = ~np.isin(np.arange(count + 1), np.unique(pieces[axis]))
+        read = axis | (segmentation & without_axis[pieces])
+        voxels = np.argwhere(read)
+        agreement = np.where(segmentation, np.nan, 1.0)
+    else:
+        agreement = np.ones(segmentation.shape)
     agreement[tuple(voxels.T)] = width_agreement(masks, geometry, geometry.volume.index_to_world(voxels.astype(float)),
                                                  measure, unknown, views)
-    pieces, count = skeleton_pieces(segmentation, geometry.volume.spacing_mm, piece_mm)
     medians = np.ones(count + 1)
     if count and np.isnan(agreement).any():  # the median of the points read; a piece with none is kept
         medians[1:] = ndimage.labeled_comprehension(agreement, pieces, np.arange(1, count + 1), _median_read, float, 1.0)

@@ -89,7 +89,7 @@ def test_each_view_reads_a_tubes_radius_at_its_depth(diameter_mm):
         pixel_at_depth_mm = view.pixel_spacing_mm[0] * view.sod_mm / view.sid_mm
         # the distance map counts whole pixels from the centre pixel: within a pixel of the radius
         assert np.abs(half - diameter_mm / 2).max() <= pixel_at_depth_mm + 1e-6
-    for measure in ("centreline", "thickness", "open_ends"):
+    for measure in ("centreline", "thickness", "open_ends", "axis"):
         agreement = width_agreement([render_mask(tube.tree, v) for v in VIEWS],
                                     Geometry(grid_around(tube.tree, 0.4), VIEWS), points, measure)
         assert np.nanmedian(agreement) >= 0.8 and np.isfinite(agreement).mean() >= 0.8
@@ -169,6 +169,41 @@ def test_with_three_views_a_vessel_widened_in_one_view_by_a_crossing_is_kept_and
         width_agreement(masks, geometry, _interior(ghost), views="median")
     with pytest.raises(ReconstructionError, match="width_agreement_views"):
         make_settings("fast", width_agreement_views="median")
+
+
+def test_the_axis_measure_keeps_a_vessel_merged_with_a_neighbour_in_one_view_and_removes_a_ghost():
+    """``measure="axis"``: two parallel tubes that view 2 sees as one wide band (each 2.5 mm, the band 4.7 mm) read
+    the band's half-width at the nearest 2D centreline, and both go as ghosts; read at their own axes' projections
+    they agree and stay. A ghost seen at 3 and 1.5 mm still goes."""
+    alpha, beta = np.radians(VIEWS[1].primary_deg), np.radians(VIEWS[1].secondary_deg)
+    ray = np.array([np.sin(alpha) * np.cos(beta), -np.cos(alpha) * np.cos(beta), np.sin(beta)])
+    columns = np.array([np.cos(alpha), np.sin(alpha), 0.0])
+    first = np.array([-6.0, 0.0, 0.0])
+    second = first + 16.0 * ray + 2.2 * columns  # behind the first along view 2's rays, 2.2 mm to its side
+    tubes = [straight_tube(24.0, 2.5, direction=AXIS, center_mm=tuple(c)) for c in (first, second)]
+    both = CentrelineTree(tubes[0].tree.branches + tubes[1].tree.branches)
+    grid = grid_around(both, 0.4)
+    segmentation = voxelize_exact(both, grid)
+    masks = [render_mask(both, v) for v in VIEWS]
+    assert [component_counts(m[None])["components"] for m in masks] == [2, 1]  # apart in view 1, one band in view 2
+    geometry = Geometry(grid, VIEWS)
+
+    read_at_centreline, _ = disagreeing_pieces(segmentation, masks, geometry, min_ratio=0.7)
+    assert read_at_centreline.sum() < 0.5 * segmentation.sum()
+    kept, info = disagreeing_pieces(segmentation, masks, geometry, min_ratio=0.7, measure="axis")
+    assert np.array_equal(kept, segmentation) and info["measure"] == "axis" and min(info["median_agreement"]) >= 0.7
+    on_axis = width_agreement(masks, geometry, _interior(tubes[1]), measure="axis")
+    assert np.median(on_axis) >= 0.8 and np.median(width_agreement(masks, geometry, _interior(tubes[1]))) < 0.6
+
+    true_tube, ghost = _tube(2.5, x_mm=-8.0), _tube(2.5, x_mm=8.0)
+    pair = CentrelineTree(true_tube.tree.branches + ghost.tree.branches)
+    grid = grid_around(pair, 0.4)
+    masks = [render_mask(true_tube.tree, v) | render_mask(_tube(width, x_mm=8.0).tree, v) for v, width in zip(VIEWS, (3.0, 1.5))]
+    truth_only = voxelize_exact(true_tube.tree, grid)
+    kept, _ = disagreeing_pieces(voxelize_exact(pair, grid), masks, Geometry(grid, VIEWS), min_ratio=0.7, measure="axis")
+    assert np.array_equal(kept, truth_only)
+    with pytest.raises(ReconstructionError, match="'open_ends' or 'axis'"):
+        make_settings("fast", width_agreement_measure="edges")
 
 
 def _segment(start_mm, end_mm, diameter_mm):
