@@ -543,7 +543,8 @@ PRESETS: Dict[str, Dict[str, Any]] = {  # the default first: lists offer it firs
         # unless that cuts the tree (bench/RESULTS.md §29b)
         width_agreement_min_ratio=0.7,
         # with three views or more, of the best-agreeing pair of views: a true vessel crossed by another in one view
-        # was removed as a ghost (realistic static three views, cases 0–7: clDice higher on 15 of 16, RESULTS §95e)
+        # was removed as a ghost (three views, realistic static cases 0–9: clDice higher on 19 of 20; clean, cases 0–4:
+        # 7 of 10, +7.4 / +2.1; RESULTS §95e, §96b)
         width_agreement_views="best_pair",
         # and already at 60 % of the steps, so that the rest of the fit explains those pieces' mask pixels
         # elsewhere: a ghost removed at the end leaves its vessel missing, removed here it is often re-placed
