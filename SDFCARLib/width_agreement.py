@@ -143,7 +143,7 @@ def voxel_reach_px(geometry: Geometry, view: CArmView) -> float:
     """Half a voxel's diagonal projected at the isocenter, in detector pixels: how far a 3D skeleton voxel's
     projection may lie from the true axis's on voxel quantisation alone."""
     half_diagonal_mm = 0.5 * float(np.linalg.norm(geometry.volume.spacing_mm))
-    return half_diagonal_mm * view.sid_mm / view.sod_mm / float(np.mean(view.pixel_spacing_mm))
+    return half_diagonal_mm / float(np.mean(view.isocenter_pixel_spacing_mm))
 
 
 def half_widths_mm(half_width_px: np.ndarray, view: CArmView, points_mm: np.ndarray) -> np.ndarray:

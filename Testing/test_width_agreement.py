@@ -175,11 +175,9 @@ def test_the_axis_measure_keeps_a_vessel_merged_with_a_neighbour_in_one_view_and
     """``measure="axis"``: two parallel tubes that view 2 sees as one wide band (each 2.5 mm, the band 4.7 mm) read
     the band's half-width at the nearest 2D centreline, and both go as ghosts; read at their own axes' projections
     they agree and stay. A ghost seen at 3 and 1.5 mm still goes."""
-    alpha, beta = np.radians(VIEWS[1].primary_deg), np.radians(VIEWS[1].secondary_deg)
-    ray = np.array([np.sin(alpha) * np.cos(beta), -np.cos(alpha) * np.cos(beta), np.sin(beta)])
-    columns = np.array([np.cos(alpha), np.sin(alpha), 0.0])
     first = np.array([-6.0, 0.0, 0.0])
-    second = first + 16.0 * ray + 2.2 * columns  # behind the first along view 2's rays, 2.2 mm to its side
+    # behind the first along view 2's rays, 2.2 mm to its side
+    second = first + 16.0 * VIEWS[1].detector_direction + 2.2 * VIEWS[1].column_direction
     tubes = [straight_tube(24.0, 2.5, direction=AXIS, center_mm=tuple(c)) for c in (first, second)]
     both = CentrelineTree(tubes[0].tree.branches + tubes[1].tree.branches)
     grid = grid_around(both, 0.4)
