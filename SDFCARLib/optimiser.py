@@ -16,7 +16,8 @@ with the frames' evidence and the calibrations asked for, are ``fit_field``):
    (``connectivity.py``) when asked, grows into connected partial occupancy when asked, removes
    the pieces whose views see different widths where the tree stays whole when asked
    (``width_agreement.py``), removes the detached specks below a volume when asked
-   (``min_fragment_volume_mm3``), joins what is still apart once more when asked
+   (``min_fragment_volume_mm3``), fills in what every view shows and the result does not explain when asked
+   (``unexplained_fill.py``), joins what is still apart once more when asked
    (``final_reconnect_max_gap_mm``), and writes the report.
 
 Learning rates
@@ -43,6 +44,7 @@ from typing import Any, Callable, Dict, List, Optional, Sequence, Tuple, Union
 
 import numpy as np
 import scipy
+from scipy import ndimage
 import skimage
 import torch
 
@@ -65,6 +67,7 @@ from .qa import qa_warnings, reprojection_qa
 from .pruning import PruneSettings, prune_redundant_branches, removal_zone, small_fragments, unconfirmed_fragments
 from .revival import revival_offsets, unexplained_in_every_view
 from .thin_weights import thin_vessel_weights
+from .unexplained_fill import unexplained_fill
 from .width_agreement import disagreeing_pieces
 from .settings import (MASK_THRESHOLD_MM, TARGET_KINDS, ReconstructionError, RegionSettings, Settings, make_settings,
                        settings_from_values)
@@ -774,6 +777,12 @@ def finish(problem: Problem, model: ImplicitField, history: List[Dict[str, float
     if settings.region.min_fragment_volume_mm3 and segmentation.any():
         removed, small = small_fragments(segmentation, geometry.volume.spacing_mm, settings.region.min_fragment_volume_mm3)
         segmentation = erase_removed(segmentation, segmentation & ~removed, occupancy_volume, field_volume, geometry, settings)
+    filled: Optional[Dict[str, Any]] = None
+    if settings.region.fill_unexplained and segmentation.any():
+        if _is_cancelled(cancel):
+            raise ReconstructionCancelled("cancelled before filling in the unexplained vessels")
+        segmentation, filled = fill_unexplained(segmentation, occupancy_volume, field_volume, references, geometry,
+                                                problem.support, settings, projectors=traced, unknown=problem.unknown)
     final_reconnection: Optional[Dict[str, Any]] = None
     if settings.region.final_reconnect_max_gap_mm and segmentation.any():
         if _is_cancelled(cancel):
@@ -815,6 +824,7 @@ def finish(problem: Problem, model: ImplicitField, history: List[Dict[str, float
         "final_reconnection": final_reconnection,
         "unconfirmed_fragments": unconfirmed,
         "small_fragments": small,
+        "unexplained_fill": filled,
         "components": component_counts(segmentation),
         "projector_nonzeros": [p.nnz for p in problem.projectors],
         "final_losses": {k: v for k, v in history[-1].items() if k != "step"} if history else {},
@@ -832,6 +842,51 @@ def finish(problem: Problem, model: ImplicitField, history: List[Dict[str, float
     }
     return Reconstruction(geometry, settings, occupancy_volume, field_volume, segmentation, problem.support, report, history,
                           list(zip(projected, references)), list(problem.one_view_pixels))
+
+
+def fill_unexplained(segmentation: np.ndarray, occupancy_volume: np.ndarray, field_volume: np.ndarray,
+                     masks: Sequence[np.ndarray], geometry: Geometry, support: Optional[np.ndarray], settings: Settings,
+                     projectors: Optional[Sequence[ConeBeamProjector]] = None,
+                     unknown: Optional[Sequence[np.ndarray]] = None) -> Tuple[np.ndarray, Dict[str, Any]]:
+    """The segmentation with ``unexplained_fill``'s voxels joined to it through the field (``reconnect_max_gap_mm``,
+    inside the support) and the fill that stays apart from every component of the segmentation dropped: the result
+    is in no more pieces than before (the join may also bridge the segmentation's own pieces, as ``reconnect`` does).
+    The added voxels' occupancy is raised to the threshold at least (as bridges are filled) and the field set to
+    match, in place. Returns the new segmentation and the report."""
+    region = settings.region
+    explained = reprojected_masks(segmentation, geometry, projectors=projectors)
+    fill, info = unexplained_fill(segmentation, masks, explained, geometry, support, unknown, region.prune_piece_mm)
+    info.update(added_voxels=0, apart_voxels=0, bridges=[])
+    # a fill component no bridge can reach from the segmentation is left out before joining: the join starts from the
+    # largest component, which must be the tree's, not a large fill elsewhere
+    labels, count = ndimage.label(fill, structure=np.ones((3, 3, 3)))
+    if count:
+        reach = ndimage.distance_transform_edt(~segmentation, sampling=geometry.volume.spacing_mm) <= region.reconnect_max_gap_mm
+        near = np.unique(labels[reach & fill])
+        info["apart_voxels"] = int((fill & ~np.isin(labels, near[near > 0])).sum())
+        fill = np.isin(labels, near[near > 0])
+    if not fill.any():
+        return segmentation, info
+    raised = occupancy_volume.astype(np.float32)
+    raised[fill] = np.maximum(raised[fill], region.threshold)
+    # every component in turn (largest first), so that fill beside a second tree of the segmentation joins it too
+    joined, joined_occupancy, _, reconnection = reconnect_fragments(
+        segmentation | fill, raised, geometry.volume.spacing_mm, support,
+        ReconnectSettings(region.reconnect_max_gap_mm, region.reconnect_min_occupancy, region.threshold, True))
+    labels, _ = component_labels(joined)
+    own = np.unique(labels[segmentation])
+    kept = np.isin(labels, own[own > 0])
+    added = kept & ~segmentation
+    occupancy_volume[added] = np.maximum(joined_occupancy[added], region.threshold)
+    field_volume[added] = field_values(occupancy_volume[added], settings.mode.field_kind, settings.field.alpha)
+    bridges = []
+    for bridge in reconnection["bridges"]:  # where a bridge joined kept voxels: in LPS mm for the 3D-QCA, as join_fragments
+        ijk = np.asarray(bridge.pop("voxels_ijk"), dtype=np.int64).reshape(-1, 3)
+        if ijk.size and kept[tuple(ijk.T)].all():
+            bridge["points_mm"] = np.round(geometry.volume.index_to_world(ijk.astype(np.float64)), 3).tolist()
+            bridges.append(bridge)
+    info.update(added_voxels=int(added.sum()), apart_voxels=info["apart_voxels"] + int((joined & ~kept).sum()), bridges=bridges)
+    return kept, info
 
 
 def grown_segmentation(segmentation: np.ndarray, occupancy: np.ndarray, region: RegionSettings) -> np.ndarray:

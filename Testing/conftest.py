@@ -61,6 +61,21 @@ def tiny_case(tiny_geometry):
     return make_case(tiny_tree(), tiny_geometry, name="tiny")
 
 
+@pytest.fixture(scope="session")
+def small_tree_case():
+    """A two-view case small enough to reconstruct in seconds: (geometry, masks) of one tapering tube, 24³ at 2 mm,
+    LAO 30 / RAO 30 on 64² at 1 mm."""
+    from SDFCARLib.geometry import CArmView, VolumeGrid
+    from SDFCARLib.phantoms import Branch, CentrelineTree, simulate_views, voxelize
+
+    grid = VolumeGrid((24, 24, 24), (2.0, 2.0, 2.0))
+    views = [CArmView(a, 0.0, 1000.0, 750.0, (1.0, 1.0), (64, 64)) for a in (30.0, -30.0)]
+    tree = CentrelineTree([Branch(np.array([[-12.0, -6.0, -10.0], [0.0, 2.0, 0.0], [12.0, 6.0, 10.0]]),
+                                  np.array([3.0, 2.5, 2.0]))])
+    _, masks = simulate_views(voxelize(tree, grid), grid, views)
+    return Geometry(grid, views), masks
+
+
 @pytest.fixture
 def geometry_file(tmp_path) -> Path:
     return write_json(tmp_path / "geometry.json", tiny_geometry_dict())

@@ -10,7 +10,6 @@ from SDFCARLib.metrics import component_labels
 from SDFCARLib.geometry import CArmView, Geometry, VolumeGrid
 from SDFCARLib.metrics import component_counts, volume_metrics
 from SDFCARLib.optimiser import reconstruct
-from SDFCARLib.phantoms import Branch, CentrelineTree, simulate_views, voxelize
 from SDFCARLib.settings import ReconstructionError, make_settings, parse_setting_overrides
 
 H = 0.5  # mm per voxel of the analytic volumes
@@ -141,17 +140,6 @@ def test_reconnect_settings_from_the_command_line():
     # on in the fast preset (measured in bench/RESULTS.md), off in the published recipe
     assert make_settings("fast").region.reconnect and not make_settings("paper").region.reconnect
 
-
-@pytest.fixture(scope="module")
-def small_tree_case():
-    """A two-view case small enough to reconstruct in seconds: (geometry, masks)."""
-    grid = VolumeGrid((24, 24, 24), (2.0, 2.0, 2.0))
-    views = [CArmView(a, 0.0, 1000.0, 750.0, (1.0, 1.0), (64, 64)) for a in (30.0, -30.0)]
-    tree = CentrelineTree([Branch(np.array([[-12.0, -6.0, -10.0], [0.0, 2.0, 0.0], [12.0, 6.0, 10.0]]),
-                                  np.array([3.0, 2.5, 2.0]))])
-    _, masks = simulate_views(voxelize(tree, grid), grid, views)
-    geometry = Geometry(grid, views)
-    return geometry, masks
 
 
 def test_reconstruct_reports_components(small_tree_case):

@@ -384,8 +384,10 @@ def analyse_result_dir(result_dir: PathLike, out_dir: Optional[PathLike] = None,
         raise InputError(f"the centreline on the masks needs the masks of two views or more ({mask_note or 'one view'}); "
                          "give --masks, or analyse with the volume's centreline (--centreline volume)")
     reconnection = report.get("reconnection") or {}
-    # both reconnections lay bridges (the last one when final_reconnect_max_gap_mm asks for it)
-    bridges = list(reconnection.get("bridges") or []) + list((report.get("final_reconnection") or {}).get("bridges") or [])
+    # both reconnections lay bridges (the last one when final_reconnect_max_gap_mm asks for it), and so does the join
+    # of the unexplained vessels' fill (fill_unexplained)
+    bridges = list(reconnection.get("bridges") or []) + [
+        bridge for step in ("final_reconnection", "unexplained_fill") for bridge in (report.get(step) or {}).get("bridges") or []]
     try:
         result = analyse_volume(volume, grid, level=level, views=geometry.views if geometry else (), masks=view_masks,
                                 ostium_mm=ostium_mm, view_step_deg=view_step_deg, min_stenosis_pct=min_stenosis_pct,
