@@ -246,7 +246,7 @@ class RegionSettings:
     # after those specks went (before the final reconnection): where every view shows vessel the result does not
     # explain, the hull of those pixels is added (pieces whose views' widths disagree and short crossings left out),
     # joined to the tree through the field, and what stays apart dropped (unexplained_fill.py): the vessels the fit
-    # never placed. Off: measured on the realistic static suites only (RESULTS §97)
+    # never placed. Off: measured on the realistic static suites and clean cases 0–4 (level) only (RESULTS §97)
     fill_unexplained: bool = False
     # 0: off. Otherwise, at this share of the steps, the pieces that width check would remove from the
     # fit's segmentation so far are taken out of the field for the rest of the fit, so that the fit may
