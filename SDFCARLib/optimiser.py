@@ -859,8 +859,8 @@ def fill_unexplained(segmentation: np.ndarray, occupancy_volume: np.ndarray, fie
     info.update(added_voxels=0, apart_voxels=0, bridges=[])
     # a fill component no bridge can reach from the segmentation is left out before joining: the join starts from the
     # largest component, which must be the tree's, not a large fill elsewhere
-    labels, count = ndimage.label(fill, structure=np.ones((3, 3, 3)))
-    if count:
+    labels, sizes = component_labels(fill)
+    if sizes.size:
         reach = ndimage.distance_transform_edt(~segmentation, sampling=geometry.volume.spacing_mm) <= region.reconnect_max_gap_mm
         near = np.unique(labels[reach & fill])
         info["apart_voxels"] = int((fill & ~np.isin(labels, near[near > 0])).sum())

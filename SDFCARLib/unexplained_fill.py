@@ -33,6 +33,7 @@ from skimage.morphology import skeletonize
 
 from .geometry import CArmView, Geometry
 from .hull import visual_hull
+from .metrics import component_labels
 from .width_agreement import disagreeing_pieces
 
 EXPLAINED_MARGIN_MM = 0.55  # a mask pixel this close (detector mm) to the reprojection counts as explained: 2 px at 0.278 mm
@@ -93,7 +94,8 @@ def unexplained_fill(segmentation: np.ndarray, masks: Sequence[np.ndarray], expl
         info["width_dropped_voxels"] = int((fill & ~agreeing).sum())
         fill = agreeing
     if fill.any():
-        labels, count = ndimage.label(fill, structure=np.ones((3, 3, 3)))
+        labels, sizes = component_labels(fill)
+        count = sizes.size
         voxel_mm = float(np.mean(geometry.volume.spacing_mm))
         lengths_mm = ndimage.sum(skeletonize(fill).astype(bool), labels, np.arange(1, count + 1)) * voxel_mm
         long_enough = np.isin(labels, 1 + np.flatnonzero(lengths_mm >= MIN_LENGTH_MM))
