@@ -17,7 +17,7 @@ with the frames' evidence and the calibrations asked for, are ``fit_field``):
    the pieces whose views see different widths where the tree stays whole when asked
    (``width_agreement.py``), removes the detached specks below a volume when asked
    (``min_fragment_volume_mm3``), fills in what every view shows and the result does not explain when asked
-   (``unexplained_fill.py``), joins what is still apart once more when asked
+   (``unexplained_fill.py``), prunes once more when asked (``prune_last``), joins what is still apart once more when asked
    (``final_reconnect_max_gap_mm``), and writes the report.
 
 Learning rates
@@ -783,6 +783,14 @@ def finish(problem: Problem, model: ImplicitField, history: List[Dict[str, float
             raise ReconstructionCancelled("cancelled before filling in the unexplained vessels")
         segmentation, filled = fill_unexplained(segmentation, occupancy_volume, field_volume, references, geometry,
                                                 problem.support, settings, projectors=traced, unknown=problem.unknown)
+    last_pruning: Optional[Dict[str, Any]] = None
+    if settings.region.prune_last and segmentation.any():
+        if _is_cancelled(cancel):
+            raise ReconstructionCancelled("cancelled before pruning again")
+        _report(progress, phase="prune", step=steps, total=steps, elapsed_s=optimise_s, eta_s=None, device=str(problem.device))
+        kept, last_pruning = prune_redundant_branches(segmentation, references, geometry, prune_settings(settings.region),
+                                                      projectors=traced)
+        segmentation = erase_removed(segmentation, kept, occupancy_volume, field_volume, geometry, settings)
     final_reconnection: Optional[Dict[str, Any]] = None
     if settings.region.final_reconnect_max_gap_mm and segmentation.any():
         if _is_cancelled(cancel):
@@ -825,6 +833,7 @@ def finish(problem: Problem, model: ImplicitField, history: List[Dict[str, float
         "unconfirmed_fragments": unconfirmed,
         "small_fragments": small,
         "unexplained_fill": filled,
+        "last_pruning": last_pruning,
         "components": component_counts(segmentation),
         "projector_nonzeros": [p.nnz for p in problem.projectors],
         "final_losses": {k: v for k, v in history[-1].items() if k != "step"} if history else {},

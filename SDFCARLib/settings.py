@@ -248,6 +248,10 @@ class RegionSettings:
     # joined to the tree through the field, and what stays apart dropped (unexplained_fill.py): the vessels the fit
     # never placed. Off: measured on the realistic static suites and clean cases 0–4 (level) only (RESULTS §97)
     fill_unexplained: bool = False
+    # after all the steps above (before the final reconnection): pruning once more, as ``prune`` and
+    # ``prune_keep_connected`` say. Growing, joining and the fill come after the first pruning and add pieces that
+    # no mask pixel needs (measured: RESULTS §98)
+    prune_last: bool = False
     # 0: off. Otherwise, at this share of the steps, the pieces that width check would remove from the
     # fit's segmentation so far are taken out of the field for the rest of the fit, so that the fit may
     # explain their mask pixels elsewhere (with width_agreement_min_ratio 0, the check off, nothing is taken out)

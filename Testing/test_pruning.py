@@ -397,3 +397,30 @@ def test_piece_adjacency_links_the_touching_pieces_only():
     adjacency = piece_adjacency(pieces, 3).toarray()
     np.testing.assert_array_equal(adjacency, [[False, True, False], [True, False, False], [False, False, False]])
     assert piece_adjacency(np.zeros((3, 3, 3), np.int64), 0).shape == (0, 0)
+
+
+def test_prune_last_removes_a_ghost_that_growing_attached_after_the_first_pruning(ghost_case):
+    """The hidden tube is left at partial occupancy (0.4), joined to vessel A by a partial-occupancy path: the first
+    pruning never sees it (below the threshold), growing takes it in (≥ grow_threshold 0.3), and only pruning once
+    more at the end (``prune_last``) removes it; the two vessels stay whole either way."""
+    import dataclasses
+
+    from SDFCARLib.connectivity import field_values
+
+    geometry, truth, ghost, masks = ghost_case
+    settings = make_settings("fast", steps=10, device="cpu", width_agreement_min_ratio=0.0)
+    fitted = fit_field(geometry, masks, settings)
+    # along y at x = z = 0, from vessel A's wall (y = −6.5 mm) to the ghost's (y = −1 mm)
+    (i, j_a, k), (_, j_g, _) = np.round(GRID.world_to_index(np.array([[0.0, -6.5, 0.0], [0.0, -1.0, 0.0]]))).astype(int)
+    path = np.zeros_like(truth)
+    path[i, min(j_a, j_g):max(j_a, j_g) + 1, k] = True
+    occupancy = np.where(truth, 1.0, np.where(ghost | path, 0.4, 0.0)).astype(np.float32)
+    volumes = (occupancy, field_values(occupancy, settings.mode.field_kind, settings.field.alpha))
+    with_ghost = dataclasses.replace(fitted, volumes=volumes).finished(settings)
+    assert (with_ghost.segmentation & ghost).sum() > 0.9 * ghost.sum()  # grown in and kept
+    assert with_ghost.report["last_pruning"] is None
+    pruned = dataclasses.replace(fitted, volumes=volumes).finished(settings.replace(prune_last=True))
+    assert (pruned.segmentation & ghost).sum() < 0.1 * ghost.sum()
+    assert (pruned.segmentation & truth).sum() == truth.sum()
+    assert pruned.report["last_pruning"]["removed_voxels"] > 0
+    np.testing.assert_array_equal(pruned.segmentation, pruned.occupancy >= 0.5)  # what the outputs read

@@ -48,7 +48,7 @@ def save_run(folder: Path, stem: str, case, result) -> None:
 # settings only ``finish`` reads in ``fast`` (pruning reaches the fit only with exclusion_takes_finishing_removals)
 FINISH_ONLY_KEYS = ("prune", "prune_tolerance", "prune_keep_connected", "drop_unconfirmed_fragments", "reconnect",
                     "reconnect_max_gap_mm", "reconnect_min_occupancy", "reconnect_every_component", "grow_threshold", "final_reconnect_max_gap_mm",
-                    "min_fragment_volume_mm3", "fill_unexplained")
+                    "min_fragment_volume_mm3", "fill_unexplained", "prune_last")
 
 
 def main() -> int:
