@@ -333,6 +333,24 @@ def small_fragments(segmentation: np.ndarray, spacing_mm: Sequence[float], min_v
     return removed, info
 
 
+def cut_off_parts(segmentation: np.ndarray, kept: np.ndarray) -> np.ndarray:
+    """The voxels of ``kept`` that the removal of the rest of ``segmentation`` cut off: in each component of
+    ``segmentation``, every 26-connected part of ``kept`` but the largest.
+
+    A skeleton piece holds the voxels nearest its stretch of skeleton, so a few voxels of a kept piece can hang on the
+    rest only through a removed neighbour: the piece graph stays one part (``keep_connected``), the voxels do not."""
+    segmentation, kept = np.asarray(segmentation, bool), np.asarray(kept, bool) & np.asarray(segmentation, bool)
+    parts, sizes = component_labels(kept)
+    if sizes.size < 2:
+        return np.zeros_like(kept)
+    components, _ = component_labels(segmentation)
+    part_ids = np.arange(1, sizes.size + 1)
+    component_of_part = np.asarray(ndimage.maximum(components, parts, part_ids), dtype=np.int64)
+    order = np.lexsort((-sizes, component_of_part))  # by component, the largest part first
+    first_of_component = np.r_[True, component_of_part[order][1:] != component_of_part[order][:-1]]
+    return np.isin(parts, part_ids[order][~first_of_component])
+
+
 def removal_zone(segmentation: np.ndarray, kept: np.ndarray, spacing_mm: Sequence[float]) -> np.ndarray:
     """Voxels to clear in the occupancy and field so that they agree with the pruned segmentation.
 

@@ -13,8 +13,8 @@ from SDFCARLib.phantoms import Branch, CentrelineTree, simulate_views, voxelize
 from SDFCARLib.projector import project_volume
 from SDFCARLib.hull import visual_hull
 from SDFCARLib.optimiser import exclusion_schedule, fit_field
-from SDFCARLib.pruning import (PruneSettings, piece_adjacency, prune_redundant_branches, removal_zone, skeleton_pieces,
-                               unconfirmed_fragments)
+from SDFCARLib.pruning import (PruneSettings, cut_off_parts, piece_adjacency, prune_redundant_branches, removal_zone,
+                               skeleton_pieces, unconfirmed_fragments)
 
 GRID = VolumeGrid((40, 40, 40), (1.0, 1.0, 1.0))
 # AP sees (x, z), LAO 90 sees (y, z): two vertical vessels make two lines in each view.
@@ -423,4 +423,17 @@ def test_prune_last_removes_a_ghost_that_growing_attached_after_the_first_prunin
     assert (pruned.segmentation & ghost).sum() < 0.1 * ghost.sum()
     assert (pruned.segmentation & truth).sum() == truth.sum()
     assert pruned.report["last_pruning"]["removed_voxels"] > 0
+    assert pruned.report["components"]["components"] == with_ghost.report["components"]["components"] == 2  # A, B
     np.testing.assert_array_equal(pruned.segmentation, pruned.occupancy >= 0.5)  # what the outputs read
+
+
+def test_cut_off_parts_are_the_smaller_parts_of_each_component_that_the_removal_split():
+    segmentation = np.zeros((12, 12, 12), bool)
+    segmentation[1, 1:10, 1] = True  # a rod; its voxel 4 removed leaves 3 voxels on one side, 5 on the other
+    segmentation[8, 1:4, 8] = True  # a second component, left whole
+    kept = segmentation.copy()
+    kept[1, 4, 1] = False
+    cut = cut_off_parts(segmentation, kept)
+    assert cut.sum() == 3 and cut[1, 1:4, 1].all()
+    assert not cut[8].any()  # the other component's one part is its largest
+    assert not cut_off_parts(segmentation, segmentation).any() and not cut_off_parts(segmentation, np.zeros_like(kept)).any()
