@@ -64,8 +64,7 @@ from .connectivity import ReconnectSettings, field_values, reconnect_fragments
 from .metrics import component_counts, component_labels
 from .projector import ConeBeamProjector, project_volume
 from .qa import qa_warnings, reprojection_qa
-from .pruning import (PruneSettings, cut_off_parts, prune_redundant_branches, removal_zone, small_fragments,
-                      unconfirmed_fragments)
+from .pruning import PruneSettings, prune_redundant_branches, removal_zone, small_fragments, unconfirmed_fragments
 from .revival import revival_offsets, unexplained_in_every_view
 from .thin_weights import thin_vessel_weights
 from .unexplained_fill import unexplained_fill
@@ -789,12 +788,10 @@ def finish(problem: Problem, model: ImplicitField, history: List[Dict[str, float
         if _is_cancelled(cancel):
             raise ReconstructionCancelled("cancelled before pruning again")
         _report(progress, phase="prune", step=steps, total=steps, elapsed_s=optimise_s, eta_s=None, device=str(problem.device))
-        kept, last_pruning = prune_redundant_branches(segmentation, references, geometry, prune_settings(settings.region),
-                                                      projectors=traced)
-        # kept whole, the voxels a removed piece alone held to the rest go with it: no specks after the specks' step
-        cut_off = cut_off_parts(segmentation, kept) if settings.region.prune_keep_connected else np.zeros_like(kept)
-        last_pruning["cut_off_voxels"] = int(cut_off.sum())
-        kept &= ~cut_off
+        # with each piece's parts apart, so that a component kept whole is whole voxel by voxel: this late, nothing
+        # after it joins what a cut would leave apart
+        last = dataclasses.replace(prune_settings(settings.region), split_disconnected_pieces=True)
+        kept, last_pruning = prune_redundant_branches(segmentation, references, geometry, last, projectors=traced)
         segmentation = erase_removed(segmentation, kept, occupancy_volume, field_volume, geometry, settings)
     final_reconnection: Optional[Dict[str, Any]] = None
     if settings.region.final_reconnect_max_gap_mm and segmentation.any():

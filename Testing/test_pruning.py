@@ -13,7 +13,7 @@ from SDFCARLib.phantoms import Branch, CentrelineTree, simulate_views, voxelize
 from SDFCARLib.projector import project_volume
 from SDFCARLib.hull import visual_hull
 from SDFCARLib.optimiser import exclusion_schedule, fit_field
-from SDFCARLib.pruning import (PruneSettings, cut_off_parts, piece_adjacency, prune_redundant_branches, removal_zone,
+from SDFCARLib.pruning import (PruneSettings, parts_of_pieces, piece_adjacency, prune_redundant_branches, removal_zone,
                                skeleton_pieces, unconfirmed_fragments)
 
 GRID = VolumeGrid((40, 40, 40), (1.0, 1.0, 1.0))
@@ -421,19 +421,40 @@ def test_prune_last_removes_a_ghost_that_growing_attached_after_the_first_prunin
     assert with_ghost.report["last_pruning"] is None
     pruned = dataclasses.replace(fitted, volumes=volumes).finished(settings.replace(prune_last=True))
     assert (pruned.segmentation & ghost).sum() < 0.1 * ghost.sum()
-    assert (pruned.segmentation & truth).sum() == truth.sum()
+    assert (pruned.segmentation & truth).sum() >= 0.99 * truth.sum()  # a stray voxel of a split piece may go
     assert pruned.report["last_pruning"]["removed_voxels"] > 0
     assert pruned.report["components"]["components"] == with_ghost.report["components"]["components"] == 2  # A, B
     np.testing.assert_array_equal(pruned.segmentation, pruned.occupancy >= 0.5)  # what the outputs read
 
 
-def test_cut_off_parts_are_the_smaller_parts_of_each_component_that_the_removal_split():
-    segmentation = np.zeros((12, 12, 12), bool)
-    segmentation[1, 1:10, 1] = True  # a rod; its voxel 4 removed leaves 3 voxels on one side, 5 on the other
-    segmentation[8, 1:4, 8] = True  # a second component, left whole
-    kept = segmentation.copy()
-    kept[1, 4, 1] = False
-    cut = cut_off_parts(segmentation, kept)
-    assert cut.sum() == 3 and cut[1, 1:4, 1].all()
-    assert not cut[8].any()  # the other component's one part is its largest
-    assert not cut_off_parts(segmentation, segmentation).any() and not cut_off_parts(segmentation, np.zeros_like(kept)).any()
+def test_parts_of_pieces_gives_each_part_of_a_piece_its_own_label():
+    pieces = np.zeros((10, 10, 10), np.int64)
+    pieces[1, 1:4, 1] = 1
+    pieces[1, 6:9, 1] = 1  # piece 1 in two parts
+    pieces[1, 4:6, 1] = 2  # piece 2 between them
+    pieces[7, 7, 7:9] = 3
+    parts, count = parts_of_pieces(pieces, 3)
+    assert count == 4
+    np.testing.assert_array_equal(parts > 0, pieces > 0)  # the same voxels
+    assert len({parts[1, 1, 1], parts[1, 7, 1], parts[1, 4, 1], parts[7, 7, 7]}) == 4
+    assert set(np.unique(parts)) == {0, 1, 2, 3, 4}
+    for label in range(1, count + 1):  # each label within one piece
+        assert np.unique(pieces[parts == label]).size == 1
+
+
+def test_split_pieces_keep_a_tree_whole_where_a_piece_in_two_parts_joins_it():
+    """Piece 1 is in two parts, each touching piece 2 at one end of the rod; piece 3 joins piece 2's far end.
+    Unsplit, the graph 1–2–3 lets piece 2 go (1 and 3 seem to touch through 1's other part); split, it stays."""
+    from SDFCARLib.pruning import _splits_pieces
+
+    pieces = np.zeros((12, 12, 12), np.int64)
+    pieces[1, 1:4, 1] = 1
+    pieces[1, 4:7, 1] = 2
+    pieces[1, 7:10, 1] = 3
+    pieces[2, 9, 1] = 1  # piece 1's second part, beside piece 3 only
+    unsplit = piece_adjacency(pieces, 3)
+    assert not _splits_pieces(unsplit, np.ones(3, bool), 1)  # the graph says 1 and 3 stay joined without 2
+    parts, count = parts_of_pieces(pieces, 3)
+    assert count == 4
+    middle = int(parts[1, 5, 1]) - 1
+    assert _splits_pieces(piece_adjacency(parts, count), np.ones(count, bool), middle)
