@@ -246,11 +246,13 @@ class RegionSettings:
     # after those specks went (before the final reconnection): where every view shows vessel the result does not
     # explain, the hull of those pixels is added (pieces whose views' widths disagree and short crossings left out),
     # joined to the tree through the field, and what stays apart dropped (unexplained_fill.py): the vessels the fit
-    # never placed. Off: measured on the realistic static suites and clean cases 0–4 (level) only (RESULTS §97)
+    # never placed (RESULTS §97, §98; on in `fast`)
     fill_unexplained: bool = False
     # after all the steps above (before the final reconnection): pruning once more, as ``prune`` and
     # ``prune_keep_connected`` say. Growing, joining and the fill come after the first pruning and add pieces that
-    # no mask pixel needs (measured: RESULTS §98)
+    # no mask pixel needs; each piece's parts apart, so a component is kept whole voxel by voxel. Off: +0.9 clDice on the
+    # realistic static suites and clean LAD, but with motion it removes true vessel the corrected views still disagree on
+    # (−0.7 to −2.0 on 4 of 5 cases: RESULTS §98)
     prune_last: bool = False
     # 0: off. Otherwise, at this share of the steps, the pieces that width check would remove from the
     # fit's segmentation so far are taken out of the field for the rest of the fit, so that the fit may
@@ -562,6 +564,9 @@ PRESETS: Dict[str, Dict[str, Any]] = {  # the default first: lists offer it firs
         # after all the steps above, the detached specks below 16 mm³ that nothing joined to the tree: two in three
         # of them ghosts; clDice level, the realistic and clean suites in 1.4–1.9 pieces instead of 2.0–8.2 (§58)
         min_fragment_volume_mm3=16.0,
+        # then, where both views show vessel the result leaves unexplained, the hull of those pixels filled in (width-
+        # and length-checked, joined to the tree, never more pieces): the vessels the fit never placed (§97c–d, §98)
+        fill_unexplained=True,
         # the result is the mean of the parameters over the last fifth of the steps (after that exclusion), not
         # Adam's last jittering iterate: clDice level, Dice higher and fewer pieces over six suite runs (§37b, §38c)
         average_last_fraction=0.2,

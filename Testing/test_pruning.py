@@ -408,7 +408,8 @@ def test_prune_last_removes_a_ghost_that_growing_attached_after_the_first_prunin
     from SDFCARLib.connectivity import field_values
 
     geometry, truth, ghost, masks = ghost_case
-    settings = make_settings("fast", steps=10, device="cpu", width_agreement_min_ratio=0.0)
+    settings = make_settings("fast", steps=10, device="cpu", width_agreement_min_ratio=0.0, fill_unexplained=False,
+                             prune_last=False)
     fitted = fit_field(geometry, masks, settings)
     # along y at x = z = 0, from vessel A's wall (y = −6.5 mm) to the ghost's (y = −1 mm)
     (i, j_a, k), (_, j_g, _) = np.round(GRID.world_to_index(np.array([[0.0, -6.5, 0.0], [0.0, -1.0, 0.0]]))).astype(int)

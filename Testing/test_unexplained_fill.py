@@ -124,7 +124,7 @@ def test_the_fill_is_joined_to_the_tree_and_a_fill_that_stays_apart_is_dropped()
 
 def test_a_reconstruction_reports_the_fill_when_asked_and_not_otherwise(small_tree_case):
     geometry, masks = small_tree_case
-    plain_settings = make_settings("fast", steps=40, device="cpu")
+    plain_settings = make_settings("fast", steps=40, device="cpu", fill_unexplained=False)
     fitted = fit_field(geometry, masks, plain_settings)  # one fit, finished both ways
     assert fitted.finished().report["unexplained_fill"] is None
     asked = fitted.finished(plain_settings.replace(fill_unexplained=True))
