@@ -17,8 +17,8 @@ with the frames' evidence and the calibrations asked for, are ``fit_field``):
    the pieces whose views see different widths where the tree stays whole when asked
    (``width_agreement.py``), removes the detached specks below a volume when asked
    (``min_fragment_volume_mm3``), fills in what every view shows and the result does not explain when asked
-   (``unexplained_fill.py``), prunes once more when asked (``prune_last``), joins what is still apart once more when asked
-   (``final_reconnect_max_gap_mm``), and writes the report.
+   (``unexplained_fill.py``), prunes once more when asked (``prune_last``), joins what is still apart once
+   more when asked (``final_reconnect_max_gap_mm``), and writes the report.
 
 Learning rates
     Adam moves every weight by about lr per step. The SDF's occupancy logit is −α·s, so a step of

@@ -251,8 +251,8 @@ class RegionSettings:
     # after all the steps above (before the final reconnection): pruning once more, as ``prune`` and
     # ``prune_keep_connected`` say. Growing, joining and the fill come after the first pruning and add pieces that
     # no mask pixel needs; each piece's parts apart, so a component is kept whole voxel by voxel. Off: +0.9 clDice on the
-    # realistic static suites and clean LAD, but with motion it removes true vessel the corrected views still disagree on
-    # (−0.7 to −2.0 on 4 of 5 cases: RESULTS §98)
+    # realistic static suites (+0.7 clean LAD), but with motion it removes true vessel the corrected views still disagree
+    # on (9 of 10 cases lower, by 0.3–2.0: RESULTS §98)
     prune_last: bool = False
     # 0: off. Otherwise, at this share of the steps, the pieces that width check would remove from the
     # fit's segmentation so far are taken out of the field for the rest of the fit, so that the fit may
