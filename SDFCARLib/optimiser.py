@@ -788,8 +788,8 @@ def finish(problem: Problem, model: ImplicitField, history: List[Dict[str, float
         if _is_cancelled(cancel):
             raise ReconstructionCancelled("cancelled before pruning again")
         _report(progress, phase="prune", step=steps, total=steps, elapsed_s=optimise_s, eta_s=None, device=str(problem.device))
-        # with each piece's parts apart, so that a component kept whole is whole voxel by voxel: this late, nothing
-        # after it joins what a cut would leave apart
+        # with each piece's parts apart, so that a component kept whole is whole voxel by voxel: this late, only
+        # final_reconnect_max_gap_mm (off in `fast`) could join what a cut would leave apart
         last = dataclasses.replace(prune_settings(settings.region), split_disconnected_pieces=True)
         kept, last_pruning = prune_redundant_branches(segmentation, references, geometry, last, projectors=traced)
         segmentation = erase_removed(segmentation, kept, occupancy_volume, field_volume, geometry, settings)

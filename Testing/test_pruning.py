@@ -402,7 +402,7 @@ def test_piece_adjacency_links_the_touching_pieces_only():
 def test_prune_last_removes_a_ghost_that_growing_attached_after_the_first_pruning(ghost_case):
     """The hidden tube is left at partial occupancy (0.4), joined to vessel A by a partial-occupancy path: the first
     pruning never sees it (below the threshold), growing takes it in (≥ grow_threshold 0.3), and only pruning once
-    more at the end (``prune_last``) removes it; the two vessels stay whole either way."""
+    more at the end (``prune_last``) removes it; the two vessels stay (bar a stray voxel of a split piece)."""
     import dataclasses
 
     from SDFCARLib.connectivity import field_values
@@ -444,8 +444,8 @@ def test_parts_of_pieces_gives_each_part_of_a_piece_its_own_label():
 
 
 def test_split_pieces_keep_a_tree_whole_where_a_piece_in_two_parts_joins_it():
-    """Piece 1 is in two parts, each touching piece 2 at one end of the rod; piece 3 joins piece 2's far end.
-    Unsplit, the graph 1–2–3 lets piece 2 go (1 and 3 seem to touch through 1's other part); split, it stays."""
+    """A rod of pieces 1, 2, 3; piece 1 has a second part, a voxel beside piece 3 only. Unsplit, the graph links 1 and 3
+    directly, so removing piece 2 seems to leave the rod whole; split, piece 1's first part hangs on piece 2 alone."""
     from SDFCARLib.pruning import _splits_pieces
 
     pieces = np.zeros((12, 12, 12), np.int64)
