@@ -106,6 +106,15 @@ class Calibration:
     def report(self) -> Dict[str, Any]:
         return {"method": self.method, "views": self.views, "seconds": round(self.seconds, 1)}
 
+    def motion_found(self) -> Optional[bool]:
+        """True where a motion was found and applied to some view, False where every view after the first was
+        searched and moved less than noise alone allows (its entry's ``motion_found`` False), None where that
+        cannot be told (a view not searched or not measurable, or a search that does not say)."""
+        said = [entry.get("motion_found") for entry in self.views]
+        if any(found is True for found in said):
+            return True
+        return False if said and all(found is False for found in said) else None
+
 
 #: what each searched parameter is called in the report and its unit
 _PARAMETERS = (("shift", "mm"), ("rotation_in_plane", "deg"), ("rotation_tilt", "deg"))
@@ -317,7 +326,7 @@ def calibrate_from_frames(geometry: Geometry, line_integrals: Sequence[np.ndarra
                                 "Check the view's angles and distances and that each frame belongs to its view")
                 entry.update(left_as_given=True, why_left_as_given="the motion found reached the end of its range")
             elif gain < min_consistency_gain:
-                entry.update(left_as_given=True, why_left_as_given=(
+                entry.update(left_as_given=True, motion_found=False, why_left_as_given=(
                     f"the motion found made the views only {gain:.2f}× more consistent (at least {min_consistency_gain:g}× "
                     "asked): no more than noise in the frames and masks allows without any motion"))
             else:
@@ -338,6 +347,7 @@ def calibrate_from_frames(geometry: Geometry, line_integrals: Sequence[np.ndarra
                         f"{min_untruncated_gain:g}× asked): it hides what the field of view cuts rather than undoing a motion"))
                 else:
                     views[k] = moved(views[k], estimate.added[:3], estimate.added[3:], centre)
+                    entry["motion_found"] = True
             entry.update(consistency_before=_rounded(estimate.cost_before, 5), consistency_after=_rounded(estimate.cost_after, 5),
                          consistency_gain=_rounded(gain, 2),
                          truncated_pixels=list(estimate.truncated_pixels), planes_compared=estimate.planes_compared,

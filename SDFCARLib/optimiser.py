@@ -186,6 +186,9 @@ class Problem:
     # per view: share of its centreline that runs where another view cannot see (consistency.view_agreement)
     one_view_shares: List[float] = field(default_factory=list)
     one_view_pixels: List[np.ndarray] = field(default_factory=list)  # per view, bool (H, W): those centreline pixels
+    # whether the pose checks before the fit found a motion between the views (``Calibration.motion_found``):
+    # True found and corrected, False every view searched and none beyond noise, None not known (none ran)
+    motion_found: Optional[bool] = None
 
 
 def _normalised_points(geometry: Geometry, flat: np.ndarray, device: torch.device) -> torch.Tensor:
@@ -717,6 +720,15 @@ def erase_removed(segmentation: np.ndarray, kept: np.ndarray, occupancy_volume: 
     return occupancy_volume >= settings.region.threshold
 
 
+#: report.json's ``last_pruning`` where prune_last_only_without_motion skipped it, by ``Problem.motion_found``
+LAST_PRUNING_SKIPPED = {
+    True: "the frames' pose check found a motion between the views: corrected, they still disagree by about a "
+          "millimetre, and pruning last would remove true vessel (bench/RESULTS.md §98e)",
+    None: "no pose check told that the views agree (no frames, calibrate_from_frames off, or a view it could not "
+          "search or measure)",
+}
+
+
 def finish(problem: Problem, model: ImplicitField, history: List[Dict[str, float]], optimise_s: float,
            t_start: float, progress: Progress = None, cancel: Cancel = None,
            volumes: Optional[Tuple[np.ndarray, np.ndarray]] = None) -> Reconstruction:
@@ -784,7 +796,9 @@ def finish(problem: Problem, model: ImplicitField, history: List[Dict[str, float
         segmentation, filled = fill_unexplained(segmentation, occupancy_volume, field_volume, references, geometry,
                                                 problem.support, settings, projectors=traced, unknown=problem.unknown)
     last_pruning: Optional[Dict[str, Any]] = None
-    if settings.region.prune_last and segmentation.any():
+    if settings.region.prune_last and settings.region.prune_last_only_without_motion and problem.motion_found is not False:
+        last_pruning = {"skipped": LAST_PRUNING_SKIPPED[problem.motion_found]}
+    elif settings.region.prune_last and segmentation.any():
         if _is_cancelled(cancel):
             raise ReconstructionCancelled("cancelled before pruning again")
         _report(progress, phase="prune", step=steps, total=steps, elapsed_s=optimise_s, eta_s=None, device=str(problem.device))
@@ -836,6 +850,8 @@ def finish(problem: Problem, model: ImplicitField, history: List[Dict[str, float
         "small_fragments": small,
         "unexplained_fill": filled,
         "last_pruning": last_pruning,
+        # the pose checks before the fit: True a motion found and corrected, False none beyond noise, None not known
+        "motion_found": problem.motion_found,
         "components": component_counts(segmentation),
         "projector_nonzeros": [p.nnz for p in problem.projectors],
         "final_losses": {k: v for k, v in history[-1].items() if k != "step"} if history else {},
@@ -1063,7 +1079,32 @@ def fit_field(geometry: Geometry, targets: Sequence[np.ndarray], settings: Setti
     torch.manual_seed(settings.run.seed)
     np.random.seed(settings.run.seed % (2**32))
     evidence = read_frame_evidence(frames, targets, geometry, settings, target_kind, frame_intensity)
-    calibrations = []
+    calibrations, unseen_read = check_poses(geometry, targets, settings, target_kind, frames, evidence, progress, cancel)
+    if calibrations:
+        geometry = calibrations[-1].geometry
+    problem = build_problem(geometry, targets, settings, target_kind, progress, frames=frames, evidence=evidence,
+                            unseen_read=unseen_read)
+    problem.motion_found = motion_found_by(calibrations)
+    if _is_cancelled(cancel):
+        raise ReconstructionCancelled("cancelled before the optimisation started")
+    model = ImplicitField(field_config(settings)).to(problem.device)
+    history, optimise_s = optimise(problem, model, progress, cancel, **loop)
+    volumes, members, fits = None, [], []
+    if settings.optimisation.ensemble_fits > 1 and settings.optimisation.ensemble_combine == "best_reprojection":
+        fits, optimise_s = _ensemble_fits(problem, model, history, optimise_s, progress, cancel, **loop)
+    elif settings.optimisation.ensemble_fits > 1:
+        volumes, optimise_s, members = _ensemble_volumes(problem, model, history, optimise_s, progress, cancel, keep_members,
+                                                         **loop)
+    return FittedField(problem, model, history, optimise_s, t_start, calibrations, evidence, volumes, members, fits)
+
+
+def check_poses(geometry: Geometry, targets: Sequence[np.ndarray], settings: Settings, target_kind: str,
+                frames: Optional[Sequence[np.ndarray]], evidence: FrameEvidence, progress: Progress = None,
+                cancel: Cancel = None) -> Tuple[List[Any], Optional[List[Optional[np.ndarray]]]]:
+    """The pose checks the settings ask for before the fit, in order: from the frames' line integrals
+    (``calibrate_from_frames``), then by re-fitting (``calibrate``). Returns the ``Calibration``s (the last one's
+    geometry is the corrected one) and the frames' unseen pixels where the first check read them (else None)."""
+    calibrations: List[Any] = []
     unseen_read = None
     if settings.calibration.calibrate_from_frames and len(geometry.views) > 1 and evidence.images is not None:
         from .calibration import calibrate_from_frames
@@ -1079,21 +1120,17 @@ def fit_field(geometry: Geometry, targets: Sequence[np.ndarray], settings: Setti
         from .calibration import calibrate
 
         calibrations.append(calibrate(geometry, targets, settings, target_kind, progress=progress, cancel=cancel))
-        geometry = calibrations[-1].geometry
         torch.manual_seed(settings.run.seed)
-    problem = build_problem(geometry, targets, settings, target_kind, progress, frames=frames, evidence=evidence,
-                            unseen_read=unseen_read)
-    if _is_cancelled(cancel):
-        raise ReconstructionCancelled("cancelled before the optimisation started")
-    model = ImplicitField(field_config(settings)).to(problem.device)
-    history, optimise_s = optimise(problem, model, progress, cancel, **loop)
-    volumes, members, fits = None, [], []
-    if settings.optimisation.ensemble_fits > 1 and settings.optimisation.ensemble_combine == "best_reprojection":
-        fits, optimise_s = _ensemble_fits(problem, model, history, optimise_s, progress, cancel, **loop)
-    elif settings.optimisation.ensemble_fits > 1:
-        volumes, optimise_s, members = _ensemble_volumes(problem, model, history, optimise_s, progress, cancel, keep_members,
-                                                         **loop)
-    return FittedField(problem, model, history, optimise_s, t_start, calibrations, evidence, volumes, members, fits)
+    return calibrations, unseen_read
+
+
+def motion_found_by(calibrations: Sequence[Any]) -> Optional[bool]:
+    """Over the pose checks that ran (``Calibration``s): True where any found a motion, False where every one
+    searched every view and found none beyond noise, None where none ran or one could not tell."""
+    found = [calibration.motion_found() for calibration in calibrations]
+    if any(f is True for f in found):
+        return True
+    return False if found and all(f is False for f in found) else None
 
 
 def _ensemble_fits(problem: Problem, first: ImplicitField, first_history: List[Dict[str, float]], first_s: float,

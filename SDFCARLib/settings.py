@@ -254,6 +254,10 @@ class RegionSettings:
     # realistic static suites (+0.7 clean LAD), but with motion it removes true vessel the corrected views still disagree
     # on (9 of 10 cases lower, by 0.3–2.0: RESULTS §98)
     prune_last: bool = False
+    # with prune_last: prune last only where the frames' pose check (calibrate_from_frames) searched every view and
+    # found no motion beyond what noise allows; skipped where it found one (the corrected views still disagree by
+    # about a millimetre), could not tell, or did not run (no frames): there it is not known that the views agree
+    prune_last_only_without_motion: bool = False
     # 0: off. Otherwise, at this share of the steps, the pieces that width check would remove from the
     # fit's segmentation so far are taken out of the field for the rest of the fit, so that the fit may
     # explain their mask pixels elsewhere (with width_agreement_min_ratio 0, the check off, nothing is taken out)

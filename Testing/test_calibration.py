@@ -221,6 +221,7 @@ def test_calibrate_from_frames_corrects_the_motion_two_views_observe_and_says_wh
     assert entry["shift_across"]["unit"] == "mm" and entry["rotation_about_baseline"]["unit"] == "deg"
     assert "shift_along_baseline" in entry["not_observed"]
     assert "consistency" in result.report()["method"] and not result.warnings
+    assert entry["motion_found"] is True and result.motion_found() is True
 
 
 def test_calibrate_from_frames_leaves_the_views_as_given_when_the_motion_found_explains_only_noise():
@@ -237,6 +238,7 @@ def test_calibrate_from_frames_leaves_the_views_as_given_when_the_motion_found_e
     assert 1.0 < entry["consistency_gain"] < 2.0
     assert kept.geometry.views == (VIEW_1, VIEW_2) and entry["left_as_given"] is True
     assert "more consistent" in entry["why_left_as_given"] and not kept.warnings  # the normal outcome without motion
+    assert entry["motion_found"] is False and kept.motion_found() is False  # searched, and nothing beyond noise
     applied = calibrate_from_frames(geometry, images, min_consistency_gain=1.0)
     assert applied.geometry.views[1] != VIEW_2 and "left_as_given" not in applied.views[0]
     with pytest.raises(ReconstructionError, match="calibration_min_consistency_gain must be at least 1"):
@@ -275,6 +277,7 @@ def test_calibrate_from_frames_leaves_a_pose_beyond_its_range_as_given_and_warns
     assert result.geometry.views[1] == VIEW_2
     assert result.views[0]["left_as_given"] is True
     assert len(result.warnings) == 1 and "end of its range" in result.warnings[0] and "view 2" in result.warnings[0]
+    assert "motion_found" not in result.views[0] and result.motion_found() is None  # not known: the pose is unsure
 
 
 def _behind_a_shutter(image, shutter):
@@ -360,6 +363,7 @@ def test_calibrate_from_frames_leaves_a_view_whose_vessels_run_into_its_collimat
     assert entry["left_as_given"] is True and "not truncated" in entry["why_left_as_given"]
     assert entry["consistency_gain"] is None and entry["truncated_pixels"][1] > 0
     assert len(result.warnings) == 1 and "collimator" in result.warnings[0] and "view 2" in result.warnings[0]
+    assert result.motion_found() is None  # the frames could not show the motion
     # the same frames with nothing said of what they cannot see: the motion is found, as without collimators
     open_field = calibrate_from_frames(geometry, images, unseen=[None, None])
     assert open_field.geometry.views[1] != VIEW_2 and open_field.views[0]["planes_compared"] == 256
@@ -431,3 +435,26 @@ def test_calibrate_from_frames_with_a_third_view_cut_on_almost_every_plane_match
     assert second["shift_across"]["value"] == pytest.approx(1.5, abs=0.1) and "left_as_given" not in second
     assert third["left_as_given"] is True and "epipolar planes" in third["why_left_as_given"]
     assert any("could not be used" in w for w in result.warnings) and any("view 3" in w for w in result.warnings)
+
+
+def test_motion_found_over_the_views_and_the_checks_says_not_known_unless_every_view_was_searched():
+    from blob_phantom import VIEW_1, VIEW_2
+    from SDFCARLib.calibration import Calibration
+    from SDFCARLib.optimiser import motion_found_by
+
+    geometry = Geometry(VolumeGrid((8, 8, 8), (1.0, 1.0, 1.0), (0.0, 0.0, 0.0)), (VIEW_1, VIEW_2))
+
+    def checked(*entries):
+        return Calibration(geometry, [dict(entry, view=n + 2) for n, entry in enumerate(entries)])
+
+    noise, applied, unsure = {"motion_found": False}, {"motion_found": True}, {"left_as_given": True}
+    skipped = {"skipped": "looks along the same line as view 1"}
+    assert checked(noise, noise).motion_found() is False
+    assert checked(noise, applied).motion_found() is True
+    assert checked(unsure, applied).motion_found() is True  # one view moved is enough
+    assert checked(noise, unsure).motion_found() is None and checked(noise, skipped).motion_found() is None
+    assert checked().motion_found() is None  # nothing searched
+    assert motion_found_by([]) is None  # no check ran (masks alone)
+    assert motion_found_by([checked(noise), checked(noise)]) is False
+    assert motion_found_by([checked(noise), checked(unsure)]) is None  # the re-fit search does not say
+    assert motion_found_by([checked(unsure), checked(applied)]) is True

@@ -428,6 +428,37 @@ def test_prune_last_removes_a_ghost_that_growing_attached_after_the_first_prunin
     np.testing.assert_array_equal(pruned.segmentation, pruned.occupancy >= 0.5)  # what the outputs read
 
 
+@pytest.mark.parametrize("motion_found, pruned_last", [(False, True), (True, False), (None, False)])
+def test_prune_last_only_without_motion_prunes_where_the_pose_check_found_the_views_aligned(ghost_case, motion_found,
+                                                                                          pruned_last):
+    """``prune_last_only_without_motion``: the ghost growing attached goes only where the pose check found no motion;
+    where it found one, or none ran, the last pruning is skipped and report.json says why."""
+    import dataclasses
+
+    from SDFCARLib.connectivity import field_values
+    from SDFCARLib.optimiser import LAST_PRUNING_SKIPPED
+
+    geometry, truth, ghost, masks = ghost_case
+    settings = make_settings("fast", steps=10, device="cpu", width_agreement_min_ratio=0.0, fill_unexplained=False,
+                             prune_last=True, prune_last_only_without_motion=True)
+    fitted = fit_field(geometry, masks, settings)
+    assert fitted.problem.motion_found is None  # masks alone: no frames, no check
+    (i, j_a, k), (_, j_g, _) = np.round(GRID.world_to_index(np.array([[0.0, -6.5, 0.0], [0.0, -1.0, 0.0]]))).astype(int)
+    path = np.zeros_like(truth)
+    path[i, min(j_a, j_g):max(j_a, j_g) + 1, k] = True
+    occupancy = np.where(truth, 1.0, np.where(ghost | path, 0.4, 0.0)).astype(np.float32)
+    volumes = (occupancy, field_values(occupancy, settings.mode.field_kind, settings.field.alpha))
+    fitted.problem.motion_found = motion_found
+    result = dataclasses.replace(fitted, volumes=volumes).finished(settings)
+    assert result.report["motion_found"] is motion_found
+    if pruned_last:
+        assert (result.segmentation & ghost).sum() < 0.1 * ghost.sum()
+        assert result.report["last_pruning"]["removed_voxels"] > 0
+    else:
+        assert (result.segmentation & ghost).sum() > 0.9 * ghost.sum()
+        assert result.report["last_pruning"] == {"skipped": LAST_PRUNING_SKIPPED[motion_found]}
+
+
 def test_parts_of_pieces_gives_each_part_of_a_piece_its_own_label():
     pieces = np.zeros((10, 10, 10), np.int64)
     pieces[1, 1:4, 1] = 1

@@ -48,7 +48,8 @@ def save_run(folder: Path, stem: str, case, result) -> None:
 # settings only ``finish`` reads in ``fast`` (pruning reaches the fit only with exclusion_takes_finishing_removals)
 FINISH_ONLY_KEYS = ("prune", "prune_tolerance", "prune_keep_connected", "drop_unconfirmed_fragments", "reconnect",
                     "reconnect_max_gap_mm", "reconnect_min_occupancy", "reconnect_every_component", "grow_threshold", "final_reconnect_max_gap_mm",
-                    "min_fragment_volume_mm3", "fill_unexplained", "prune_last")
+                    "min_fragment_volume_mm3", "fill_unexplained", "prune_last",
+                    "prune_last_only_without_motion")
 
 
 def main() -> int:
@@ -120,6 +121,7 @@ def main() -> int:
             scores[json.dumps(variant)].append((m["cldice"], m["dice"], m.get("components")))
             print(f"{spec.name:7s} {json.dumps(variant):40s} clDice {m['cldice']:.3f}  Dice {m['dice']:.3f}  components "
                   f"{m.get('components')}/{m.get('components_label')}  support {result.report['support_voxels']}  "
+                  f"motion found {result.report['motion_found']}  "
                   f"{time.perf_counter() - t0:.0f} s (reconstruction {timings['total']:.0f}: setup {timings['setup']:.0f}, optimise {timings['optimise']:.0f}, "
                   f"{1000 * timings['per_step']:.0f} ms/step, output {timings['output']:.0f}; {result.report['device']})",
                   flush=True)
