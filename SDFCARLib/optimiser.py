@@ -687,7 +687,7 @@ def _exclude_disagreeing_pieces(problem: Problem, model: ImplicitField, step: in
 def prune_settings(region: RegionSettings) -> PruneSettings:
     """The pruning ``region`` asks for."""
     return PruneSettings(max_piece_mm=region.prune_piece_mm, tolerance=region.prune_tolerance,
-                         keep_connected=region.prune_keep_connected)
+                         keep_connected=region.prune_keep_connected, split_disconnected_pieces=region.prune_split_pieces)
 
 
 def finishing_removals(segmentation: np.ndarray, references: Sequence[np.ndarray], geometry: Geometry,

@@ -211,6 +211,9 @@ class RegionSettings:
     # prune only where the pieces left of a component stay one part (a ghost spur is peeled from its tip;
     # a tube's stretch that other vessels cover in both views is not cut out)
     prune_keep_connected: bool = False
+    # judge keep_connected on each skeleton piece's 26-connected parts (pruning.parts_of_pieces): a piece in two parts
+    # makes the pieces' graph join voxels that do not touch, and a cut can then pass for whole (prune_last always splits)
+    prune_split_pieces: bool = False
     # remove the detached fragments that some view does not need (pruning.unconfirmed_fragments) ...
     drop_unconfirmed_fragments: bool = False
     # ... then join the remaining fragments to the tree along short paths of the field (connectivity.py)

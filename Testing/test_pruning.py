@@ -490,3 +490,10 @@ def test_split_pieces_keep_a_tree_whole_where_a_piece_in_two_parts_joins_it():
     assert count == 4
     middle = int(parts[1, 5, 1]) - 1
     assert _splits_pieces(piece_adjacency(parts, count), np.ones(count, bool), middle)
+
+
+def test_the_first_pruning_splits_pieces_only_when_asked():
+    from SDFCARLib.optimiser import prune_settings
+
+    assert prune_settings(make_settings("fast", prune_split_pieces=True).region).split_disconnected_pieces is True
+    assert prune_settings(make_settings("fast", prune_split_pieces=False).region).split_disconnected_pieces is False
