@@ -420,7 +420,8 @@ def test_prune_last_removes_a_ghost_that_growing_attached_after_the_first_prunin
     with_ghost = dataclasses.replace(fitted, volumes=volumes).finished(settings)
     assert (with_ghost.segmentation & ghost).sum() > 0.9 * ghost.sum()  # grown in and kept
     assert with_ghost.report["last_pruning"] is None
-    pruned = dataclasses.replace(fitted, volumes=volumes).finished(settings.replace(prune_last=True))
+    pruned = dataclasses.replace(fitted, volumes=volumes).finished(settings.replace(prune_last=True,
+                                                                                 prune_last_only_without_motion=False))
     assert (pruned.segmentation & ghost).sum() < 0.1 * ghost.sum()
     assert (pruned.segmentation & truth).sum() >= 0.99 * truth.sum()  # a stray voxel of a split piece may go
     assert pruned.report["last_pruning"]["removed_voxels"] > 0
