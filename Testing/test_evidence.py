@@ -506,8 +506,12 @@ def test_the_motion_is_read_from_the_frames_when_asked(angiogram_case):
     assert abs(entry["shift_across"]["value"]) < 0.5
     corrected = [round(v, 4) for v in result.geometry.views[1].object_translation_mm]
     assert corrected == entry["object_translation_mm"]  # the reconstruction used the corrected pose
+    # no motion beyond noise: `fast` prunes once more at the end (prune_last_only_without_motion)
+    assert entry["motion_found"] is False and result.report["motion_found"] is False
+    assert not (result.report["last_pruning"] or {}).get("skipped")  # (None where 5 steps leave nothing to prune)
     without = reconstruct(geometry, masks, settings, "mask")
     assert without.report["calibration"] == {"method": "none", "why": "no frames to read the motion from"}
+    assert without.report["motion_found"] is None and "no pose check" in without.report["last_pruning"]["skipped"]
 
 
 def test_only_linear_frames_give_path_lengths():
