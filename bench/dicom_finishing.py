@@ -81,7 +81,9 @@ def main() -> int:
     t0 = time.perf_counter()
     fitted = fit_field(geometry, masks, make_settings("fast", threads=args.threads), "mask",
                        frames=frames, frame_intensity=intensity)
-    print(f"# fitted in {time.perf_counter() - t0:.0f} s", flush=True)
+    print(f"# fitted in {time.perf_counter() - t0:.0f} s; the pose check found motion: {fitted.problem.motion_found} "
+          f"({'; '.join(str(e.get('why_left_as_given') or e.get('skipped') or 'applied') for c in fitted.calibrations for e in c.views) or 'no check'})",
+          flush=True)
     for variant in variants:
         t1 = time.perf_counter()
         result = fitted.finished(make_settings("fast", threads=args.threads, **variant))
