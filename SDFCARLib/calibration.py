@@ -110,10 +110,14 @@ class Calibration:
         """True where a motion was found and applied to some view, False where every view after the first was
         searched and moved less than noise alone allows (its entry's ``motion_found`` False), None where that
         cannot be told (a view not searched or not measurable, or a search that does not say)."""
-        said = [entry.get("motion_found") for entry in self.views]
-        if any(found is True for found in said):
-            return True
-        return False if said and all(found is False for found in said) else None
+        return combined_motion_found([entry.get("motion_found") for entry in self.views])
+
+
+def combined_motion_found(said: Sequence[Optional[bool]]) -> Optional[bool]:
+    """True where any says a motion was found, False where all (at least one) say none was, None otherwise."""
+    if any(found is True for found in said):
+        return True
+    return False if said and all(found is False for found in said) else None
 
 
 #: what each searched parameter is called in the report and its unit

@@ -1127,10 +1127,9 @@ def check_poses(geometry: Geometry, targets: Sequence[np.ndarray], settings: Set
 def motion_found_by(calibrations: Sequence[Any]) -> Optional[bool]:
     """Over the pose checks that ran (``Calibration``s): True where any found a motion, False where every one
     searched every view and found none beyond noise, None where none ran or one could not tell."""
-    found = [calibration.motion_found() for calibration in calibrations]
-    if any(f is True for f in found):
-        return True
-    return False if found and all(f is False for f in found) else None
+    from .calibration import combined_motion_found
+
+    return combined_motion_found([calibration.motion_found() for calibration in calibrations])
 
 
 def _ensemble_fits(problem: Problem, first: ImplicitField, first_history: List[Dict[str, float]], first_s: float,
