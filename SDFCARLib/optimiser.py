@@ -796,7 +796,9 @@ def finish(problem: Problem, model: ImplicitField, history: List[Dict[str, float
         segmentation, filled = fill_unexplained(segmentation, occupancy_volume, field_volume, references, geometry,
                                                 problem.support, settings, projectors=traced, unknown=problem.unknown)
     last_pruning: Optional[Dict[str, Any]] = None
-    if settings.region.prune_last and settings.region.prune_last_only_without_motion and problem.motion_found is not False:
+    enough_views = 0 < settings.region.prune_last_min_views_any_motion <= len(geometry.views)
+    if (settings.region.prune_last and settings.region.prune_last_only_without_motion and problem.motion_found is not False
+            and not enough_views):
         last_pruning = {"skipped": LAST_PRUNING_SKIPPED[problem.motion_found]}
     elif settings.region.prune_last and segmentation.any():
         if _is_cancelled(cancel):

@@ -255,12 +255,16 @@ class RegionSettings:
     # ``prune_keep_connected`` say. Growing, joining and the fill come after the first pruning and add pieces that
     # no mask pixel needs; each piece's parts apart, so a component is kept whole voxel by voxel. With motion it removes
     # true vessel the corrected views still disagree on (9 of 10 cases lower, by 0.3–2.0: RESULTS §98): `fast` prunes last
-    # only where the views were found aligned (prune_last_only_without_motion)
+    # only where the views were found aligned (prune_last_only_without_motion) or are three or more
     prune_last: bool = False
     # with prune_last: prune last only where the frames' pose check (calibrate_from_frames) searched every view and
     # found no motion beyond what noise allows; skipped where it found one (the corrected views still disagree by
     # about a millimetre), could not tell, or did not run (no frames): there it is not known that the views agree
     prune_last_only_without_motion: bool = False
+    # ... but with at least this many views, prune last whatever the check found: the third view keeps what two
+    # misaligned views would let the cover remove (three views with motion +0.6 / +0.8, clean level / +0.3: RESULTS §99e–g).
+    # 0: no exception
+    prune_last_min_views_any_motion: int = 0
     # 0: off. Otherwise, at this share of the steps, the pieces that width check would remove from the
     # fit's segmentation so far are taken out of the field for the rest of the fit, so that the fit may
     # explain their mask pixels elsewhere (with width_agreement_min_ratio 0, the check off, nothing is taken out)
@@ -468,6 +472,9 @@ class Settings:
                                       f"fade in: 0 (off) up to below 1, got {o.coarse_to_fine_fraction}")
         if not r.prune_piece_mm > 0 or not 0 <= r.prune_tolerance < 1:
             raise ReconstructionError("prune_piece_mm must be positive and prune_tolerance in [0, 1)")
+        if not r.prune_last_min_views_any_motion >= 0:
+            raise ReconstructionError(f"prune_last_min_views_any_motion must be 0 (no exception) or a number of views, got "
+                                      f"{r.prune_last_min_views_any_motion}")
         if not r.reconnect_max_gap_mm > 0:
             raise ReconstructionError(f"reconnect_max_gap_mm must be a positive length in mm (default 8), got "
                                       f"{r.reconnect_max_gap_mm}; or turn reconnection off with reconnect=false")
@@ -580,6 +587,8 @@ PRESETS: Dict[str, Dict[str, Any]] = {  # the default first: lists offer it firs
         # 9 of 10 cases lower, §98e) or could not tell (masks alone: the clean suites and the demo as before)
         prune_last=True,
         prune_last_only_without_motion=True,
+        # except with three views or more, where it won with motion and on clean masks too (§99e–g)
+        prune_last_min_views_any_motion=3,
         # the result is the mean of the parameters over the last fifth of the steps (after that exclusion), not
         # Adam's last jittering iterate: clDice level, Dice higher and fewer pieces over six suite runs (§37b, §38c)
         average_last_fraction=0.2,

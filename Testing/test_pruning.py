@@ -429,11 +429,13 @@ def test_prune_last_removes_a_ghost_that_growing_attached_after_the_first_prunin
     np.testing.assert_array_equal(pruned.segmentation, pruned.occupancy >= 0.5)  # what the outputs read
 
 
-@pytest.mark.parametrize("motion_found, pruned_last", [(False, True), (True, False), (None, False)])
+@pytest.mark.parametrize("motion_found, min_views, pruned_last", [
+    (False, 3, True), (True, 3, False), (None, 3, False), (True, 2, True), (None, 2, True), (True, 0, False)])
 def test_prune_last_only_without_motion_prunes_where_the_pose_check_found_the_views_aligned(ghost_case, motion_found,
-                                                                                          pruned_last):
+                                                                                          min_views, pruned_last):
     """``prune_last_only_without_motion``: the ghost growing attached goes only where the pose check found no motion;
-    where it found one, or none ran, the last pruning is skipped and report.json says why."""
+    where it found one, or none ran, the last pruning is skipped and report.json says why — unless the case has
+    ``prune_last_min_views_any_motion`` views or more (this case has two)."""
     import dataclasses
 
     from SDFCARLib.connectivity import field_values
@@ -441,7 +443,8 @@ def test_prune_last_only_without_motion_prunes_where_the_pose_check_found_the_vi
 
     geometry, truth, ghost, masks = ghost_case
     settings = make_settings("fast", steps=10, device="cpu", width_agreement_min_ratio=0.0, fill_unexplained=False,
-                             prune_last=True, prune_last_only_without_motion=True)
+                             prune_last=True, prune_last_only_without_motion=True,
+                             prune_last_min_views_any_motion=min_views)
     fitted = fit_field(geometry, masks, settings)
     assert fitted.problem.motion_found is None  # masks alone: no frames, no check
     (i, j_a, k), (_, j_g, _) = np.round(GRID.world_to_index(np.array([[0.0, -6.5, 0.0], [0.0, -1.0, 0.0]]))).astype(int)

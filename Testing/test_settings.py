@@ -114,6 +114,7 @@ def test_overrides_and_none_values():
     (dict(width_exclusion_repeats=0), "width_exclusion_repeats must be at least 1"),
     (dict(final_reconnect_max_gap_mm=-1.0), "final_reconnect_max_gap_mm must be 0 (off) or a gap in mm"),
     (dict(min_fragment_volume_mm3=-1.0), "min_fragment_volume_mm3 must be 0 (off) or a volume in mm³"),
+    (dict(prune_last_min_views_any_motion=-1), "prune_last_min_views_any_motion must be 0 (no exception) or a number"),
     (dict(one_view_reach_mm=-1.0), "one_view_reach_mm is how far (mm) the support follows a single view"),
     (dict(frames_unseen_reach_mm=-0.5), "frames_unseen_reach_mm is how far (mm)"),
     (dict(calibration_min_untruncated_gain=-1.0), "calibration_min_untruncated_gain must be 0 (no check) or more"),

@@ -49,7 +49,8 @@ def save_run(folder: Path, stem: str, case, result) -> None:
 FINISH_ONLY_KEYS = ("prune", "prune_tolerance", "prune_keep_connected", "drop_unconfirmed_fragments", "reconnect",
                     "reconnect_max_gap_mm", "reconnect_min_occupancy", "reconnect_every_component", "grow_threshold", "final_reconnect_max_gap_mm",
                     "min_fragment_volume_mm3", "fill_unexplained", "prune_last",
-                    "prune_last_only_without_motion", "prune_split_pieces")
+                    "prune_last_only_without_motion", "prune_split_pieces",
+                    "prune_last_min_views_any_motion")
 
 
 def main() -> int:
