@@ -9,14 +9,19 @@ fitted once (``fast``) and finished once per variant (``bench/variants.py``'s FI
 the preset as it is. There is no 3D truth: each row gives what can be measured — the reprojection Dice per
 view, the share of each mask left unexplained, the voxels, the pieces and the largest piece's share — and
 the finishing time. Prints the machine.
+
+``--save-fit FILE`` keeps the fitted field (a few hundred MB on this pair) and ``--load-fit FILE`` finishes it again
+without fitting, so that finishing code can be compared or profiled (``--profile N``) on one fit.
 """
 
 from __future__ import annotations
 
 import argparse
+import cProfile
 import json
 import os
 import platform
+import pstats
 import sys
 import time
 from pathlib import Path
@@ -44,6 +49,11 @@ def main() -> int:
     parser.add_argument("--display-as-log", action="store_true",
                         help="frames not read as LIN (DISP, a vendor's term) read as a LOG run with the header's sign "
                              "(dicom.intensity.linear_from_log), so their path lengths are fitted")
+    parser.add_argument("--save-fit", metavar="FILE", help="keep the fitted field here (torch.save) to finish it again later")
+    parser.add_argument("--load-fit", metavar="FILE",
+                        help="finish a fit kept by --save-fit instead of fitting (the same runs and options must be given)")
+    parser.add_argument("--profile", type=int, default=0, metavar="N",
+                        help="profile each variant's finish (cProfile) and print its N most expensive calls by cumulative time")
     parser.add_argument("variants", nargs="*", help="JSON objects of finishing-setting overrides on fast")
     args = parser.parse_args()
     variants = [{}] + [json.loads(text) for text in args.variants]
@@ -79,14 +89,29 @@ def main() -> int:
     geometry, _, source = _place_grid(geometry, masks, request, provenance)
     print(f"# grid {list(geometry.volume.shape)} at {geometry.volume.spacing_mm[0]} mm ({source})", flush=True)
     t0 = time.perf_counter()
-    fitted = fit_field(geometry, masks, make_settings("fast", threads=args.threads), "mask",
-                       frames=frames, frame_intensity=intensity)
+    if args.load_fit:
+        fitted = torch.load(args.load_fit, weights_only=False)  # our own file, written by --save-fit
+        if tuple(fitted.problem.geometry.volume.shape) != tuple(geometry.volume.shape):
+            parser.error(f"{args.load_fit} holds a fit on a {list(fitted.problem.geometry.volume.shape)} grid, these runs "
+                         f"give {list(geometry.volume.shape)}: give the runs and options it was fitted with")
+        print(f"# fit loaded from {args.load_fit}", flush=True)
+    else:
+        fitted = fit_field(geometry, masks, make_settings("fast", threads=args.threads), "mask",
+                           frames=frames, frame_intensity=intensity)
+    if args.save_fit:
+        torch.save(fitted, args.save_fit)
     print(f"# fitted in {time.perf_counter() - t0:.0f} s; the pose check found motion: {fitted.problem.motion_found} "
           f"({'; '.join(str(e.get('why_left_as_given') or e.get('skipped') or 'applied') for c in fitted.calibrations for e in c.views) or 'no check'})",
           flush=True)
     for variant in variants:
         t1 = time.perf_counter()
+        profiler = cProfile.Profile() if args.profile else None
+        if profiler:
+            profiler.enable()
         result = fitted.finished(make_settings("fast", threads=args.threads, **variant))
+        if profiler:
+            profiler.disable()
+            pstats.Stats(profiler, stream=sys.stdout).sort_stats("cumulative").print_stats(args.profile)
         report = result.report
         pieces = component_counts(result.segmentation)
         unexplained = [q["share_of_mask"]["mask_only"] for q in report["reprojection_qa"]]
