@@ -105,16 +105,20 @@ def skeleton_pieces(segmentation: np.ndarray, spacing_mm: Sequence[float], max_p
     # Every segmented voxel (junctions included) goes to its nearest labelled voxel.
     nearest = ndimage.distance_transform_edt(labelled == 0, sampling=spacing, return_distances=False, return_indices=True)
     owner = np.where(segmentation, labelled[tuple(nearest)], 0)
-    used, contiguous = np.unique(owner, return_inverse=True)  # label 0 (background) stays first
-    return contiguous.reshape(owner.shape).astype(np.int64), int(used.size - 1)
+    # the labels used, renumbered 1.. in order (0, the background, stays 0): by counting, not by sorting the grid
+    used = np.flatnonzero(np.bincount(owner.reshape(-1)))
+    used = used[used > 0]
+    renumber = np.zeros(int(used[-1]) + 1, np.int64)
+    renumber[used] = np.arange(1, used.size + 1)
+    return renumber[owner], int(used.size)
 
 
 def _pieces_of_skeleton(points: np.ndarray, shape: Tuple[int, ...], spacing: np.ndarray, max_piece_mm: float) -> Tuple[np.ndarray, int]:
     """Piece label (1..; 0 for junction voxels) of each skeleton voxel, and the next free label."""
 
-    # 26-neighbour graph of skeleton voxels, edge weights in mm.
-    index = -np.ones(shape, np.int64)
-    index[tuple(points.T)] = np.arange(len(points))
+    # 26-neighbour graph of skeleton voxels, edge weights in mm; neighbours found among the points' flat indices
+    # (sorted: ``points`` come from argwhere) rather than through an index volume of the whole grid
+    flat = np.ravel_multi_index(tuple(points.T), shape)
     rows, cols, weights = [], [], []
     for offset in np.argwhere(np.ones((3, 3, 3))) - 1:
         if not offset.any():
@@ -122,7 +126,9 @@ def _pieces_of_skeleton(points: np.ndarray, shape: Tuple[int, ...], spacing: np.
         neighbour = points + offset
         inside = np.all((neighbour >= 0) & (neighbour < shape), axis=1)
         target = np.full(len(points), -1)
-        target[inside] = index[tuple(neighbour[inside].T)]
+        wanted = np.ravel_multi_index(tuple(neighbour[inside].T), shape)
+        position = np.minimum(np.searchsorted(flat, wanted), len(flat) - 1)
+        target[inside] = np.where(flat[position] == wanted, position, -1)
         linked = target >= 0
         rows.append(np.flatnonzero(linked))
         cols.append(target[linked])
@@ -269,9 +275,9 @@ def piece_adjacency(pieces: np.ndarray, count: int) -> csr_matrix:
 def _splits_pieces(adjacency: csr_matrix, alive: np.ndarray, piece: int) -> bool:
     """Whether removing ``piece`` leaves the alive pieces it touches in more than one part.
 
-    On the pieces' graph rather than by relabelling voxels (``width_agreement._splits_its_component``): the
-    greedy loop asks at every removal, up to ~130 times per realistic 128³ case, where a voxel relabelling costs
-    ~10 ms and grows with the grid; on the graph of its 155 pieces a check costs 0.13 ms (the graph 26 ms)."""
+    On the pieces' graph rather than on the voxels (``width_agreement._VoxelGraph``): the greedy loop asks at
+    every removal, up to ~130 times per realistic 128³ case, where relabelling the voxels cost ~10 ms; on the graph
+    of its 155 pieces a check costs 0.13 ms (the graph 26 ms)."""
     neighbours = adjacency.indices[adjacency.indptr[piece]:adjacency.indptr[piece + 1]]
     neighbours = neighbours[alive[neighbours]]
     if neighbours.size < 2:
@@ -359,14 +365,41 @@ def removal_zone(segmentation: np.ndarray, kept: np.ndarray, spacing_mm: Sequenc
     """Voxels to clear in the occupancy and field so that they agree with the pruned segmentation.
 
     The removed voxels plus the one-voxel shell around them that is nearer to them than to what is
-    kept: the partial occupancy there would otherwise put a thin skin of the ghost into the surface.
+    kept (distances between voxel centres, mm): the partial occupancy there would otherwise put a thin
+    skin of the ghost into the surface. The shell reaches |spacing| (a voxel's diagonal), so both
+    distances are read over the few neighbours within it, not by distance transforms of the whole grid
+    (on a 13-million-voxel grid these took seconds per call, bench/RESULTS.md §100c).
     """
 
     removed = np.asarray(segmentation, bool) & ~np.asarray(kept, bool)
+    kept = np.asarray(kept, bool)
     if not removed.any():
         return removed
     spacing = np.asarray(spacing_mm, dtype=float)
-    to_removed = ndimage.distance_transform_edt(~removed, sampling=spacing)
-    to_kept = ndimage.distance_transform_edt(~kept, sampling=spacing) if kept.any() else np.full(kept.shape, np.inf)
-    shell = (to_removed <= float(np.linalg.norm(spacing)) + 1e-6) & (to_removed < to_kept) & ~kept
-    return removed | shell
+    reach_mm = float(np.linalg.norm(spacing)) + 1e-6
+    offsets, offset_mm = _neighbour_offsets(spacing, reach_mm)
+    shape = np.asarray(removed.shape)
+    candidates = np.unique((np.argwhere(removed)[:, None, :] + offsets[None]).reshape(-1, 3), axis=0)
+    candidates = candidates[np.all((candidates >= 0) & (candidates < shape), axis=1)]
+    candidates = candidates[~kept[tuple(candidates.T)] & ~removed[tuple(candidates.T)]]
+    to_removed = np.full(len(candidates), np.inf)
+    to_kept = np.full(len(candidates), np.inf)  # exact wherever it is within the reach, which is all the test needs
+    for offset, distance in zip(offsets, offset_mm):
+        at = candidates + offset
+        inside = np.all((at >= 0) & (at < shape), axis=1)
+        index = tuple(at[inside].T)
+        to_removed[inside] = np.where(removed[index], np.minimum(to_removed[inside], distance), to_removed[inside])
+        to_kept[inside] = np.where(kept[index], np.minimum(to_kept[inside], distance), to_kept[inside])
+    shell = candidates[(to_removed <= reach_mm) & (to_removed < to_kept)]
+    zone = removed.copy()
+    zone[tuple(shell.T)] = True
+    return zone
+
+
+def _neighbour_offsets(spacing: np.ndarray, reach_mm: float) -> Tuple[np.ndarray, np.ndarray]:
+    """The voxel offsets other than zero whose length (mm) is at most ``reach_mm``, and those lengths."""
+    steps = np.floor(reach_mm / spacing).astype(int)
+    grid = np.stack(np.meshgrid(*(np.arange(-n, n + 1) for n in steps), indexing="ij"), axis=-1).reshape(-1, 3)
+    lengths = np.linalg.norm(grid * spacing, axis=1)
+    near = (lengths <= reach_mm) & np.any(grid != 0, axis=1)
+    return grid[near], lengths[near]

@@ -42,6 +42,8 @@ from typing import Any, Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 from scipy import ndimage
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
 from skimage.morphology import skeletonize
 
 from .geometry import CArmView, Geometry
@@ -203,20 +205,46 @@ def _median_read(values: np.ndarray) -> float:
     return float(np.median(read)) if read.size else 1.0
 
 
-def _splits_its_component(kept: np.ndarray, labels: np.ndarray, piece: np.ndarray) -> bool:
-    """Whether removing ``piece`` from ``kept`` leaves the rest of its 26-connected component in parts.
+class _VoxelGraph:
+    """The 26-adjacency of a segmentation's voxels, to ask whether removing a piece leaves the rest of its
+    component in parts: over the component's own voxels, not by relabelling a box of the grid around it (a tree
+    spread over a 13-million-voxel grid spans most of it, and the width check asks up to ~140 times,
+    bench/RESULTS.md §100c)."""
 
-    ``labels``: components of ``kept`` or of a superset from which only non-splitting pieces were
-    removed since (each component then still one part: it need not be labelled again).
-    """
-    own = np.unique(labels[piece & kept])
-    own = own[own > 0]
-    component = np.isin(labels, own) & kept
-    rest = component & ~piece
-    if not rest.any():
-        return False  # the piece is a whole fragment
-    box = tuple(slice(int(a.min()), int(a.max()) + 1) for a in np.nonzero(component))
-    return component_labels(rest[box])[1].size > 1
+    def __init__(self, segmentation: np.ndarray, labels: np.ndarray, pieces: np.ndarray):
+        shape = np.asarray(segmentation.shape)
+        self.flat = np.flatnonzero(segmentation)
+        self.label = labels.reshape(-1)[self.flat]  # components of the segmentation (or of a superset)
+        self.piece = pieces.reshape(-1)[self.flat]
+        self.alive = np.ones(self.flat.size, bool)
+        ijk = np.stack(np.unravel_index(self.flat, segmentation.shape), axis=1)
+        rows, cols = [], []
+        for offset in np.argwhere(np.ones((3, 3, 3), bool)) - 1:  # half of the 26 offsets; symmetrised below
+            if tuple(offset) <= (0, 0, 0):
+                continue
+            there = ijk + offset
+            inside = np.all((there >= 0) & (there < shape), axis=1)
+            target = np.ravel_multi_index(tuple(there[inside].T), segmentation.shape)
+            position = np.minimum(np.searchsorted(self.flat, target), self.flat.size - 1)
+            found = self.flat[position] == target
+            rows.append(np.flatnonzero(inside)[found])
+            cols.append(position[found])
+        row, col = np.concatenate(rows), np.concatenate(cols)
+        graph = coo_matrix((np.ones(row.size, bool), (row, col)), shape=(self.flat.size,) * 2).tocsr()
+        self.graph = (graph + graph.T).tocsr()
+
+    def splits_its_component(self, piece: int) -> bool:
+        """Whether removing ``piece`` from the voxels still alive leaves the rest of its component(s) in parts."""
+        in_piece = self.alive & (self.piece == piece)
+        own = np.unique(self.label[in_piece])
+        rest = np.flatnonzero(self.alive & np.isin(self.label, own[own > 0]) & ~in_piece)
+        if not rest.size:
+            return False  # the piece is a whole fragment
+        parts, _ = connected_components(self.graph[rest][:, rest], directed=False)
+        return parts > 1
+
+    def remove(self, piece: int) -> None:
+        self.alive &= self.piece != piece
 
 
 def disagreeing_pieces(segmentation: np.ndarray, masks: Sequence[np.ndarray], geometry: Geometry,
@@ -262,18 +290,18 @@ def disagreeing_pieces(segmentation: np.ndarray, masks: Sequence[np.ndarray], ge
         medians[1:] = ndimage.median(agreement, pieces, index=np.arange(1, count + 1))
     candidates = [int(k) for k in np.argsort(medians, kind="stable") if k > 0 and medians[k] < min_ratio]
     if keep_connected:
-        kept = segmentation.copy()
         removed_labels: List[int] = []
         changed = True
-        labels = component_labels(kept)[0]
+        # the components once: only pieces that split none are removed, so each stays one part
+        graph = _VoxelGraph(segmentation, component_labels(segmentation)[0], pieces)
         while changed:  # a spur is peeled from its tip: its inner piece becomes removable once the tip is gone
             changed = False
             for k in [k for k in candidates if k not in removed_labels]:
-                piece = pieces == k
-                if not _splits_its_component(kept, labels, piece):
-                    kept &= ~piece
+                if not graph.splits_its_component(k):
+                    graph.remove(k)
                     removed_labels.append(k)
                     changed = True
+        kept = segmentation & ~np.isin(pieces, removed_labels)
     else:
         removed_labels = candidates
         kept = segmentation & ~np.isin(pieces, removed_labels)

@@ -138,6 +138,27 @@ def test_removal_zone_covers_the_removed_voxels_and_spares_the_kept(ghost_case):
     assert not removal_zone(truth, truth, GRID.spacing_mm).any()
 
 
+@pytest.mark.parametrize("spacing_mm", [(0.8, 0.8, 0.8), (0.5, 0.7, 1.6)])
+def test_removal_zone_is_the_shell_nearer_the_removed_by_centre_distances(spacing_mm):
+    # against the definition by whole-grid distance transforms: the removed voxels and every other voxel not kept that
+    # lies within a voxel diagonal of them and nearer to them than to anything kept
+    rng = np.random.default_rng(5)
+    segmentation = ndimage.binary_dilation(rng.random((24, 20, 18)) < 0.02, iterations=1)
+    kept = segmentation & (rng.random(segmentation.shape) < 0.6)
+    spacing = np.asarray(spacing_mm)
+    to_removed = ndimage.distance_transform_edt(~(segmentation & ~kept), sampling=spacing)
+    to_kept = ndimage.distance_transform_edt(~kept, sampling=spacing)
+    expected = (segmentation & ~kept) | ((to_removed <= np.linalg.norm(spacing) + 1e-6) & (to_removed < to_kept) & ~kept)
+    zone = removal_zone(segmentation, kept, spacing_mm)
+    np.testing.assert_array_equal(zone, expected)
+    assert zone.sum() > (segmentation & ~kept).sum()
+    # nothing kept at all: the whole shell goes; a removed voxel on the grid's edge is no error
+    edge = np.zeros((6, 6, 6), bool)
+    edge[0, 0, :3] = True
+    np.testing.assert_array_equal(removal_zone(edge, np.zeros_like(edge), spacing_mm),
+                                  ndimage.distance_transform_edt(~edge, sampling=spacing) <= np.linalg.norm(spacing) + 1e-6)
+
+
 def test_presets_prune_only_in_fast():
     assert make_settings("fast").region.prune is True
     assert make_settings("paper").region.prune is False  # the published recipe has no post-processing

@@ -293,3 +293,31 @@ def test_fast_checks_the_views_widths_at_0_7_and_takes_them_out_of_the_fit_at_60
     assert exclusion_schedule(make_settings("fast")) == [240]  # of 400 steps
     assert make_settings("paper").region.width_agreement_min_ratio == 0.0  # the published recipe has no such step
     assert exclusion_schedule(make_settings("paper")) == []
+
+
+def test_the_voxel_graph_tells_a_split_as_relabelling_the_voxels_does():
+    # random blobs cut into random pieces: for every piece, removed alone and after others, the graph's answer is
+    # whether the rest of the piece's component(s) falls into more than one 26-connected part
+    from scipy import ndimage
+
+    from SDFCARLib.metrics import component_labels
+    from SDFCARLib.width_agreement import _VoxelGraph
+
+    rng = np.random.default_rng(3)
+    segmentation = ndimage.binary_dilation(rng.random((20, 18, 16)) < 0.03, iterations=1)
+    pieces = np.where(segmentation, rng.integers(1, 40, segmentation.shape), 0)
+    labels = component_labels(segmentation)[0]
+    graph = _VoxelGraph(segmentation, labels, pieces)
+    kept = segmentation.copy()
+    answers = []
+    for k in range(1, 40):
+        piece = pieces == k
+        own = np.unique(labels[piece & kept])
+        rest = np.isin(labels, own[own > 0]) & kept & ~piece
+        expected = bool(rest.any()) and component_labels(rest)[1].size > 1
+        assert graph.splits_its_component(k) == expected, k
+        answers.append(expected)
+        if k % 3 == 0:  # remove some whatever they split: the graph follows what is still alive
+            graph.remove(k)
+            kept &= ~piece
+    assert any(answers) and not all(answers)
