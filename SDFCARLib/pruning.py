@@ -123,12 +123,7 @@ def _pieces_of_skeleton(points: np.ndarray, shape: Tuple[int, ...], spacing: np.
     for offset in np.argwhere(np.ones((3, 3, 3))) - 1:
         if not offset.any():
             continue
-        neighbour = points + offset
-        inside = np.all((neighbour >= 0) & (neighbour < shape), axis=1)
-        target = np.full(len(points), -1)
-        wanted = np.ravel_multi_index(tuple(neighbour[inside].T), shape)
-        position = np.minimum(np.searchsorted(flat, wanted), len(flat) - 1)
-        target[inside] = np.where(flat[position] == wanted, position, -1)
+        target = neighbour_positions(points, flat, shape, offset)
         linked = target >= 0
         rows.append(np.flatnonzero(linked))
         cols.append(target[linked])
@@ -156,6 +151,20 @@ def _pieces_of_skeleton(points: np.ndarray, shape: Tuple[int, ...], spacing: np.
         piece[branch_voxels[members]] = next_label + chunk
         next_label += n_pieces
     return piece, next_label
+
+
+def neighbour_positions(points: np.ndarray, flat: np.ndarray, shape: Sequence[int], offset: np.ndarray) -> np.ndarray:
+    """For each voxel of ``points`` (N × 3 indices; ``flat``: their flat indices, sorted ascending), the position in
+    ``flat`` of its neighbour at ``offset`` where that neighbour is one of the points, else −1."""
+    neighbour = points + offset
+    inside = np.all((neighbour >= 0) & (neighbour < np.asarray(shape)), axis=1)
+    target = np.full(len(points), -1, np.int64)
+    if not flat.size:
+        return target
+    wanted = np.ravel_multi_index(tuple(neighbour[inside].T), tuple(shape))
+    position = np.minimum(np.searchsorted(flat, wanted), flat.size - 1)
+    target[inside] = np.where(flat[position] == wanted, position, -1)
+    return target
 
 
 def prune_redundant_branches(

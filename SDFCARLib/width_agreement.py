@@ -48,7 +48,7 @@ from skimage.morphology import skeletonize
 
 from .geometry import CArmView, Geometry
 from .metrics import component_labels
-from .pruning import skeleton_pieces
+from .pruning import neighbour_positions, skeleton_pieces
 
 END_CAP_WIDTHS = 1.5  # "open_ends": a skeleton end's cap, the skeleton pixels within this many half-widths of the vessel behind
 END_CAP_SHARE = 0.75  # ... that read less than this share of its half-width
@@ -212,7 +212,6 @@ class _VoxelGraph:
     bench/RESULTS.md §100c)."""
 
     def __init__(self, segmentation: np.ndarray, labels: np.ndarray, pieces: np.ndarray):
-        shape = np.asarray(segmentation.shape)
         self.flat = np.flatnonzero(segmentation)
         self.label = labels.reshape(-1)[self.flat]  # components of the segmentation (or of a superset)
         self.piece = pieces.reshape(-1)[self.flat]
@@ -222,13 +221,9 @@ class _VoxelGraph:
         for offset in np.argwhere(np.ones((3, 3, 3), bool)) - 1:  # half of the 26 offsets; symmetrised below
             if tuple(offset) <= (0, 0, 0):
                 continue
-            there = ijk + offset
-            inside = np.all((there >= 0) & (there < shape), axis=1)
-            target = np.ravel_multi_index(tuple(there[inside].T), segmentation.shape)
-            position = np.minimum(np.searchsorted(self.flat, target), self.flat.size - 1)
-            found = self.flat[position] == target
-            rows.append(np.flatnonzero(inside)[found])
-            cols.append(position[found])
+            target = neighbour_positions(ijk, self.flat, segmentation.shape, offset)
+            rows.append(np.flatnonzero(target >= 0))
+            cols.append(target[target >= 0])
         row, col = np.concatenate(rows), np.concatenate(cols)
         graph = coo_matrix((np.ones(row.size, bool), (row, col)), shape=(self.flat.size,) * 2).tocsr()
         self.graph = (graph + graph.T).tocsr()
