@@ -377,7 +377,7 @@ def removal_zone(segmentation: np.ndarray, kept: np.ndarray, spacing_mm: Sequenc
     kept (distances between voxel centres, mm): the partial occupancy there would otherwise put a thin
     skin of the ghost into the surface. The shell reaches |spacing| (a voxel's diagonal), so both
     distances are read over the few neighbours within it, not by distance transforms of the whole grid
-    (on a 13-million-voxel grid these took seconds per call, bench/RESULTS.md §100c).
+    (on a 13-million-voxel grid these took seconds per call, bench/RESULTS.md §100d).
     """
 
     removed = np.asarray(segmentation, bool) & ~np.asarray(kept, bool)
@@ -392,7 +392,7 @@ def removal_zone(segmentation: np.ndarray, kept: np.ndarray, spacing_mm: Sequenc
     candidates = candidates[np.all((candidates >= 0) & (candidates < shape), axis=1)]
     candidates = candidates[~kept[tuple(candidates.T)] & ~removed[tuple(candidates.T)]]
     to_removed = np.full(len(candidates), np.inf)
-    to_kept = np.full(len(candidates), np.inf)  # exact wherever it is within the reach, which is all the test needs
+    to_kept = np.full(len(candidates), np.inf)  # exact within the reach: all the comparison below needs
     for offset, distance in zip(offsets, offset_mm):
         at = candidates + offset
         inside = np.all((at >= 0) & (at < shape), axis=1)

@@ -209,7 +209,7 @@ class _VoxelGraph:
     """The 26-adjacency of a segmentation's voxels, to ask whether removing a piece leaves the rest of its
     component in parts: over the component's own voxels, not by relabelling a box of the grid around it (a tree
     spread over a 13-million-voxel grid spans most of it, and the width check asks up to ~140 times,
-    bench/RESULTS.md §100c)."""
+    bench/RESULTS.md §100d)."""
 
     def __init__(self, segmentation: np.ndarray, labels: np.ndarray, pieces: np.ndarray):
         self.flat = np.flatnonzero(segmentation)
@@ -296,10 +296,9 @@ def disagreeing_pieces(segmentation: np.ndarray, masks: Sequence[np.ndarray], ge
                     graph.remove(k)
                     removed_labels.append(k)
                     changed = True
-        kept = segmentation & ~np.isin(pieces, removed_labels)
     else:
         removed_labels = candidates
-        kept = segmentation & ~np.isin(pieces, removed_labels)
+    kept = segmentation & ~np.isin(pieces, removed_labels)
     info.update(pieces=int(count), removed_pieces=len(removed_labels), removed_voxels=int((segmentation & ~kept).sum()),
                 median_agreement=[round(float(m), 3) for m in medians[1:]], seconds=time.perf_counter() - t0)
     return kept, info
