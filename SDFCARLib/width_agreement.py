@@ -208,7 +208,7 @@ def _median_read(values: np.ndarray) -> float:
 class _VoxelGraph:
     """The 26-adjacency of a segmentation's voxels, to ask whether removing a piece leaves the rest of its
     component in parts: over the component's own voxels, not by relabelling a box of the grid around it (a tree
-    spread over a 13-million-voxel grid spans most of it, and the width check asks up to ~140 times,
+    spread over a 13-million-voxel grid spans half of it, and the width check asks up to ~140 times,
     bench/RESULTS.md §100d)."""
 
     def __init__(self, segmentation: np.ndarray, labels: np.ndarray, pieces: np.ndarray):
