@@ -380,8 +380,8 @@ def removal_zone(segmentation: np.ndarray, kept: np.ndarray, spacing_mm: Sequenc
     (on a 13-million-voxel grid these took seconds per call, bench/RESULTS.md §100d).
     """
 
-    removed = np.asarray(segmentation, bool) & ~np.asarray(kept, bool)
     kept = np.asarray(kept, bool)
+    removed = np.asarray(segmentation, bool) & ~kept
     if not removed.any():
         return removed
     spacing = np.asarray(spacing_mm, dtype=float)

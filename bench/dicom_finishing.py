@@ -100,7 +100,7 @@ def main() -> int:
                            frames=frames, frame_intensity=intensity)
     if args.save_fit:
         torch.save(fitted, args.save_fit)
-    print(f"# fitted in {time.perf_counter() - t0:.0f} s; the pose check found motion: {fitted.problem.motion_found} "
+    print(f"# {'loaded' if args.load_fit else f'fitted in {time.perf_counter() - t0:.0f} s'}; the pose check found motion: {fitted.problem.motion_found} "
           f"({'; '.join(str(e.get('why_left_as_given') or e.get('skipped') or 'applied') for c in fitted.calibrations for e in c.views) or 'no check'})",
           flush=True)
     for variant in variants:
