@@ -83,6 +83,12 @@ def test_reconstruct_from_dicom_files(dicom_pair, tmp_path, capsys):
                              "--set", "calibrate_from_frames=false"]) == 0, capsys.readouterr().err
     as_read = json.loads((tmp_path / "as-read" / "report.json").read_text())
     assert as_read["geometry_digest"] == geometry.digest() and "calibration" not in as_read
+    # without --volume-shape the grid is placed on the masks: the terminal names that grid, not the default first
+    capsys.readouterr()
+    assert main([a for a in args[:-5] if a not in ("--volume-shape", "24")] + [
+        "--out", str(tmp_path / "placed"), "--steps", "1", "--no-progress", "--set", "calibrate_from_frames=false"]) == 0
+    err = capsys.readouterr().err
+    assert err.count("volume: ") == 1 and "placed on the masks' region" in err and "default: 128³" not in err
     assert report["inputs"]["dicom"][0].endswith("view1.dcm")
     assert report["inputs"]["geometry_provenance"]["views"][0]["fields"]["pixel_spacing_mm"]["source"] == "user"
     # The chosen frames are the path-length evidence (fast): the runs' iodine is 0.25 per mm.
@@ -154,11 +160,15 @@ def test_geometry_places_the_grid_on_the_masks_or_says_it_could_not(dicom_pair, 
     saved = json.loads(out.read_text())
     volume = saved["provenance"]["volume"]
     assert volume["source"].startswith("placed on the masks' region")
+    # the terminal names the grid used once, not first the default it replaces
+    err = capsys.readouterr().err
+    assert err.count("volume: ") == 1 and "placed on the masks' region" in err and "default: 128³" not in err
     assert saved["volume"]["spacing_mm"] == [2.0, 2.0, 2.0] and saved["volume"]["shape"] != [128, 128, 128]
     assert len(volume["mask_coverage"]) == 2 and min(volume["mask_coverage"]) > 0.95
     out = tmp_path / "default.json"
     assert main(base + ["--out", str(out)]) == 0
-    assert "could not be placed" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert "could not be placed" in err and "volume: {'shape': [128, 128, 128]" in err
     saved = json.loads(out.read_text())
     source = saved["provenance"]["volume"]["source"]
     assert "--mask A B" in source and "--mask1/--mask2" in source and saved["volume"]["shape"] == [128] * 3

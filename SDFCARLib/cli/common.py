@@ -201,9 +201,10 @@ def load_geometry(path: str):
     return Geometry.load(path)
 
 
-def print_provenance(provenance: Dict[str, Any], warnings: bool = True) -> None:
+def print_provenance(provenance: Dict[str, Any], warnings: bool = True, volume: bool = True) -> None:
     """Every geometry value read from DICOM and where it came from, so a clinician can check it (and, with
-    ``warnings``, the geometry's warnings: ``reconstruct`` leaves them to the fit, which gives them too)."""
+    ``warnings``, the geometry's warnings: ``reconstruct`` leaves them to the fit, which gives them too).
+    ``volume`` False: the grid is not printed (it is about to be placed on the masks, which prints the grid used)."""
     for n, view in enumerate(provenance.get("views", []), start=1):
         frame = view.get("frame", {})
         print(f"view {n}: {view.get('file')} frame {frame.get('index')} ({frame.get('reason', '')})", file=sys.stderr)
@@ -211,9 +212,9 @@ def print_provenance(provenance: Dict[str, Any], warnings: bool = True) -> None:
             print(f"  {name} = {_fmt(entry.get('value'))}  [{entry.get('source', '?')}]", file=sys.stderr)
         for note in view.get("notes", []):
             print(f"  note: {note}", file=sys.stderr)
-    volume = provenance.get("volume")
-    if volume:
-        print(f"volume: {volume.get('value')}  [{volume.get('source')}]", file=sys.stderr)
+    grid = provenance.get("volume") if volume else None
+    if grid:
+        print(f"volume: {grid.get('value')}  [{grid.get('source')}]", file=sys.stderr)
     for warning in provenance.get("warnings", []) if warnings else []:
         print(f"warning: {warning}", file=sys.stderr)
 

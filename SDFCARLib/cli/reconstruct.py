@@ -81,8 +81,9 @@ def _geometry_for_reconstruct(args: argparse.Namespace):
         if args.geometry:
             raise ValueError("give either --geometry or the XA runs (--dicom A B …, or --dicom1/--dicom2), not both")
         geometry, provenance = cli_geometry_from_args(args)
-        print_provenance(provenance, warnings=False)
-        return geometry, provenance, _dicom_volume_request(args)
+        request = _dicom_volume_request(args)
+        print_provenance(provenance, warnings=False, volume=request is None)  # a placed grid is printed where placed
+        return geometry, provenance, request
     if not args.geometry:
         raise ValueError("missing --geometry: give a GEOM.json, or the XA DICOM runs, one per view, with --dicom A B … "
                          "(or --dicom1 and --dicom2)")
@@ -171,8 +172,8 @@ def cmd_geometry(args: argparse.Namespace) -> int:
     if given and len(given) != len(geometry.views):
         raise ValueError(f"{_views_named(args, geometry)} but {len(given)} mask(s) were given (--mask); give one per "
                          "run, in the same order, to place the grid, or none")
-    print_provenance(provenance)
     request = _dicom_volume_request(args)
+    print_provenance(provenance, volume=not (given and request is not None))  # a placed grid is printed where placed
     if given:
         masks = [read_mask(path, view.detector_shape, what=f"view {n} mask")
                  for n, (path, view) in enumerate(zip(given, geometry.views), start=1)]
