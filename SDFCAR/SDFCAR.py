@@ -1302,7 +1302,7 @@ class SDFCARLogic(ScriptedLoadableModuleLogic):
         """(text for the Results section: per-view QA numbers and the run's warnings, number of views)."""
         from SDFCARLib import mrml
         from SDFCARLib.calibration import calibration_lines
-        from SDFCARLib.qa import ensemble_choice_line, qa_summary_lines
+        from SDFCARLib.qa import ensemble_choice_line, pieces_line, qa_summary_lines
 
         try:
             report = mrml.read_report(self.resultFolder(resultNode))
@@ -1312,9 +1312,11 @@ class SDFCARLogic(ScriptedLoadableModuleLogic):
         views = len(lines) or len((report.get("geometry") or {}).get("views") or []) or 1
         if not lines:
             lines = ["This result has no reprojection QA (made by an SDFCAR version before it existed)."]
+        pieces = pieces_line(report)  # a tree in pieces is the first thing to look at in 3D
         choice = ensemble_choice_line(report)  # which of several fits was kept, by this QA
         poses = calibration_lines(report)  # what the frames' motion search corrected, or why not
-        return "\n".join(lines + ([choice] if choice else []) + poses + _warningLines(report)), views
+        return "\n".join(lines + ([pieces] if pieces else []) + ([choice] if choice else []) + poses
+                         + _warningLines(report)), views
 
     @staticmethod
     def analysisText(resultNode):

@@ -338,6 +338,23 @@ def qa_summary_lines(report: Dict[str, Any]) -> List[str]:
     return lines
 
 
+def pieces_line(report: Dict[str, Any]) -> Optional[str]:
+    """How many 26-connected pieces the result is in, and the largest's share of its voxels (``report.json`` →
+    ``components``), for the summary a user reads first; None where the report does not say."""
+    counts = report.get("components")
+    if not isinstance(counts, dict) or not counts.get("components"):
+        return None
+    pieces = int(counts["components"])
+    if pieces == 1:
+        return "The result is one piece (26-connected voxels)."
+    largest = counts.get("largest_component_fraction")
+    gap = (report.get("reconnection") or {}).get("max_gap_mm")
+    within = f" within {gap:g} mm" if isinstance(gap, (int, float)) else ""
+    return (f"The result is in {pieces} pieces (26-connected voxels); the largest holds "
+            f"{_formatted(largest, '{:.0f}', 100)} % of them. A coronary tree is one piece per ostium: the others are "
+            f"vessels the field gave no bridge to{within}, or ghosts; look at them in 3D and on the QA overlays.")
+
+
 def ensemble_choice_line(report: Dict[str, Any]) -> Optional[str]:
     """Which of several fits a result kept and why (``ensemble_combine`` "best_reprojection"), or None."""
     choice = report.get("ensemble_choice")

@@ -753,6 +753,14 @@ def test_the_summary_says_what_the_pose_search_did(tmp_path, capsys):
     print_summary({"report": report})
     out = capsys.readouterr().out
     assert "View 2: pose left as given from the frames: the motion found made the views 2.47× more consistent" in out
+    assert "piece" not in out  # the report does not say
+    data = json.loads(report.read_text())
+    data["components"] = {"components": 16, "largest_component_fraction": 0.473}
+    report.write_text(json.dumps(data))
+    print_summary({"report": report})
+    lines = capsys.readouterr().out.splitlines()
+    assert lines[1] == "reprojection Dice per view: 0.900 / 0.900"  # the pieces right below it
+    assert lines[2].startswith("The result is in 16 pieces (26-connected voxels); the largest holds 47 % of them.")
 
 
 def test_grid_coverage_warning_names_the_cause_that_fits_how_the_grid_was_made(tmp_path, tiny_case, capsys):

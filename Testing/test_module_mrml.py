@@ -46,7 +46,8 @@ def three_view_result(tmp_path_factory):
     qa = [reprojection_qa(p, m, v) for (p, m), v in zip(qa_masks, views)]
     settings = make_settings("fast", steps=1)
     report = {"settings": settings.to_dict(), "method": "test", "geometry": geometry.to_dict(),
-              "geometry_digest": geometry.digest(), "reprojection_qa": qa, "warnings": qa_warnings(qa), "target_kind": "mask"}
+              "geometry_digest": geometry.digest(), "reprojection_qa": qa, "warnings": qa_warnings(qa), "target_kind": "mask",
+              "components": {"components": 3, "largest_component_fraction": 0.9}}
     result = Reconstruction(geometry, settings, label.astype(np.float32), label.astype(np.float32) * 2 - 1, label, None,
                             report, qa_masks=qa_masks)
     job = tmp_path_factory.mktemp("job") / "Tree-20260101-000000"
@@ -91,6 +92,7 @@ def test_a_three_view_result_loads_with_its_qa_overlays(module, three_view_resul
     assert scene.GetFirstNodeByName("Tree C-arm view 3 detector") is not None
     text, views = module.SDFCARLogic().resultQAText(segmentation)
     assert views == 3 and text.startswith("View 1: Dice 1.000") and "View 3" in text and "warning(s):" in text
+    assert "\nThe result is in 3 pieces (26-connected voxels); the largest holds 90 % of them." in text
     assert "Kept the fit" not in text  # one fit
     report = mrml.read_report(job / "output")
     report["ensemble_choice"] = {"combine": "best_reprojection", "seeds": [3, 4], "chosen_fit": 1, "chosen_seed": 4,

@@ -215,3 +215,21 @@ def test_result_folder_holds_the_overlays_and_the_report_the_numbers(tmp_path, t
     assert "qa_view2.png" in result_file_names(2)
     with pytest.raises(OutputError, match="qa_view1.png"):
         check_destination(tmp_path / "result", result_file_names(2))
+
+
+def test_the_summary_names_the_pieces_of_the_result_and_the_largest_share():
+    from SDFCARLib.metrics import component_counts
+    from SDFCARLib.qa import pieces_line
+
+    volume = np.zeros((12, 12, 12), bool)
+    volume[1:4, 1:4, 1:4] = True  # 27 voxels
+    volume[8, 8, 2:11] = True  # 9 voxels, apart
+    report = {"components": component_counts(volume), "reconnection": {"max_gap_mm": 8.0}}
+    line = pieces_line(report)
+    assert line.startswith("The result is in 2 pieces (26-connected voxels); the largest holds 75 % of them.")
+    assert "no bridge to within 8 mm, or ghosts" in line
+    volume[4, 4, 4] = volume[5:8, 5:8, 3] = True  # joined through diagonal contacts: one piece
+    assert pieces_line({"components": component_counts(volume)}) == "The result is one piece (26-connected voxels)."
+    del report["reconnection"]
+    assert "no bridge to, or ghosts" in pieces_line({"components": {"components": 3, "largest_component_fraction": 0.5}})
+    assert pieces_line({}) is None and pieces_line({"components": {"components": 0}}) is None

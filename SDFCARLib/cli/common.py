@@ -14,7 +14,7 @@ import numpy as np
 
 from ..calibration import calibration_lines
 from ..settings import GROUND_TRUTH_METRICS, METRICS, make_settings, parse_setting_overrides
-from ..qa import ensemble_choice_line
+from ..qa import ensemble_choice_line, pieces_line
 
 EXIT_OK, EXIT_FAILURE, EXIT_BAD_INPUT, EXIT_CANCELLED = 0, 1, 2, 130
 EXIT_TERMINATED = 143  # 128 + SIGTERM, as a shell reports a process ended by it
@@ -226,6 +226,9 @@ def print_summary(files: Dict[str, Path]) -> None:
     print(f"{report.get('method', 'reconstruction')}: {report.get('segmented_voxels', 0)} voxels segmented in "
           f"{total if total is None else round(float(total), 1)} s on {report.get('device', '?')}")
     print(f"reprojection Dice per view: {_fmt(report.get('reprojection_dice'))}")
+    pieces = pieces_line(report)
+    if pieces:
+        print(pieces)
     choice = ensemble_choice_line(report)
     if choice:
         print(choice)
