@@ -349,10 +349,15 @@ def pieces_line(report: Dict[str, Any]) -> Optional[str]:
         return "The result is one piece (26-connected voxels)."
     largest = counts.get("largest_component_fraction")
     gap = (report.get("reconnection") or {}).get("max_gap_mm")
-    within = f" within {gap:g} mm" if isinstance(gap, (int, float)) else ""
+    if isinstance(gap, (int, float)):
+        others = f"the others are vessels the field gave no bridge to within {gap:g} mm, or ghosts"
+    elif "reconnection" in report:  # None: `reconnect` off (the paper's preset), nothing tried to join them
+        others = "this run joined no pieces (the reconnect setting is off), so the others are broken-off vessels or ghosts"
+    else:
+        others = "the others are broken-off vessels or ghosts"
     return (f"The result is in {pieces} pieces (26-connected voxels); the largest holds "
-            f"{_formatted(largest, '{:.0f}', 100)} % of them. A coronary tree is one piece per ostium: the others are "
-            f"vessels the field gave no bridge to{within}, or ghosts; look at them in 3D and on the QA overlays.")
+            f"{_formatted(largest, '{:.0f}', 100)} % of them. A coronary tree is one piece per ostium: {others}; "
+            "look at them in 3D and on the QA overlays.")
 
 
 def ensemble_choice_line(report: Dict[str, Any]) -> Optional[str]:

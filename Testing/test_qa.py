@@ -230,6 +230,8 @@ def test_the_summary_names_the_pieces_of_the_result_and_the_largest_share():
     assert "no bridge to within 8 mm, or ghosts" in line
     volume[4, 4, 4] = volume[5:8, 5:8, 3] = True  # joined through diagonal contacts: one piece
     assert pieces_line({"components": component_counts(volume)}) == "The result is one piece (26-connected voxels)."
-    del report["reconnection"]
-    assert "no bridge to, or ghosts" in pieces_line({"components": {"components": 3, "largest_component_fraction": 0.5}})
+    unjoined = pieces_line({"components": {"components": 3, "largest_component_fraction": 0.5}, "reconnection": None})
+    assert "holds 50 % of them" in unjoined and "joined no pieces (the reconnect setting is off)" in unjoined
+    assert pieces_line({"components": {"components": 2, "largest_component_fraction": 0.9}}).endswith(
+        "one piece per ostium: the others are broken-off vessels or ghosts; look at them in 3D and on the QA overlays.")
     assert pieces_line({}) is None and pieces_line({"components": {"components": 0}}) is None
