@@ -83,12 +83,18 @@ def test_reconstruct_from_dicom_files(dicom_pair, tmp_path, capsys):
                              "--set", "calibrate_from_frames=false"]) == 0, capsys.readouterr().err
     as_read = json.loads((tmp_path / "as-read" / "report.json").read_text())
     assert as_read["geometry_digest"] == geometry.digest() and "calibration" not in as_read
-    # without --volume-shape the grid is placed on the masks: the terminal names that grid, not the default first
+    # the grid read with the tags is printed where it is the grid used; one to be placed on the masks is printed where
+    # it is placed (`_place_grid`), not first as the default it replaces
+    from SDFCARLib.cli.parser import build_parser
+    from SDFCARLib.cli.reconstruct import _geometry_for_reconstruct
+
     capsys.readouterr()
-    assert main([a for a in args[:-5] if a not in ("--volume-shape", "24")] + [
-        "--out", str(tmp_path / "placed"), "--steps", "1", "--no-progress", "--set", "calibrate_from_frames=false"]) == 0
+    _, _, request = _geometry_for_reconstruct(build_parser().parse_args(args))
+    assert request is None and "volume: {'shape': [24, 24, 24]" in capsys.readouterr().err
+    _, _, request = _geometry_for_reconstruct(build_parser().parse_args(
+        [a for a in args if a not in ("--volume-shape", "24")]))
     err = capsys.readouterr().err
-    assert err.count("volume: ") == 1 and "placed on the masks' region" in err and "default: 128³" not in err
+    assert request is not None and "primary_deg" in err and "volume: " not in err
     assert report["inputs"]["dicom"][0].endswith("view1.dcm")
     assert report["inputs"]["geometry_provenance"]["views"][0]["fields"]["pixel_spacing_mm"]["source"] == "user"
     # The chosen frames are the path-length evidence (fast): the runs' iodine is 0.25 per mm.
