@@ -140,7 +140,20 @@ def _pair_costs(views, images, estimates, centre):
             for i in range(len(rays)) for j in range(i + 1, len(rays))}
 
 
-def test_three_views_are_made_consistent_in_every_pair_where_matching_each_to_view_1_is_not():
+def _recording_estimate_motion(monkeypatch):
+    """The ``estimate_motion`` results ``estimate_motions`` computes, in order (it matches each view to view 1 first)."""
+    found = []
+    search = line_integral_consistency.estimate_motion
+
+    def recorded(*args, **kwargs):
+        found.append(search(*args, **kwargs))
+        return found[-1]
+
+    monkeypatch.setattr(line_integral_consistency, "estimate_motion", recorded)
+    return found
+
+
+def test_three_views_are_made_consistent_in_every_pair_where_matching_each_to_view_1_is_not(monkeypatch):
     centre = CENTRES.mean(axis=0)
     baseline = VIEW_2.source_position - VIEW_1.source_position
     baseline /= np.linalg.norm(baseline)
@@ -148,10 +161,13 @@ def test_three_views_are_made_consistent_in_every_pair_where_matching_each_to_vi
     motions = [(np.array([0.0, 0.3, 0.5]), 1.5 * baseline), (np.array([0.4, 0.0, 0.0]), np.array([0.0, 0.8, 0.0]))]
     views = [VIEW_1, VIEW_2, VIEW_3]
     images = _moved_images(views, motions, centre)
-    alone = [estimate_motion(VIEW_1, images[0], v, image, centre) for v, image in zip(views[1:], images[1:])]
+    searched = _recording_estimate_motion(monkeypatch)
+    estimates = estimate_motions(views, images, centre)
+    # its first step, each view matched to view 1 alone, leaves views 2 and 3 inconsistent with each other
+    alone = searched[:2]
+    assert [(e.reference_view, e.jointly) for e in alone] == [(0, False), (0, False)] and len(searched) == 2
     each_to_view_1 = _pair_costs(views, images, alone, centre)
     assert each_to_view_1[(1, 2)] < 1e-3 and each_to_view_1[(1, 3)] < 1e-3 and each_to_view_1[(2, 3)] > 0.1
-    estimates = estimate_motions(views, images, centre)
     assert all(e.jointly and not e.joint_fallback and not e.joint_start for e in estimates)
     assert len(estimates) == 2 and set(estimates[0].parameters) == {
         "shift_across", "rotation_about_baseline", "rotation_about_depth", "rotation_about_normal",
@@ -163,11 +179,12 @@ def test_three_views_are_made_consistent_in_every_pair_where_matching_each_to_vi
     assert estimates[0].parameters["shift_along_baseline"] > 0.3
 
 
-def test_estimate_motions_with_two_views_is_estimate_motion_and_refuses_a_missing_image():
+def test_estimate_motions_with_two_views_is_estimate_motion_and_refuses_a_missing_image(monkeypatch):
     images = [blob_image(VIEW_1), blob_image(VIEW_2.with_object_motion((0.0, 0.0, 0.0), (0.0, 0.0, 1.0)))]
+    searched = _recording_estimate_motion(monkeypatch)
     (joint,) = estimate_motions([VIEW_1, VIEW_2], images, np.zeros(3))
-    alone = estimate_motion(VIEW_1, images[0], VIEW_2, images[1], np.zeros(3))
-    np.testing.assert_allclose(joint.translation_mm, alone.translation_mm)
+    assert len(searched) == 1 and searched[0] is joint and not joint.jointly  # the pair's own search, nothing more
+    assert joint.translation_mm[2] == pytest.approx(1.0, abs=0.1)  # the shift across the planes, found
     with pytest.raises(EpipolarError, match="one image per view"):
         estimate_motions([VIEW_1, VIEW_2, VIEW_3], images, np.zeros(3))
 
