@@ -15,6 +15,31 @@ def _view(primary=30.0, secondary=0.0):
     return CArmView(primary, secondary, 1000.0, 750.0, (0.5, 0.5), (64, 64))
 
 
+@pytest.fixture
+def searches_once(monkeypatch):
+    """``estimate_motions`` run once per distinct input: a test that calibrates the same frames several times, to
+    compare what the steps after the search decide, does not repeat the search (deterministic). Returns the inputs
+    searched."""
+    from SDFCARLib import line_integral_consistency
+
+    search, results, searched = line_integral_consistency.estimate_motions, {}, []
+
+    def key_of(views, images, centre, *args, unseen=None, progress=None, **kwargs):
+        arrays = [np.asarray(a) for a in images] + [np.asarray(u) for u in (unseen or ()) if u is not None]
+        return (repr(views), tuple(a.tobytes() for a in arrays), tuple(np.asarray(centre, float)), args,
+                tuple(sorted(kwargs.items())), tuple(u is None for u in (unseen or ())))
+
+    def once(*args, **kwargs):
+        key = key_of(*args, **kwargs)
+        if key not in results:
+            searched.append(key)
+            results[key] = search(*args, **kwargs)
+        return results[key]
+
+    monkeypatch.setattr(line_integral_consistency, "estimate_motions", once)
+    return searched
+
+
 def test_epipolar_normal_is_perpendicular_to_both_viewing_directions():
     # LAO 30 / RAO 30: both directions in the axial plane, so the shift that crosses the epipolar
     # lines is cranio-caudal
@@ -284,7 +309,7 @@ def _behind_a_shutter(image, shutter):
     return np.where(shutter, 0.0, image)  # the frame shows nothing where the collimator is
 
 
-def test_a_turn_that_only_hides_what_a_collimator_cuts_is_not_applied_and_a_real_motion_still_is():
+def test_a_turn_that_only_hides_what_a_collimator_cuts_is_not_applied_and_a_real_motion_still_is(searches_once):
     from blob_phantom import VIEW_1, VIEW_2, blob_image
     from SDFCARLib.calibration import calibrate_from_frames
     from SDFCARLib.line_integral_consistency import untruncated_gain
@@ -313,6 +338,7 @@ def test_a_turn_that_only_hides_what_a_collimator_cuts_is_not_applied_and_a_real
     (entry,) = found.views
     assert "left_as_given" not in entry and entry["untruncated_consistency_gain"] > 5
     assert found.geometry.views[1] == calibrate_from_frames(geometry, moved).geometry.views[1]
+    assert len(searches_once) == 2  # every check above judged one of two searches: the static frames', the moved ones'
 
     # what the command line and the Slicer module say of it
     from SDFCARLib.calibration import calibration_lines
