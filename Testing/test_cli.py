@@ -758,9 +758,16 @@ def test_the_summary_says_what_the_pose_search_did(tmp_path, capsys):
     data["components"] = {"components": 16, "largest_component_fraction": 0.473}
     report.write_text(json.dumps(data))
     print_summary({"report": report})
-    lines = capsys.readouterr().out.splitlines()
+    captured = capsys.readouterr()
+    lines = captured.out.splitlines()
     assert lines[1] == "reprojection Dice per view: 0.900 / 0.900"  # the pieces right below it
     assert lines[2].startswith("The result is in 16 pieces (26-connected voxels); the largest holds 47 % of them.")
+    assert captured.err == ""  # a run without warnings prints no header
+    data["warnings"] = ["first thing", "second thing"]
+    report.write_text(json.dumps(data))
+    print_summary({"report": report})
+    assert capsys.readouterr().err.splitlines() == ["2 warning(s) of this run (report.json → warnings):",
+                                                    "warning: first thing", "warning: second thing"]
 
 
 def test_grid_coverage_warning_names_the_cause_that_fits_how_the_grid_was_made(tmp_path, tiny_case, capsys):

@@ -236,6 +236,9 @@ def print_summary(files: Dict[str, Path]) -> None:
         print(line)
     if "metrics" in report:
         print_metrics(report["metrics"])
-    for message in report.get("warnings", []):
+    warnings = report.get("warnings", [])
+    if warnings:  # with progress on they were printed as they arose too: the header says these are the run's record
+        print(f"{len(warnings)} warning(s) of this run (report.json → warnings):", file=sys.stderr)
+    for message in warnings:
         print(f"warning: {message}", file=sys.stderr)
     print(f"results in {files['report'].parent}: {', '.join(sorted(p.name for p in files.values()))}")
