@@ -491,6 +491,8 @@ def test_analyse_names_the_missing_volume(tmp_path, capsys):
 # --- Slicer scene content (slicer-core, headless) ---------------------------------------------------
 def test_analysis_nodes_in_a_scene(tmp_path):
     pytest.importorskip("slicer")
+    from vtk.util.numpy_support import vtk_to_numpy
+
     from SDFCARLib.analysis.mrml_nodes import add_analysis_nodes, camera_for_angles, set_camera_to_angles
     from SDFCARLib.analysis.outputs import analyse_result_dir
     from SDFCARLib.mrml import new_scene
@@ -514,6 +516,10 @@ def test_analysis_nodes_in_a_scene(tmp_path):
     table = nodes["table"]
     assert table.GetNumberOfRows() == 1
     assert table.GetTable().GetColumnByName("diameter_stenosis_pct").GetValue(0) == pytest.approx(50.0, abs=8.0)
+    # the tube (1, 0.2, 0.4) at the isocentre rises 21.4° out of LAO 30 / RAO 30's horizontal epipolar plane
+    assert table.GetTable().GetColumnByName("epipolar_angle_median_deg").GetValue(0) == pytest.approx(21.4, abs=1.5)
+    profile = scene.GetFirstNodeByName("case branch 0 profile").GetTable().GetColumnByName("epipolar_angle_deg")
+    assert profile.GetNumberOfTuples() > 10 and np.nanmedian(vtk_to_numpy(profile)) == pytest.approx(21.4, abs=1.5)
     assert nodes["chart"].GetNumberOfPlotSeriesNodes() == 1
     image = nodes["view_map"].GetImageData()
     assert image.GetDimensions()[:2] == (13, 9)  # −60..60 and −40..40 every 10°

@@ -8,9 +8,11 @@ per-branch CSV profiles) and adds
                                       "Diameter" (3D equivalent diameter, mm) and "Radius" per
                                       control point; attributes SDFCAR.branchId / parentId
     a table node "… QCA"              one row per branch: length, mean/min diameter, worst lesion
-                                      (graded on the frames where given, and its 3D-section measures)
+                                      (graded on the frames where given, and its 3D-section measures),
+                                      the branch's median angle to the views' epipolar planes
     a table node per branch profile   arc length and diameters (3D, masks, and the frames' edges and
-                                      density where analyse was given the frames), feeding
+                                      density where analyse was given the frames), the angle to the
+                                      epipolar planes where analysed with two views or more, feeding
     a plot chart "… diameters"        one line per branch, diameter against arc length
     a scalar volume "… view map"      the foreshortening + overlap score (%) over (primary,
                                       secondary) in degrees as a one-slice image; attributes
@@ -55,9 +57,11 @@ def _slicer_module():
 #: found_on, seen_on_frames, seen_on_masks), as the 3D sections measure it, and the masks' largest narrowing there
 QCA_TABLE_COLUMNS = ("branch", "parent", "length_mm", "mean_diameter_mm", "mld_mm", "diameter_stenosis_pct",
                      "area_stenosis_pct", "lesion_length_mm", "graded_on", "found_on", "seen_on_frames", "seen_on_masks",
-                     "diameter_stenosis_3d_pct", "mld_3d_mm", "diameter_stenosis_masks_pct")
+                     "diameter_stenosis_3d_pct", "mld_3d_mm", "diameter_stenosis_masks_pct", "epipolar_angle_median_deg")
 #: profile columns measured on the frames (edges, density), in the branch profile tables when present
 FRAME_COLUMNS = ("diameter_frames_mm", "diameter_frames_density_mm")
+#: profile columns of later analyses, in the branch profile tables when present (absent from older files)
+OPTIONAL_COLUMNS = FRAME_COLUMNS + ("epipolar_angle_deg",)
 
 
 #: the profile columns every ``analyse`` writes, and the ones that place the curve (finite in every row)
@@ -89,7 +93,7 @@ def _read_profile(path: Path) -> Dict[str, np.ndarray]:
         return np.array(values)
 
     # The frame columns exist only where analyse was given the frames.
-    keys = [k for k in PROFILE_COLUMNS if k in header] + [k for k in FRAME_COLUMNS if k in header]
+    keys = [k for k in PROFILE_COLUMNS if k in header] + [k for k in OPTIONAL_COLUMNS if k in header]
     profile = {k: col(k) for k in keys}
     for k in _PLACING_COLUMNS:
         if not np.all(np.isfinite(profile[k])):
@@ -267,7 +271,7 @@ def _add_nodes(scene, slicer, data, profiles, name: str, point_step_mm: float) -
         attrs = {"SDFCAR.branchId": str(bid), "SDFCAR.parentId": "" if b["parent_id"] is None else str(b["parent_id"]),
                  "SDFCAR.coordinateSystem": "RAS (from LPS files)"}
         curves.append(_add_curve(scene, f"{name} branch {bid}", prof, point_step_mm, attrs))
-        columns = ["arc_mm", "diameter_3d_mm", "diameter_masks_mm"] + [k for k in FRAME_COLUMNS if k in prof] + ["reference_mm"]
+        columns = ["arc_mm", "diameter_3d_mm", "diameter_masks_mm"] + [k for k in OPTIONAL_COLUMNS if k in prof] + ["reference_mm"]
         profile_columns = {k: list(prof[k]) for k in columns}
         profile_columns["excluded"] = [float(v) for v in prof["excluded"]]  # 1: a junction or an end, not graded
         table = _add_table(scene, f"{name} branch {bid} profile", profile_columns)
@@ -302,6 +306,7 @@ def _add_nodes(scene, slicer, data, profiles, name: str, point_step_mm: float) -
         rows["diameter_stenosis_3d_pct"].append(worst["diameter_stenosis_pct"] if worst else None)
         rows["mld_3d_mm"].append(worst["mld_mm"] if worst else None)
         rows["diameter_stenosis_masks_pct"].append(worst.get("masks_diameter_stenosis_pct") if worst else None)
+        rows["epipolar_angle_median_deg"].append((b.get("epipolar_angle_deg") or {}).get("median_deg"))
     table = _add_table(scene, f"{name} QCA", rows)
     view_map = _add_view_map(scene, f"{name} view map", data) if data.get("view_map") else None
     return {"curves": curves, "table": table, "chart": chart, "series": series, "view_map": view_map,

@@ -8,12 +8,13 @@ runs ``pipeline.analyse_volume`` and writes, all at once or not at all (``staged
     centrelines.vtk         legacy ASCII polydata, one polyline per branch, ``SPACE=LPS`` in the
                             header line (as surface.vtk); point arrays Radius (3D equivalent
                             radius, the inscribed radius where a section could not be measured),
-                            Diameter3D, DiameterMasks (−1 where not measured), ArcLength
+                            Diameter3D, DiameterMasks, EpipolarAngle (degrees to the acquired
+                            views' epipolar planes; −1 where not measured or under two views), ArcLength
                             (a FIELD beside the Radius scalars: every reader loads them);
                             cell array BranchId. Written as text whether or not vtk is installed,
                             so the file is the same everywhere; vtk and Slicer read it.
     profile_branchNN.csv    arc length, 3D diameter, area, min/max diameter, mask diameter and
-                            per-view widths, reference, excluded flag, centreline point
+                            per-view widths, reference, excluded flag, epipolar angle, centreline point
     diameter_profiles.png   diameter against arc length per branch, lesions shaded (matplotlib);
                             lesions where the reconstruction is broken hatched grey
     view_map.png            foreshortening + overlap over the C-arm angles, best view marked
@@ -44,7 +45,7 @@ ANALYSIS_FILES = ("analysis.json", "centrelines.vtk", "diameter_profiles.png", "
 
 def centrelines_vtk_text(result: QCAResult) -> str:
     """Legacy VTK polydata of the centreline tree (module docstring)."""
-    pts, lines, arrays = [], [], {"Radius": [], "Diameter3D": [], "DiameterMasks": [], "ArcLength": []}
+    pts, lines, arrays = [], [], {"Radius": [], "Diameter3D": [], "DiameterMasks": [], "EpipolarAngle": [], "ArcLength": []}
     ids = []
     for p in result.profiles:
         b = p.branch
@@ -56,6 +57,8 @@ def centrelines_vtk_text(result: QCAResult) -> str:
         arrays["Diameter3D"].append(np.where(np.isfinite(d3), d3, -1.0))
         dm = p.mask_diameter_mm if p.mask_diameter_mm is not None else np.full(len(d3), np.nan)
         arrays["DiameterMasks"].append(np.where(np.isfinite(dm), dm, -1.0))
+        angle = result.epipolar_deg.get(b.branch_id, np.full(len(d3), np.nan))
+        arrays["EpipolarAngle"].append(np.where(np.isfinite(angle), angle, -1.0))
         arrays["ArcLength"].append(b.arc_length_mm)
         ids.append(b.branch_id)
     points = np.concatenate(pts)
@@ -93,7 +96,8 @@ def profile_csv_text(result: QCAResult, branch_id: int) -> str:
     header += [f"width_view{v + 1}_mm" for v in range(n_views)]
     header += (["diameter_frames_mm"] + [f"frame_width_view{v + 1}_mm" for v in range(n_frames)]
                + ["diameter_frames_density_mm", "density_views", "crowded_views"]) if n_frames else []
-    header += ["reference_mm", "excluded", "x_mm", "y_mm", "z_mm"]
+    header += ["reference_mm", "excluded", "epipolar_angle_deg", "x_mm", "y_mm", "z_mm"]
+    epipolar = result.epipolar_deg.get(branch_id)
     ref = p.reference(b.arc_length_mm) if p.reference is not None else np.full(len(b.points_mm), np.nan)
     out = _io.StringIO()
     w = csv.writer(out, lineterminator="\n")
@@ -110,7 +114,7 @@ def profile_csv_text(result: QCAResult, branch_id: int) -> str:
             row += [f(p.frame_diameter_mm[i])] + [f(p.frame_view_widths_mm[v, i]) for v in range(n_frames)]
             row += [f(None if p.frame_density_diameter_mm is None else p.frame_density_diameter_mm[i]),
                     _view_numbers(p.frame_density_views, i), _view_numbers(p.frame_views_crowded, i)]
-        row += [f(ref[i]), int(p.excluded[i])] + [f(c) for c in b.points_mm[i]]
+        row += [f(ref[i]), int(p.excluded[i]), f(None if epipolar is None else epipolar[i])] + [f(c) for c in b.points_mm[i]]
         w.writerow(row)
     return out.getvalue()
 
@@ -286,6 +290,13 @@ def _check_frame_grey_levels(image: np.ndarray, n: int, path: PathLike) -> None:
                          f"[0, 1] or stored as −log keeps none of that; give the frame's grey levels as stored")
 
 
+def _depth_phrase(angles: Optional[Dict[str, Any]]) -> str:
+    if not angles:
+        return ""
+    weak = " (weak: see the warning)" if angles["median_deg"] < angles.get("weak_below_deg", 15.0) else ""
+    return f"; crosses the views' epipolar planes at {angles['median_deg']:.0f}° (median){weak}"
+
+
 def analysis_summary_lines(data: Dict[str, Any]) -> List[str]:
     """The headline of an analysis.json: the tree, each lesion, the suggested view (the command line
     prints these lines; the Slicer module shows them)."""
@@ -327,7 +338,8 @@ def analysis_summary_lines(data: Dict[str, Any]) -> List[str]:
         seen = ", ".join(f"{v['label']} {100 * v['foreshortening']:.1f}%" for v in target.get("acquisition_views") or [])
         lines.append(f"  target segment ({target.get('kind', 'chosen')}): branch {target['branch_id']}, "
                      f"{target['start_mm']:.1f}–{target['end_mm']:.1f} mm, 3D length {target['length_mm']:.1f} mm"
-                     + (f"; foreshortened in the acquired views {seen}" if seen else ""))
+                     + (f"; foreshortened in the acquired views {seen}" if seen else "")
+                     + _depth_phrase(target.get("epipolar_angle_deg")))
     best = data.get("best_view")
     if best:
         lines.append(f"  suggested view: {best['label']} (foreshortening {100 * best['foreshortening']:.1f}%, "

@@ -23,6 +23,17 @@ Clearance (``other_vessel_clearance``)
     times its magnification), the same "others" as above: how far a measurement across the vessel in
     that view's image can reach before it takes in another vessel's iodine.
 
+Epipolar angle (``epipolar_angles_deg``)
+    Two views place a point in depth by matching it along their epipolar lines: the plane through
+    both sources and the point meets each detector in one line. Where a vessel crosses those planes
+    its match is sharp; where it runs along them a lateral error δ of its projection moves its depth
+    by about δ / sin θ (θ the angle between the vessel's direction and the plane: ×3.9 at 15°), and
+    at 0° the two views say nothing of its course within the plane but its ends. Per centreline
+    point θ is the largest over pairs of views; tangents are chords over ±``half_window_mm`` of arc,
+    so that voxel steps do not set them. ``depth_view`` is the view to add: over the clinical range,
+    the view whose pairs with the acquired ones cross a segment at the largest median θ (sources at
+    the acquired views' mean SOD; within 1° of the largest, the least foreshortened).
+
 Best-view map (``view_map``)
     Over primary α ∈ [−60°, 60°] (LAO +) and secondary β ∈ [−40°, 40°] (CRA +) the score is
     F + w·overlap (``overlap_weight`` w = 1); the suggested view minimises it. Views 180° apart
@@ -44,6 +55,8 @@ PRIMARY_RANGE_DEG = (-60.0, 60.0)
 SECONDARY_RANGE_DEG = (-40.0, 40.0)
 MAX_VIEW_STEP_DEG = 30.0  # the map then still has 5 × 3 views over the clinical range (quick looks; 2 is the default)
 MIN_VIEW_STEP_DEG = 0.5  # 241 × 161 views; finer steps only cost memory (a C-arm is set to a degree)
+DEPTH_VIEW_SAMPLES = 100  # points of a segment ``depth_view`` weighs (every view of the range against each)
+EPIPOLAR_WEAK_DEG = 15.0  # below it a mask's lateral error moves the depth over 3.9 times as far (module docstring)
 
 
 def view_direction(primary_deg, secondary_deg) -> np.ndarray:
@@ -171,6 +184,72 @@ def distance_to_other_vessels(detector_mm: np.ndarray, others_detector_mm: np.nd
     dist, idx = dist.reshape(-1, k), idx.reshape(-1, k)
     out[known] = np.min(dist - others_radii_mm[idx], axis=1)
     return out
+
+
+def chord_tangents(points_mm: np.ndarray, half_window_mm: float = 1.0) -> np.ndarray:
+    """Unit tangents (N, 3) of a polyline, each the chord between the points ``half_window_mm`` of arc before and after
+    (clipped at the ends)."""
+    p = np.asarray(points_mm, float).reshape(-1, 3)
+    if len(p) < 2:
+        return np.full(p.shape, np.nan)
+    s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(p, axis=0), axis=1))])
+    before = np.clip(np.searchsorted(s, s - half_window_mm, side="left"), 0, len(p) - 1)
+    after = np.clip(np.searchsorted(s, s + half_window_mm, side="right") - 1, 0, len(p) - 1)
+    chord = p[after] - p[before]
+    norm = np.linalg.norm(chord, axis=1, keepdims=True)
+    return np.where(norm > 0, chord / np.maximum(norm, 1e-12), np.nan)
+
+
+def _plane_angles_deg(points_mm: np.ndarray, tangents: np.ndarray, source_a: np.ndarray, source_b: np.ndarray) -> np.ndarray:
+    """Angle (degrees) between each tangent and the plane through its point and both sources (broadcast; NaN where the
+    point lies on the sources' line)."""
+    normal = np.cross(source_a - points_mm, source_b - points_mm)
+    norm = np.linalg.norm(normal, axis=-1)
+    sine = np.abs(np.sum(normal * tangents, axis=-1)) / np.where(norm > 0, norm, np.nan)
+    return np.degrees(np.arcsin(np.clip(sine, 0.0, 1.0)))
+
+
+def epipolar_angles_deg(points_mm: np.ndarray, tangents: np.ndarray, sources_mm: Sequence[np.ndarray]) -> np.ndarray:
+    """Per point (N,), the largest over pairs of sources of the angle between the vessel's tangent and the epipolar
+    plane through the point (module docstring); NaN with fewer than two distinct sources."""
+    p = np.asarray(points_mm, float).reshape(-1, 3)
+    t = np.asarray(tangents, float).reshape(-1, 3)
+    out = np.full(len(p), np.nan)
+    src = [np.asarray(x, float) for x in sources_mm]
+    for i in range(len(src)):
+        for j in range(i + 1, len(src)):
+            out = np.fmax(out, _plane_angles_deg(p, t, src[i], src[j]))
+    return out
+
+
+def depth_view(segment_mm: np.ndarray, views: Sequence[CArmView], step_deg: float = 2.0,
+               primary_range_deg: Sequence[float] = PRIMARY_RANGE_DEG,
+               secondary_range_deg: Sequence[float] = SECONDARY_RANGE_DEG,
+               half_window_mm: float = 1.0) -> Optional[Dict[str, float]]:
+    """The view to add so that the segment crosses the epipolar planes (module docstring): its angles, label, the
+    segment's median epipolar angle with it and its parallel foreshortening there; None without an acquired view."""
+    if not views:
+        return None
+    seg = np.asarray(segment_mm, float)
+    tangent = chord_tangents(seg, half_window_mm)
+    # a median over DEPTH_VIEW_SAMPLES points spread along the segment: the centreline is sampled far finer
+    every = np.unique(np.linspace(0, len(seg) - 1, min(len(seg), DEPTH_VIEW_SAMPLES)).round().astype(int))
+    seg, tangent = seg[every], tangent[every]
+    acquired = epipolar_angles_deg(seg, tangent, [v.source_position for v in views])
+    a = np.arange(primary_range_deg[0], primary_range_deg[1] + 1e-9, step_deg)
+    b = np.arange(secondary_range_deg[0], secondary_range_deg[1] + 1e-9, step_deg)
+    aa, bb = np.meshgrid(a, b)
+    sod = float(np.mean([v.sod_mm for v in views]))
+    candidate = -sod * view_direction(aa, bb)[..., None, :]  # (B, A, 1, 3)
+    best = np.broadcast_to(acquired, aa.shape + acquired.shape)
+    for v in views:
+        best = np.fmax(best, _plane_angles_deg(seg, tangent, v.source_position, candidate))
+    median = np.nanmedian(np.where(np.isfinite(best), best, np.nan), axis=-1) if np.isfinite(best).any() else np.zeros(aa.shape)
+    fs = foreshortening_map(seg, aa, bb)
+    near_best = median >= np.nanmax(median) - 1.0
+    j, i = np.unravel_index(int(np.argmin(np.where(near_best, fs, np.inf))), fs.shape)
+    return {"primary_deg": float(a[i]), "secondary_deg": float(b[j]), "label": view_label(a[i], b[j]),
+            "epipolar_angle_median_deg": float(median[j, i]), "foreshortening": float(fs[j, i])}
 
 
 @dataclass
