@@ -333,12 +333,12 @@ def test_mask_widths_of_a_tube_in_two_views():
 
 
 # --- the `analyse` command on a small synthetic result folder ---------------------------------------
-def _result_folder(tmp_path):
+def _result_folder(tmp_path, direction=(1.0, 0.2, 0.4)):
     from SDFCARLib.geometry import Geometry
     from SDFCARLib.io import write_json, write_mask_png, write_volume_nrrd
 
     phantom = stenosed_tube(length_mm=24.0, diameter_mm=3.0, stenosis_pct=50.0, lesion_length_mm=8.0,
-                            direction=(1.0, 0.2, 0.4))
+                            direction=direction)
     grid = grid_around(phantom.tree, 0.3)
     geometry = Geometry(grid, standard_geometry("lao30-rao30").views)
     folder = tmp_path / "result"

@@ -127,21 +127,11 @@ def test_the_analysis_reports_each_branch_s_angle_and_warns_where_the_target_run
 
 
 def test_analyse_writes_the_angle_into_the_profiles_the_centrelines_and_its_summary(tmp_path, capsys):
-    from SDFCARLib.cli import main
-    from SDFCARLib.geometry import Geometry
-    from SDFCARLib.io import write_json, write_mask_png, write_volume_nrrd
+    from test_analysis import _result_folder
 
-    phantom = stenosed_tube(length_mm=24.0, diameter_mm=3.0, stenosis_pct=50.0, lesion_length_mm=8.0,
-                            direction=(1.0, 0.15, 0.08))
-    grid = grid_around(phantom.tree, 0.3)
-    geometry = Geometry(grid, standard_geometry("lao30-rao30").views)
-    folder = tmp_path / "result"
-    folder.mkdir()
-    write_volume_nrrd(folder / "occupancy.nrrd", voxelize_exact(phantom.tree, grid).astype(np.float32), grid)
-    masks = [str(write_mask_png(tmp_path / f"view{n + 1}_mask.png", render_mask(phantom.tree, v)))
-             for n, v in enumerate(geometry.views)]
-    write_json(folder / "report.json", {"geometry": geometry.to_dict(), "settings": {"threshold": 0.5},
-                                        "target_kind": "mask", "inputs": {"targets": masks}})
+    from SDFCARLib.cli import main
+
+    folder, phantom = _result_folder(tmp_path, direction=(1.0, 0.15, 0.08))
     assert main(["analyse", str(folder), "--view-step-deg", "10", "--ostium", *map(str, phantom.truth["ostium_mm"])]) == 0
     captured = capsys.readouterr()
     assert "crosses the views' epipolar planes at 5° (median) (weak: see the warning)" in captured.out
