@@ -11,7 +11,7 @@ Modules (one idea each)
     frame_density  lumen area from the frames' absorbance integrated across the vessel (densitometry)
     lesion      robust reference diameter, MLD, % diameter/area stenosis, lesion extent
     fragments   is the reconstruction intact there? pieces analysed, lesions on breaks flagged
-    views       foreshortening of a segment in a view, bifurcation angles, best-view map
+    views       foreshortening of a segment in a view, its angle to the views' epipolar planes, best-view map
     phantoms    analytic tubes, helices and stenoses with known answers; exact voxeliser, clean masks
     pipeline    all of the above on one volume (``analyse_volume``) and its JSON summary
     outputs     a result folder → analysis.json, centrelines.vtk, CSV profiles, figures (``analyse``)

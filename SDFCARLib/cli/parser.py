@@ -105,8 +105,9 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = commands.add_parser("analyse", parents=[common], help="3D-QCA of a result folder: centrelines, diameters, lesions",
                             description="Centreline tree, diameter profiles (3D sections and, with the masks, two-view "
-                                        "widths), lesions (MLD, %DS, %AS, length), bifurcation angles, foreshortening and "
-                                        "the best-view map of a reconstruction: analysis.json, centrelines.vtk, "
+                                        "widths), lesions (MLD, %DS, %AS, length), bifurcation angles, foreshortening, each "
+                                        "vessel's angle to the views' epipolar planes (where two views place it in depth "
+                                        "weakly) and the best-view map of a reconstruction: analysis.json, centrelines.vtk, "
                                         "profile_branchNN.csv, diameter_profiles.png, view_map.png. Narrowings where the "
                                         "reconstruction is broken (a piece cut off, a gap beside it, a bridged gap) are "
                                         "flagged unreliable with the reason, apart from the lesions.")
