@@ -50,7 +50,7 @@ from SDFCARLib.analysis.phantoms import (branch_arc_length_mm, grid_around, lesi
                                          stenosed_tree, stenosed_tube, voxelize_exact)
 from SDFCARLib.analysis.pipeline import (SegmentError, analyse_volume, lesion_grade, lesion_on_2d_profile,  # noqa: E402
                                         masks_stenosis_pct, segment_between)
-from SDFCARLib.analysis.views import foreshortening, foreshortening_map  # noqa: E402
+from SDFCARLib.analysis.views import EPIPOLAR_WEAK_DEG, foreshortening, foreshortening_map  # noqa: E402
 from SDFCARLib.angiogram import AngiogramSettings  # noqa: E402
 from SDFCARLib.geometry import Geometry, VolumeGrid, standard_geometry  # noqa: E402
 from SDFCARLib.phantoms import lad_tree, rca_tree  # noqa: E402
@@ -267,6 +267,9 @@ def score(phantom, volume, grid, level, masks, ostium, view_step_deg, frames=Non
         tseg_mm = float(np.linalg.norm(np.diff(tseg, axis=0), axis=1).sum())
         row["segment_length_err_pct"] = 100 * (seg_mm - tseg_mm) / tseg_mm  # the target segment's 3D length
         row["fs_err_pts"] = float(100 * np.max(np.abs(fs_err)))
+        # the segment's median angle to the views' epipolar planes (analysis.json target_segment): where it is small
+        # the two views place the segment in depth weakly (RESULTS §102a)
+        row["target_epipolar_deg"] = (tg.get("epipolar_angle_deg") or {}).get("median_deg")
         if len(VIEWS) > 2:  # the pair's two views alone, to set beside the two-view rows
             row["fs_err_pair_pts"] = float(100 * np.max(np.abs(fs_err[:2])))
         if r.view_map is not None:
@@ -506,6 +509,13 @@ def summarise(rows: List[Dict]) -> str:
     lines.append(f"| distal end beyond the truth (mm) | {ms(col('end_excess_mm', found))} | — |{' — | — | — |' if frames else ''} — |")
     lines.append(f"| main branch's centreline from the true axis (mm, mean) | {mae('axis_offset_mm')} | — |{' — | — | — |' if frames else ''} — |")
     lines.append(f"| foreshortening error, acquisition views (points, worst view) | {ms(col('fs_err_pts', found))} | — |{' — | — | — |' if frames else ''} within 1 |")
+    if col("target_epipolar_deg", found).size:  # the same two errors where the views place the segment in depth weakly
+        for name, weak in (("under", True), ("at or over", False)):
+            part = [r for r in found if r.get("target_epipolar_deg") is not None
+                    and (r["target_epipolar_deg"] < EPIPOLAR_WEAK_DEG) == weak]
+            lines.append(f"| … target segments {name} {EPIPOLAR_WEAK_DEG:g}° to the epipolar planes ({len(part)}): "
+                         f"foreshortening error; 3D length (%) | {ms(col('fs_err_pts', part))}; "
+                         f"{ms(col('segment_length_err_pct', part))} | — |{' — | — | — |' if frames else ''} — |")
     if col("fs_err_pair_pts", found).size:  # --views with a third: the pair's two, as the two-view rows read
         lines.append(f"| foreshortening error, the pair's two views only (points, worst view) | {ms(col('fs_err_pair_pts', found))} | — |{' — | — | — |' if frames else ''} within 1 |")
     lines.append(f"| truth foreshortening in the suggested view (%) | {ms(col('best_fs_truth_pct', found))} | — |{' — | — | — |' if frames else ''} ≤ 5 |")
