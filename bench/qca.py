@@ -375,6 +375,9 @@ def tube_direction(seed: int, max_foreshortening_pct=None) -> np.ndarray:
             return direction
 
 
+#: --elevation-deg: every recon tube's axis (cos e, 0, sin e) instead of its random draw; near the isocentre LAO 30 / RAO
+#: 30's epipolar planes are horizontal, so e is the axis' angle to them (RESULTS §102a)
+ELEVATION_DEG: Optional[float] = None
 CENTRELINES = ["volume"]  # the analysis' centreline: "volume", "masks" (main's --centreline)
 ANALYSE_WITHOUT_FRAMES = False  # --no-frames: the analysis on the masks alone, as analyse without --frames
 SEARCH_MASKS = True  # analyse_volume's search_masks (--no-masks-search: off, the analysis before RESULTS §43)
@@ -410,7 +413,8 @@ def run_recon(n_cases, view_step_deg, steps=None, save_dir=None, first=0, mask_s
 
     rows = []
     for n, (name, kw) in list(enumerate(RECON_TUBES))[first:first + n_cases]:
-        direction = tube_direction(n, max_foreshortening_pct)
+        direction = (tube_direction(n, max_foreshortening_pct) if ELEVATION_DEG is None else
+                     np.array([np.cos(np.radians(ELEVATION_DEG)), 0.0, np.sin(np.radians(ELEVATION_DEG))]))
         ph = stenosed_tube(length_mm=40.0, direction=direction, **kw)
         geometry = Geometry(VolumeGrid((128, 128, 128), (0.4, 0.4, 0.4)), VIEWS)
         extra = {"axis_foreshortening_pct": [round(v, 1) for v in axis_foreshortening_pct(direction)]}
@@ -574,6 +578,9 @@ def main(argv=None) -> int:
                                    "--max-foreshortening-pct) instead of reconstructing")
     ap.add_argument("--max-foreshortening-pct", type=float, default=None,
                     help="recon suite: draw each tube's axis until no view foreshortens it more (default: the first draw)")
+    ap.add_argument("--elevation-deg", type=float, default=None,
+                    help="recon suite: every tube's axis (cos e, 0, sin e) instead of its draw: e is its angle to LAO 30 / "
+                         "RAO 30's epipolar planes near the isocentre (where two views place it in depth weakly when small)")
     ap.add_argument("--masks", choices=("clean", "segmented", "segmented-moving"), default="clean",
                     help="clean masks rendered from the tubes, or masks segmented from their simulated angiograms (then the "
                          "two-view widths and areas are also read from those angiograms: the 'frames' columns); "
@@ -637,8 +644,13 @@ def main(argv=None) -> int:
         print(f"# segmented masks with {MASK_OPTIONS}", flush=True)
     if args.display and args.masks == "clean":
         ap.error("--display processes the simulated angiograms: it needs --masks segmented or segmented-moving")
-    global ANALYSE_WITHOUT_FRAMES, SEARCH_MASKS, DISPLAY_FRAMES
+    global ANALYSE_WITHOUT_FRAMES, SEARCH_MASKS, DISPLAY_FRAMES, ELEVATION_DEG
     ANALYSE_WITHOUT_FRAMES, SEARCH_MASKS, DISPLAY_FRAMES = args.no_frames, not args.no_masks_search, args.display
+    ELEVATION_DEG = args.elevation_deg
+    if ELEVATION_DEG is not None:
+        if args.suite != "recon" or args.max_foreshortening_pct is not None:
+            ap.error("--elevation-deg sets the recon suite's tube axes: it needs --suite recon and no --max-foreshortening-pct")
+        print(f"# every tube's axis at {ELEVATION_DEG:g}° elevation, (cos e, 0, sin e)", flush=True)
     if DISPLAY_FRAMES:
         print("# frames processed for display (DISP): masks segmented on them, edges only", flush=True)
     if args.psf_sigma_mm is not None:
