@@ -26,7 +26,8 @@ Angiogram masks (``segment_angiogram`` / ``angiogram_mask``), for when no mask e
        A frame whose field is under ``min_field_fraction`` is refused.
        Polarity, on the field less its broad bright regions along the edge: vessels absorb, so the
        fine structures of ``−log I`` reach further above its background than below
-       (``thin_structure_contrasts``; their ratio is ``dark_vessel_asymmetry`` in the parameters); a
+       (``thin_structure_contrasts``; their ratio is ``dark_vessel_asymmetry`` in the parameters),
+       read at the 1 % tails and at the 0.1 % ones, where a lone tube speaks (``judge_polarity``); a
        frame where the bright ones reach much further shows its vessels bright (an inverted display
        or export) and is refused, naming ``bright_vessels`` (its grey levels inverted first); a
        doubtful one gets a warning.
@@ -442,6 +443,13 @@ MIN_FRAME_GREY_LEVELS = 16
 #: (bench/RESULTS.md §89)
 MIN_DARK_VESSEL_ASYMMETRY = 0.8
 DOUBTFUL_DARK_VESSEL_ASYMMETRY = 1.0
+#: the polarity is read at two tails of the fine structures (% of the field each side): 1 % suits a tree, but a lone
+#: tube or short segment covers less than that, and its 1 % tail held the tube's dark halo instead (a dark tube read
+#: 0.38–0.98 and was refused); at 0.1 % its core speaks (bench/RESULTS.md §103a)
+POLARITY_TAILS_PCT = (1.0, 0.1)
+#: a frame either of whose tails reaches this asymmetry shows dark vessels, whatever the other says: dark lone tubes
+#: measured 2.49 and over at 0.1 %, every inverted frame (trees, tubes, display-processed, real) 1.87 and under
+CLEAR_DARK_VESSEL_ASYMMETRY = 2.2
 #: the polarity is measured outside the broad regions along the edge this much brighter than the field
 POLARITY_SHUTTER_RATIO = 1.3
 #: the polarity is judged where the stronger side's fine structures reach this (−log I); those of frames without
@@ -459,6 +467,38 @@ def thin_structure_contrasts(log_image: np.ndarray, field: np.ndarray, largest_r
     fine = (smooth - ndimage.gaussian_filter(smooth, max(2.0 * float(largest_radius_px), 2.0)))[field]
     low, median, high = (float(v) for v in np.percentile(fine, [tail, 50.0, 100.0 - tail]))
     return high - median, median - low
+
+
+@dataclass(frozen=True)
+class PolarityReading:
+    """A frame's polarity as ``judge_polarity`` reads it: the asymmetry (dark over bright fine-structure contrast,
+    ``thin_structure_contrasts``) at each tail of ``POLARITY_TAILS_PCT``, None where neither side reaches
+    ``MIN_POLARITY_CONTRAST`` (that tail does not speak), and the verdict: "dark" (or not judged), "doubtful" or
+    "bright"; ``deciding`` is the lowest speaking asymmetry, the one a doubtful or bright verdict rests on."""
+
+    asymmetries: Tuple[Optional[float], ...]
+    contrasts: Tuple[Tuple[float, float], ...]
+    verdict: str
+    deciding: Optional[float]
+
+
+def judge_polarity(log_image: np.ndarray, field: np.ndarray, largest_radius_px: float) -> PolarityReading:
+    """Whether the vessels of ``−log I`` (over ``field``) stand above its background (dark in the frame) or below it."""
+    asymmetries, contrasts = [], []
+    for tail in POLARITY_TAILS_PCT:
+        dark, bright = thin_structure_contrasts(log_image, field, largest_radius_px, tail)
+        contrasts.append((dark, bright))
+        # a frame without contrast has only its background's thin structures, of either side: not judged (it is
+        # refused as holding no vessel further on)
+        speaks = max(dark, bright) >= MIN_POLARITY_CONTRAST
+        asymmetries.append((dark / bright if bright > 0 else float("inf")) if speaks else None)
+    spoken = [a for a in asymmetries if a is not None]
+    deciding = min(spoken) if spoken else None
+    if not spoken or max(spoken) >= CLEAR_DARK_VESSEL_ASYMMETRY or deciding >= DOUBTFUL_DARK_VESSEL_ASYMMETRY:
+        verdict = "dark"
+    else:
+        verdict = "bright" if deciding < MIN_DARK_VESSEL_ASYMMETRY else "doubtful"
+    return PolarityReading(tuple(asymmetries), tuple(contrasts), verdict, deciding)
 
 
 def _disk_opening(image: np.ndarray, radius: int) -> np.ndarray:
@@ -617,18 +657,16 @@ def segment_angiogram(
         polarity_image = log_image[pi, pc]
     else:
         polarity_field, polarity_image = field, filled
-    dark_contrast, bright_contrast = thin_structure_contrasts(polarity_image, polarity_field, r_max_px)
+    polarity = judge_polarity(polarity_image, polarity_field, r_max_px)
+    (dark_contrast, bright_contrast), (fine_dark, fine_bright) = polarity.contrasts
     asymmetry = dark_contrast / bright_contrast if bright_contrast > 0 else float("inf")
-    # judged only where the stronger side stands as far as a contrast-filled vessel does: a frame without contrast has
-    # only the background's thin structures, of either side (it is refused as holding no vessel further on)
-    judged = max(dark_contrast, bright_contrast) >= MIN_POLARITY_CONTRAST
-    doubtful = judged and asymmetry < DOUBTFUL_DARK_VESSEL_ASYMMETRY and not s.bright_vessels
-    if judged and asymmetry < MIN_DARK_VESSEL_ASYMMETRY:
+    doubtful = polarity.verdict == "doubtful" and not s.bright_vessels
+    if polarity.verdict == "bright":
         if s.bright_vessels:
             raise MaskError("bright_vessels (segment --bright-vessels) was given, but the vessels of this frame are dark "
                             "already, as in a raw X-ray frame: inverted they look bright; leave it out")
         raise BrightVesselsError(f"the vessels of this frame look bright, not dark: its bright fine structures stand "
-                        f"{1 / max(asymmetry, 1e-6):.1f}× further from the background than its dark ones (an inverted "
+                        f"{1 / max(polarity.deciding, 1e-6):.1f}× further from the background than its dark ones (an inverted "
                         "display or export, or a subtracted frame saved with bright vessels?); vessels absorb X-rays and "
                         "are dark in a raw frame: invert its grey levels (segment --bright-vessels; in Python "
                         "AngioMaskSettings(bright_vessels=True)), or give the raw frame")
@@ -640,7 +678,7 @@ def segment_angiogram(
                             "takes them as absent; choose a frame or run exposed without it, or paint the vessels there by hand "
                             "where you know them")
     if doubtful:
-        warnings.append(f"the frame's dark and bright fine structures stand out about as far (asymmetry {asymmetry:.2f}; "
+        warnings.append(f"the frame's dark and bright fine structures stand out about as far (asymmetry {polarity.deciding:.2f}; "
                         "frames with dark vessels measure above 1): if its vessels look bright in the overlay, segment it "
                         "with bright_vessels (segment --bright-vessels)")
     # Background: grey opening by a disk wider than the widest vessel (vessels are bright in −log I)
@@ -726,6 +764,9 @@ def segment_angiogram(
         "silhouette_level": c_median + s.silhouette_noise_units * c_spread,
         "strongest_contrast": strongest,
         "dark_vessel_asymmetry": asymmetry,
+        # at the finer tail, where a lone tube speaks; "polarity_judged_at_pct": the tails strong enough to be read
+        "dark_vessel_asymmetry_fine_tail": fine_dark / fine_bright if fine_bright > 0 else float("inf"),
+        "polarity_judged_at_pct": [t for t, a in zip(POLARITY_TAILS_PCT, polarity.asymmetries) if a is not None],
         # "doubtful": the warning below DOUBTFUL_DARK_VESSEL_ASYMMETRY was given (the Slicer module then asks)
         "polarity": "inverted as told" if s.bright_vessels else ("doubtful" if doubtful else "dark vessels"),
         "thin_dark_contrast": dark_contrast,

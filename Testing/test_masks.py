@@ -290,6 +290,30 @@ def test_a_frame_showing_its_vessels_bright_is_refused_and_segmented_when_said_s
         _segment(empty)
 
 
+def test_a_lone_thick_tube_is_read_dark_though_its_halo_outweighs_it_at_the_one_percent_tails():
+    # A 3.5 mm tube 17 mm long in a 512² frame covers 0.5 % of the field: the 1 % tails of the fine structures hold its
+    # dark halo (the smoothing at twice the largest vessel radius spreads it wide) rather than its core, and read it
+    # bright or doubtful on these backgrounds (asymmetry 0.79–0.98); the 0.1 % tails read the core.
+    from skimage.draw import line
+
+    from SDFCARLib.angiogram import AngiogramSettings, simulate_angiogram
+
+    spacing, magnification = 0.278, 1.32
+    centre = np.ones((512, 512), bool)
+    centre[line(250, 216, 262, 296)] = False
+    distance_mm = ndimage.distance_transform_edt(centre) * spacing / magnification
+    line_integral = 2.0 * np.sqrt(np.maximum(1.75**2 - distance_mm**2, 0.0))
+    silhouette = line_integral > 0
+    for seed in (1, 15, 27):
+        frame, _ = simulate_angiogram(line_integral, spacing, seed, AngiogramSettings())
+        result = segment_angiogram(frame, spacing, magnification)
+        assert result.parameters["dark_vessel_asymmetry"] < 1.0 < 2.2 < result.parameters["dark_vessel_asymmetry_fine_tail"]
+        assert result.parameters["polarity"] == "dark vessels" and result.parameters["warnings"] == []
+        assert 2 * (result.mask & silhouette).sum() / (result.mask.sum() + silhouette.sum()) > 0.9
+        with pytest.raises(MaskError, match="look bright, not dark"):  # inverted, it is still refused
+            segment_angiogram(4095.0 - frame, spacing, magnification)
+
+
 def test_a_frame_clipped_over_part_of_its_field_is_warned_of():
     tree = _tubes((160, 160), [((20, 20), (140, 140), 1.5, 1.0)])
     frame, _ = _frame(tree)
@@ -332,6 +356,20 @@ def test_a_frame_of_doubtful_polarity_is_segmented_with_a_warning(monkeypatch):
     # thin structures as faint as a frame without contrast holds are not judged at all
     monkeypatch.setattr(masks, "thin_structure_contrasts", lambda *args, **kwargs: (0.021, 0.030))
     assert _segment(frame).parameters["warnings"] == []
+
+    def by_tail(one_percent, tenth_percent):
+        return lambda image, field, radius, tail=1.0: one_percent if tail == 1.0 else tenth_percent
+
+    # either tail clearly dark (2.2 or more) makes the frame dark, whatever the other reads …
+    monkeypatch.setattr(masks, "thin_structure_contrasts", by_tail((0.21, 0.30), (0.66, 0.30)))
+    assert _segment(frame).parameters["warnings"] == []
+    # … else the lower of the tails that speak decides, and names its asymmetry
+    monkeypatch.setattr(masks, "thin_structure_contrasts", by_tail((0.36, 0.30), (0.27, 0.30)))
+    (warning,) = _segment(frame).parameters["warnings"]
+    assert "asymmetry 0.90" in warning
+    monkeypatch.setattr(masks, "thin_structure_contrasts", by_tail((0.05, 0.06), (0.06, 0.30)))  # 1 % too faint to speak
+    with pytest.raises(MaskError, match=r"look bright.*5\.0× further"):
+        _segment(frame)
 
 
 def test_edge_share_tapers_with_the_radius_so_a_thick_vessel_keeps_its_border():

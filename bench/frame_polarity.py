@@ -3,7 +3,7 @@ of frames with dark vessels, of the same frames inverted (lowest + highest − v
 and of frames without vessels; and whether ``bright_vessels=True`` gives an inverted frame the mask of the original
 (Dice between the two).
 
-    python bench/frame_polarity.py --protocol realistic-static-lao30-rao30 --cases 10 --extra \\
+    python bench/frame_polarity.py --protocol realistic-static-lao30-rao30 --cases 10 --extra --tubes \\
         --real ../shared/data/xa-phantom
 
 Per frame the contrasts are read where ``segment_angiogram`` computes them (on its field, before the ridge filter), so the
@@ -35,24 +35,44 @@ class _Measured(Exception):
 
 
 def asymmetry(frame, spacing, magnification, settings=None):
-    """The pipeline's (dark, bright) thin-structure contrasts of ``frame`` and their ratio, the asymmetry (the
-    segmentation is stopped right after they are measured)."""
-    measure, seen = masks.thin_structure_contrasts, []
+    """The pipeline's polarity reading of ``frame`` (``masks.judge_polarity``; the segmentation is stopped right
+    after it): the asymmetry at each tail of ``POLARITY_TAILS_PCT`` (None: that tail not judged), the contrasts
+    (dark, bright) of the 1 % tail, and the verdict."""
+    judge, seen = masks.judge_polarity, []
 
     def record(*args, **kwargs):
-        seen.append(measure(*args, **kwargs))
+        seen.append(judge(*args, **kwargs))
         raise _Measured
 
-    masks.thin_structure_contrasts = record
+    masks.judge_polarity = record
     try:
         masks.segment_angiogram(np.asarray(frame, float), spacing, magnification, settings)
     except _Measured:
         pass
     finally:
-        masks.thin_structure_contrasts = measure
-    dark, bright = seen[0]
-    judged = max(dark, bright) >= masks.MIN_POLARITY_CONTRAST
-    return (dark / bright if bright > 0 else float("inf")) if judged else None, round(dark, 4), round(bright, 4)
+        masks.judge_polarity = judge
+    reading = seen[0]
+    rounded = [None if a is None else round(a, 3) for a in reading.asymmetries]
+    return rounded, [round(c, 4) for c in reading.contrasts[0]], reading.verdict
+
+
+def _simulated_frames(realistic, label, geometry, seed, options):
+    """The frames ``realistic.realistic_input`` simulates for the views of ``geometry`` and the arguments it segments
+    each with (no segmentation runs: an empty mask stands in)."""
+    from types import SimpleNamespace
+
+    seen = []
+
+    def record(frame, spacing, magnification, settings):
+        seen.append((np.asarray(frame, float), spacing, magnification, settings))
+        return SimpleNamespace(mask=np.zeros(np.shape(frame), bool), parameters={})
+
+    segment, realistic.segment_angiogram = realistic.segment_angiogram, record
+    try:
+        realistic.realistic_input(label, geometry, seed, options)
+    finally:
+        realistic.segment_angiogram = segment
+    return seen
 
 
 def inverted(frame) -> np.ndarray:
@@ -65,6 +85,8 @@ def main(argv=None) -> int:
     parser.add_argument("--protocol", default="realistic-static-lao30-rao30", help="a realistic protocol (its frames)")
     parser.add_argument("--cases", type=int, default=5, help="LAD and RCA cases 0..N-1")
     parser.add_argument("--extra", action="store_true", help="also 8 simulated frames without vessels")
+    parser.add_argument("--tubes", action="store_true", help="also the frames of bench/qca.py's ten lone stenosed tubes, "
+                        "with their random axes and at 5° and 45° elevation (two views each)")
     parser.add_argument("--real", type=Path, default=None, help="folder of the IM2, IM3, IM7 XA runs (four frames each)")
     args = parser.parse_args(argv)
     from SDFCARLib.angiogram import AngiogramSettings, simulate_angiogram
@@ -76,12 +98,11 @@ def main(argv=None) -> int:
     groups = {}
 
     def row(group, name, frame, spacing, magnification, settings=None, check_inversion=False):
-        dark, dark_thin, bright_thin = asymmetry(frame, spacing, magnification, settings)
-        inv, inv_dark_thin, inv_bright_thin = asymmetry(inverted(frame), spacing, magnification, settings)
-        # None: not judged (the thin structures of both sides under MIN_POLARITY_CONTRAST)
-        entry = {"group": group, "name": name, "dark": None if dark is None else round(dark, 3),
-                 "inverted": None if inv is None else round(inv, 3), "thin_contrasts": [dark_thin, bright_thin],
-                 "inverted_thin_contrasts": [inv_dark_thin, inv_bright_thin]}
+        dark, dark_contrasts, dark_verdict = asymmetry(frame, spacing, magnification, settings)
+        inv, inv_contrasts, inv_verdict = asymmetry(inverted(frame), spacing, magnification, settings)
+        # per tail of POLARITY_TAILS_PCT; None: not judged (the thin structures of both sides under MIN_POLARITY_CONTRAST)
+        entry = {"group": group, "name": name, "dark": dark, "dark_verdict": dark_verdict, "inverted": inv,
+                 "inverted_verdict": inv_verdict, "thin_contrasts": dark_contrasts, "inverted_thin_contrasts": inv_contrasts}
         if check_inversion:
             from dataclasses import replace
 
@@ -116,6 +137,27 @@ def main(argv=None) -> int:
             frame, _ = simulate_angiogram(np.zeros((512, 512)), 0.278, seed,
                                           AngiogramSettings(collimator_fraction=0.04 * (seed % 2)))
             row("without vessels", f"seed {seed}", frame, 0.278, 1000 / 757)
+    if args.tubes:  # lone stenosed tubes (bench/qca.py's recon suite), each frame as the realistic protocol simulates it
+        sys.path.insert(0, str(REPO / "bench"))
+        import qca
+        import SDFCARLib.realistic as realistic
+        from SDFCARLib.analysis.phantoms import stenosed_tube
+        from SDFCARLib.geometry import Geometry
+        from SDFCARLib.settings import REALISTIC_PROTOCOLS
+
+        options = realistic.RealisticOptions(**REALISTIC_PROTOCOLS["realistic-static-lao30-rao30"])
+        for elevation in (None, 5.0, 45.0):  # the suite's random axes; along / across LAO 30 / RAO 30's epipolar planes
+            for n, (name, kw) in enumerate(qca.RECON_TUBES):
+                direction = (qca.tube_direction(n) if elevation is None else
+                             np.array([np.cos(np.radians(elevation)), 0.0, np.sin(np.radians(elevation))]))
+                tree = stenosed_tube(length_mm=40.0, direction=direction, **kw).tree
+                grid = qca.grid_around(tree, 0.2)
+                label = qca.voxelize_exact(tree, grid)
+                # the pair's frames as the protocol draws them (one noise stream over both views)
+                frames = _simulated_frames(realistic, label, Geometry(grid, qca.VIEWS[:2]), n, options)
+                for v, (frame, spacing, magnification, view_settings) in enumerate(frames, start=1):
+                    row("lone tubes" + ("" if elevation is None else f", axis at {elevation:g}° elevation"),
+                        f"{name} view {v}", frame, spacing, magnification, view_settings)
     if args.real:
         from SDFCARLib.dicom import choose_frame, load_xa, view_from_dicom
 
@@ -125,7 +167,9 @@ def main(argv=None) -> int:
             for index in sorted({choose_frame(run).index, 0, n // 2, n - 1}):
                 view, _ = view_from_dicom(run, index)
                 row("real XA", f"{name} frame {index}", run.frames[index], view.pixel_spacing_mm, view.sid_mm / view.sod_mm)
-    print(f"\nrefused below {masks.MIN_DARK_VESSEL_ASYMMETRY}, warned below {masks.DOUBTFUL_DARK_VESSEL_ASYMMETRY}")
+    print(f"\nper tail {masks.POLARITY_TAILS_PCT} %: refused below {masks.MIN_DARK_VESSEL_ASYMMETRY}, warned below "
+          f"{masks.DOUBTFUL_DARK_VESSEL_ASYMMETRY}, unless a tail reaches {masks.CLEAR_DARK_VESSEL_ASYMMETRY}")
+
     def span(values):
         judged = [v for v in values if v is not None]
         unjudged = len(values) - len(judged)
@@ -133,11 +177,12 @@ def main(argv=None) -> int:
         return text + (f" ({unjudged} not judged)" if unjudged else "")
 
     for group, rows in groups.items():
-        dark, inv = [r["dark"] for r in rows], [r["inverted"] for r in rows]
-        refused = lambda values: sum(v is not None and v < masks.MIN_DARK_VESSEL_ASYMMETRY for v in values)  # noqa: E731
-        warned = lambda values: sum(v is not None and v < masks.DOUBTFUL_DARK_VESSEL_ASYMMETRY for v in values)  # noqa: E731
-        print(f"{group}: {len(rows)} frames, dark {span(dark)}, inverted {span(inv)}; inverted refused "
-              f"{refused(inv)}/{len(rows)} (warned {warned(inv)}), dark ones refused {refused(dark)} (warned {warned(dark)})")
+        tails = "; ".join(f"{tail:g} % tail: dark {span([r['dark'][k] for r in rows])}, inverted "
+                          f"{span([r['inverted'][k] for r in rows])}" for k, tail in enumerate(masks.POLARITY_TAILS_PCT))
+        count = lambda key, verdict: sum(r[key] == verdict for r in rows)  # noqa: E731
+        print(f"{group}: {len(rows)} frames; {tails}; inverted refused {count('inverted_verdict', 'bright')}/{len(rows)} "
+              f"(warned {count('inverted_verdict', 'doubtful')}), dark ones refused {count('dark_verdict', 'bright')} "
+              f"(warned {count('dark_verdict', 'doubtful')})")
     print(f"{time.perf_counter() - started:.0f} s")
     return 0
 
