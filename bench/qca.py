@@ -172,7 +172,8 @@ def score(phantom, volume, grid, level, masks, ostium, view_step_deg, frames=Non
     if errf:
         row["healthy_mae_frames_mm"] = float(np.nanmean(np.concatenate(errf)))
     if errd:
-        row["healthy_mae_density_mm"] = float(np.nanmean(np.concatenate(errd)))
+        density = np.concatenate(errd)  # all NaN where no healthy stretch had a density width
+        row["healthy_mae_density_mm"] = float(np.nanmean(density)) if np.isfinite(density).any() else float("nan")
     # Lesions other than the true one (rough surfaces, bridges), and how many the masks do not show (the flag).
     others = [(q, x) for q in r.profiles for x in q.lesions
               if best is None or best[0] > truth["lesion_length_mm"] or x is not best[1]]
