@@ -217,6 +217,33 @@ def test_segment_keeps_the_pixel_spacing_the_tags_give_when_the_distances_are_mi
     assert "DistanceSourceToPatient" in err
 
 
+def test_a_run_that_declares_burned_in_annotation_is_segmented_with_a_warning_and_its_geometry_noted(run, tmp_path,
+                                                                                                      capsys):
+    import pydicom
+
+    from SDFCARLib.dicom import view_from_dicom
+
+    path, truth = run
+    ds = pydicom.dcmread(str(path))
+    frames = ds.pixel_array.copy()
+    frames[:, 24:27, 30:60] = 0  # a dark burned-in mark away from the vessels: the mask takes it for one
+    ds.PixelData = frames.tobytes()
+    ds.BurnedInAnnotation = "YES"
+    marked = tmp_path / "marked.dcm"
+    ds.save_as(str(marked))
+    out = tmp_path / "m.png"
+    assert main(["segment", "--dicom", str(marked), "--out", str(out)]) == 0
+    err = capsys.readouterr().err
+    said = "tag (0028,0301) BurnedInAnnotation = YES: text or marks are drawn into this run's pixels"
+    assert f"warning: {said}" in err and "check the masks there" in err
+    assert any(said in w for w in json.loads((tmp_path / "m.json").read_text())["parameters"]["warnings"])
+    assert (read_image(out) > 0)[24:27, 35:55].any()  # what the warning is about
+    assert any(said in note for note in view_from_dicom(str(marked), 1)[1]["notes"])  # the geometry's notes say it too
+    ds.BurnedInAnnotation = "NO"
+    ds.save_as(str(marked))
+    assert not any("BurnedInAnnotation" in note for note in view_from_dicom(str(marked), 1)[1]["notes"])
+
+
 def test_reconstruct_with_auto_masks_keeps_auto_mask_files_the_folder_holds(run, tmp_path, capsys):
     path, _ = run
     out = tmp_path / "result"

@@ -93,6 +93,10 @@ def cmd_segment(args: argparse.Namespace) -> int:
     # what a reconstruction from this mask would warn of, said now, where the mask can still be redone
     detector_spacing = None if spacing is None else tuple(float(v) for v in np.broadcast_to(np.asarray(spacing, float), (2,)))
     warnings = list(result.parameters.get("warnings", [])) + mask_warnings(result.mask, detector_spacing, source="mask")
+    if args.dicom:
+        from ..dicom import burned_in_annotation_note
+
+        warnings += [note for note in [burned_in_annotation_note(run, choice.index)] if note]
     result.parameters["warnings"] = warnings
     paths = write_segmentation(args.out, frame, result, source, overwrite=args.overwrite)
     for warning in warnings:

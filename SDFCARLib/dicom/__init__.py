@@ -26,8 +26,8 @@ SDFCARLib reads DICOM only; the tests build their XA objects with ``Testing/xa_w
 from .cli import DicomRun, add_dicom_arguments, cli_geometry_from_args, dicom_runs_from_args
 from .frames import (CONTRAST_MAX_SIDE_PX, CONTRAST_NOISE_K, CONTRAST_TOPHAT_PX, FrameChoice, check_frame_index,
                      choose_frame, contrast_scores, end_diastolic_frames, frame_times_ms)
-from .geometry import (DEFAULT_VOLUME, OVERRIDE_KEYS, geometry_from_dicom, geometry_from_dicom_runs, view_from_dicom,
-                       write_geometry_json)
+from .geometry import (DEFAULT_VOLUME, OVERRIDE_KEYS, burned_in_annotation_note, geometry_from_dicom,
+                       geometry_from_dicom_runs, view_from_dicom, write_geometry_json)
 from .intensity import IntensityTags, intensity_tags_of_file, linearised
 from .read import (ENHANCED_SOP_CLASSES, XA_SOP_CLASS, XA_SOP_CLASSES, XRF_SOP_CLASS, DicomInputError, PathLike,
                    XARun, check_decodable, load_xa, tag_label)
@@ -36,7 +36,7 @@ __all__ = [
     "CONTRAST_MAX_SIDE_PX", "CONTRAST_NOISE_K", "CONTRAST_TOPHAT_PX", "DEFAULT_VOLUME", "ENHANCED_SOP_CLASSES",
     "IntensityTags", "OVERRIDE_KEYS", "XA_SOP_CLASS", "XA_SOP_CLASSES", "XRF_SOP_CLASS", "DicomInputError", "DicomRun", "FrameChoice",
     "PathLike",
-    "XARun", "add_dicom_arguments", "check_decodable", "check_frame_index", "choose_frame", "cli_geometry_from_args",
+    "XARun", "add_dicom_arguments", "burned_in_annotation_note", "check_decodable", "check_frame_index", "choose_frame", "cli_geometry_from_args",
     "contrast_scores", "dicom_runs_from_args", "end_diastolic_frames", "frame_times_ms", "geometry_from_dicom",
     "geometry_from_dicom_runs", "intensity_tags_of_file", "linearised", "load_xa",
     "tag_label", "view_from_dicom", "write_geometry_json",

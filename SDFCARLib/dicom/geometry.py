@@ -221,6 +221,17 @@ def _tag_pixel_spacing(run: XARun, f: int, sid_over_sod: float, magnification: A
     return spacing_value, spacing_source
 
 
+def burned_in_annotation_note(run: XARun, frame: int = 0) -> Optional[str]:
+    """The note for a run whose pixels carry burned-in annotation (0028,0301 YES), else None: text or marks drawn
+    dark stand out of the background as vessels do, and the mask pipeline keeps them (bench/RESULTS.md §103d)."""
+    value, where = run.lookup("BurnedInAnnotation", frame)
+    if value is None or str(value).strip().upper() != "YES":
+        return None
+    return (f"{run.source('BurnedInAnnotation', where)} = YES: text or marks are drawn into this run's pixels; "
+            "where they are drawn dark, a mask segmented from the frame takes them for vessels: check the masks there "
+            "and erase them (Segment Editor, or an image editor), or export the run without the annotation")
+
+
 def _unmodelled_notes(run: XARun, f: int, primary_deg: float) -> List[str]:
     """What the geometry does not model (tilts, flips, mirrored storage): say so rather than mislead."""
     notes: List[str] = []
@@ -235,6 +246,9 @@ def _unmodelled_notes(run: XARun, f: int, primary_deg: float) -> List[str]:
             continue
         if angle != 0.0:
             notes.append(f"{run.source(keyword, where)} = {angle:g}°: not modelled; the geometry assumes 0")
+    note = burned_in_annotation_note(run, f)
+    if note:
+        notes.append(note)
     flip, where = run.lookup("FieldOfViewHorizontalFlip", f)
     if flip is not None and str(flip).strip().upper() == "YES":
         notes.append(f"{run.source('FieldOfViewHorizontalFlip', where)} = YES: the image is mirrored; flip it back "
