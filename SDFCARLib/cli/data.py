@@ -96,7 +96,9 @@ def cmd_segment(args: argparse.Namespace) -> int:
     if args.dicom:
         from ..dicom import burned_in_annotation_note
 
-        warnings += [note for note in [burned_in_annotation_note(run, choice.index)] if note]
+        annotation = burned_in_annotation_note(run, choice.index)
+        if annotation:
+            warnings.append(annotation)
     result.parameters["warnings"] = warnings
     paths = write_segmentation(args.out, frame, result, source, overwrite=args.overwrite)
     for warning in warnings:
