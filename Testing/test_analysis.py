@@ -974,3 +974,43 @@ def test_an_analysis_folder_in_the_way_is_found_before_the_reconstruction_and_be
 
     with pytest.raises(ValueError, match="min_stenosis_pct is the least diameter stenosis"):
         analyse_volume(np.zeros((4, 4, 4), np.float32), None, min_stenosis_pct=float("nan"))
+
+
+@pytest.mark.parametrize("dtype, level", [(np.float32, 0.5), (np.float32, 0.7), (np.float64, 0.3), (np.uint8, 0.5),
+                                          (bool, 0.5)])
+def test_only_cavities_the_lumen_encloses_are_filled_and_they_then_read_as_lumen(dtype, level):
+    from SDFCARLib.analysis.centreline import fill_lumen_cavities
+
+    volume = np.zeros((12, 12, 12), dtype)
+    volume[2:10, 2:10, 2:10] = 1
+    volume[5, 5, 5] = 0                      # a cavity of one voxel
+    volume[4, 6:8, 6:8] = 0                  # and one of four
+    volume[8, 8, 8] = 0                      # touches the outside diagonally only: enclosed for face-connected paths
+    volume[9, 3, 3] = 0                      # a dent open to the outside through a face
+    volume[9, 3, 2] = 0
+    before = volume.copy()
+    filled, n = fill_lumen_cavities(volume, level)
+    assert n == 6
+    lumen = filled if dtype is bool else filled >= level
+    assert lumen[5, 5, 5] and lumen[4, 6:8, 6:8].all() and lumen[8, 8, 8]
+    assert not lumen[9, 3, 3] and not lumen[9, 3, 2]
+    assert (volume == before).all()          # the caller's volume is left as it was
+    assert fill_lumen_cavities(filled, level)[1] == 0
+
+
+def test_a_voxel_the_fit_left_empty_inside_the_ostium_does_not_root_the_tree_at_a_distal_end():
+    from SDFCARLib.analysis.phantoms import branch_arc_length_mm
+    from SDFCARLib.analysis.pipeline import analyse_volume
+    from SDFCARLib.phantoms import rca_tree
+
+    tree = rca_tree(0)
+    grid = grid_around(tree, 0.8)  # the realistic protocol's voxel
+    volume = voxelize_exact(tree, grid).astype(np.float32)
+    main = tree.branches[0]
+    at_1_6_mm = main.points[np.searchsorted(branch_arc_length_mm(main), 1.6)]
+    volume[tuple(np.round(grid.world_to_index(at_1_6_mm[None])[0]).astype(int))] = 0.2  # thinning rings such a voxel with a loop: the ostium is then no end of the skeleton
+    ostium_end = extract_centrelines(volume, grid).branches[0].points_mm[0]
+    assert np.linalg.norm(ostium_end - main.points[0]) < 4.0
+    result = analyse_volume(volume, grid, best_view=False)
+    assert result.settings["lumen_cavities_filled"] == 1
+    assert np.linalg.norm(result.tree.branches[0].points_mm[0] - main.points[0]) < 4.0

@@ -1,8 +1,8 @@
 """Centreline tree of a vessel volume: branches as smoothed 3D curves ordered from the ostium.
 
 Method (chosen after measuring the options, see bench/RESULTS.md "3D-QCA")
-    1. Binary lumen = volume >= level; its 3D thinning (``skimage.morphology.skeletonize``,
-       Lee's method) gives a one-voxel-wide skeleton.
+    1. Binary lumen = volume >= level, its enclosed cavities filled (``fill_lumen_cavities``); its 3D
+       thinning (``skimage.morphology.skeletonize``, Lee's method) gives a one-voxel-wide skeleton.
     2. The skeleton voxels form a graph (26-neighbours, edge weight = the step's length in mm).
        Each connected piece longer than ``min_component_mm`` is analysed on its own.
     3. The ostium is the thick root end: the skeleton end point whose largest inscribed radius
@@ -109,6 +109,36 @@ class CentrelineTree:
 
     def total_length_mm(self) -> float:
         return float(sum(b.length_mm for b in self.branches))
+
+
+# --- lumen ---------------------------------------------------------------------------------------
+def fill_lumen_cavities(volume: np.ndarray, level: float):
+    """(volume, number of voxels filled): the voxels under ``level`` that no face-connected path joins to the
+    grid's border are raised to ``level`` (True in a label volume).
+
+    A vessel's lumen encloses no cavity, yet a fitted field dips under the level at a voxel here and there inside
+    a thick vessel; thinning then rings the cavity with a loop, and where that ring sits at the ostium the tree
+    has no end there and is rooted at a distal one (bench/RESULTS.md §104a)."""
+    volume = np.asarray(volume)
+    lumen = volume if volume.dtype == bool else volume >= level
+    background, _ = ndimage.label(~lumen)  # face-connected: a cavity's diagonal contact with outside still encloses it
+    on_border = np.unique(np.concatenate([background[0].ravel(), background[-1].ravel(),
+                                          background[:, 0].ravel(), background[:, -1].ravel(),
+                                          background[:, :, 0].ravel(), background[:, :, -1].ravel()]))
+    cavities = (background > 0) & ~np.isin(background, on_border)
+    n_filled = int(cavities.sum())
+    if n_filled == 0:
+        return volume, 0
+    filled = volume.copy()
+    if volume.dtype == bool:
+        filled[cavities] = True
+    else:  # the least value of the dtype that still reads as lumen (level itself may round below it)
+        value = np.asarray(level).astype(volume.dtype)
+        if value < level:
+            value = (np.nextafter(value, np.inf, dtype=volume.dtype) if np.issubdtype(volume.dtype, np.floating)
+                     else np.asarray(np.ceil(level)).astype(volume.dtype))
+        filled[cavities] = value
+    return filled, n_filled
 
 
 # --- skeleton graph ------------------------------------------------------------------------------
@@ -389,6 +419,7 @@ def extract_centrelines(volume: np.ndarray, grid: VolumeGrid, level: float = 0.5
     volume = np.asarray(volume)
     if volume.shape != tuple(grid.shape):
         raise CentrelineError(f"the volume's shape {volume.shape} does not match its grid {tuple(grid.shape)}")
+    volume, _ = fill_lumen_cavities(volume, level)
     lumen = volume >= level if volume.dtype != bool else volume
     if not lumen.any():
         raise CentrelineError(f"no voxel reaches the level {level:g}: the volume is empty; check the reconstruction "

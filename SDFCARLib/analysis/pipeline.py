@@ -115,7 +115,7 @@ from scipy.spatial import cKDTree
 from ..geometry import CArmView, VolumeGrid
 from ..lumen_profile import PSF_BY_FRAMES
 from ..masks import binarise_mask
-from .centreline import CentrelineBranch, CentrelineTree, bifurcation_angles, extract_centrelines
+from .centreline import CentrelineBranch, CentrelineTree, bifurcation_angles, extract_centrelines, fill_lumen_cavities
 from .diameter import (CrossSections, branch_cross_sections, ellipse_diameter, junction_zones, mask_diameters,
                        views_to_use)
 from .frame_contrast import check_vessels_dark, frame_contrast_warning
@@ -354,6 +354,7 @@ def analyse_volume(volume: np.ndarray, grid: VolumeGrid, level: float = 0.5, vie
     if volume.dtype != bool and not np.isfinite(volume).all():  # NaN is no lumen yet its sections read it: a broken tree
         raise ValueError(f"the volume holds {int((~np.isfinite(volume)).sum())} NaN or infinite values: give an occupancy "
                          f"(0 to 1) or a label volume, as reconstruct writes it")
+    volume, cavities_filled = fill_lumen_cavities(volume, level)  # for the sections too, not only the skeleton
     lumen = volume if volume.dtype == bool else volume >= level
     check_ostium(lumen, grid, ostium_mm)
     fragments = find_fragments(lumen, grid, min_component_share, ostium_mm)
@@ -466,6 +467,7 @@ def analyse_volume(volume: np.ndarray, grid: VolumeGrid, level: float = 0.5, vie
                 "view_step_deg": view_step_deg, "ostium_mm": None if ostium_mm is None else list(map(float, ostium_mm)),
                 "min_component_share": min_component_share, "bridges_checked": len(bridges),
                 "strands_dropped": len(strands), "given_root": given_root, "narrow_root": root_found, "voxel_mm": voxel,
+                "lumen_cavities_filled": cavities_filled,
                 "centreline_share_on_masks": mask_shares, "masks_better_order": order, "centreline_on_masks": centreline_on_masks,
                 "centreline_placement": None if placement is None else [p.to_dict() for p in placement],
                 "centred_on_sections": None if section_placement is None else [p.to_dict() for p in section_placement]}
