@@ -1014,3 +1014,35 @@ def test_a_voxel_the_fit_left_empty_inside_the_ostium_does_not_root_the_tree_at_
     result = analyse_volume(volume, grid, best_view=False)
     assert result.settings["lumen_cavities_filled"] == 1
     assert np.linalg.norm(result.tree.branches[0].points_mm[0] - main.points[0]) < 4.0
+
+
+def test_a_tunnel_a_voxel_wide_is_closed_before_thinning_and_a_gap_of_three_is_not():
+    from SDFCARLib.analysis.centreline import close_tunnels
+
+    lumen = np.zeros((14, 14, 14), bool)
+    lumen[3:11, 3:11, 3:11] = True
+    lumen[6, 6, :] = False                      # a channel one voxel wide straight through the block
+    closed = close_tunnels(lumen)
+    assert closed[6, 6, 4:10].all() and (closed >= lumen).all()  # only its two mouths stay open, as dents
+    assert not closed[6, 6, :3].any()          # nothing grows outside the block
+    apart = np.zeros((14, 14, 14), bool)
+    apart[2:12, 2:12, 2:5] = apart[2:12, 2:12, 8:11] = True   # two slabs three voxels apart stay apart
+    assert (close_tunnels(apart) == apart).all()
+
+
+def test_a_tunnel_through_the_ostium_does_not_root_the_tree_at_a_distal_end():
+    from SDFCARLib.analysis.phantoms import branch_arc_length_mm
+
+    from SDFCARLib.phantoms import rca_tree
+
+    tree = rca_tree(0)
+    grid = grid_around(tree, 0.8)
+    volume = voxelize_exact(tree, grid).astype(np.float32)
+    main = tree.branches[0]
+    centre = np.round(grid.world_to_index(main.points[np.searchsorted(branch_arc_length_mm(main), 1.6)][None])[0]).astype(int)
+    axis = int(np.argmin(np.abs(main.points[10] - main.points[0])))  # the grid axis most across the vessel
+    index = list(centre)
+    for k in range(-4, 5):                     # a channel one voxel wide across the vessel, open to the outside
+        index[axis] = centre[axis] + k
+        volume[tuple(index)] = 0.2
+    assert np.linalg.norm(extract_centrelines(volume, grid).branches[0].points_mm[0] - main.points[0]) < 4.0
