@@ -1,8 +1,8 @@
 """Centreline tree of a vessel volume: branches as smoothed 3D curves ordered from the ostium.
 
 Method (chosen after measuring the options, see bench/RESULTS.md "3D-QCA")
-    1. Binary lumen = volume >= level, its enclosed cavities filled (``fill_lumen_cavities``) and its one-voxel
-       tunnels closed (``close_tunnels``); its 3D thinning (``skimage.morphology.skeletonize``, Lee's method)
+    1. Binary lumen = volume >= level, its enclosed cavities filled (``fill_lumen_cavities``) and its one-
+       to two-voxel tunnels closed (``close_tunnels``); its 3D thinning (``skimage.morphology.skeletonize``, Lee's method)
        gives a one-voxel-wide skeleton.
     2. The skeleton voxels form a graph (26-neighbours, edge weight = the step's length in mm).
        Each connected piece longer than ``min_component_mm`` is analysed on its own.
@@ -122,11 +122,8 @@ def fill_lumen_cavities(volume: np.ndarray, level: float):
     has no end there and is rooted at a distal one (bench/RESULTS.md §104a)."""
     volume = np.asarray(volume)
     lumen = volume if volume.dtype == bool else volume >= level
-    background, _ = ndimage.label(~lumen)  # face-connected: a cavity's diagonal contact with outside still encloses it
-    on_border = np.unique(np.concatenate([background[0].ravel(), background[-1].ravel(),
-                                          background[:, 0].ravel(), background[:, -1].ravel(),
-                                          background[:, :, 0].ravel(), background[:, :, -1].ravel()]))
-    cavities = (background > 0) & ~np.isin(background, on_border)
+    # face-connected background: a cavity touching the outside only by an edge or a corner is still enclosed
+    cavities = ndimage.binary_fill_holes(lumen) & ~lumen
     n_filled = int(cavities.sum())
     if n_filled == 0:
         return volume, 0
@@ -142,7 +139,7 @@ def fill_lumen_cavities(volume: np.ndarray, level: float):
     return filled, n_filled
 
 
-#: Close one-voxel tunnels through the lumen before thinning (``close_tunnels``); False only to measure without.
+#: Close tunnels one or two voxels wide through the lumen before thinning (``close_tunnels``); False only to measure without.
 CLOSE_TUNNELS = True
 
 
