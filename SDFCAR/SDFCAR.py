@@ -695,7 +695,9 @@ class SDFCARWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
         # The point list is read from its selector, not a parameter-node field: before Slicer 5.10 (Markups
         # in core MRML) its class is not in the slicer namespace when this module's parameter class is defined.
         segment = self.logic.segmentFromPoints(self.ui.segmentPointsSelector.currentNode())
-        options = None if segment is None else {"segment_mm": segment}
+        ostium = self.logic.ostiumFromPoint(self.ui.ostiumPointSelector.currentNode())
+        options = {**({} if segment is None else {"segment_mm": segment}),
+                   **({} if ostium is None else {"ostium_mm": ostium})} or None
         self._analysisJob, self._analysisContext = self.logic.startAnalysis(resultNode, options=options)
         self.ui.analyseButton.enabled = False
         self.ui.statusLabel.text = f"Analysing '{resultNode.GetName()}' (3D-QCA)…"
@@ -1373,6 +1375,25 @@ class SDFCARLogic(ScriptedLoadableModuleLogic):
             pointsNode.GetNthControlPointPositionWorld(index, ras)
             ends.append([float(c) for c in mrml.ras_to_lps(ras)])
         return ends
+
+    @staticmethod
+    def ostiumFromPoint(pointsNode):
+        """The one control point of a point list in LPS mm, as ``analyse --ostium`` takes it (the tree is rooted
+        there); None without a list."""
+        from SDFCARLib import mrml
+
+        if pointsNode is None:
+            return None
+        if (pointsNode.GetAttribute("SDFCAR.role") or "").startswith("carm"):
+            raise ValueError(f"'{pointsNode.GetName()}' holds the C-arm's X-ray sources, not the ostium: place one point "
+                             "where the artery begins in a new point list, or choose none to root the tree at its thickest end")
+        count = pointsNode.GetNumberOfControlPoints()
+        if count != 1:
+            raise ValueError(f"the point list '{pointsNode.GetName()}' has {count} point(s): place exactly one, where the "
+                             "artery begins (its ostium), or choose no point list to root the tree at its thickest end")
+        ras = [0.0, 0.0, 0.0]
+        pointsNode.GetNthControlPointPositionWorld(0, ras)
+        return [float(c) for c in mrml.ras_to_lps(ras)]
 
     @staticmethod
     def startAnalysis(resultNode, outputDir=None, options=None):

@@ -170,3 +170,16 @@ def test_a_point_list_of_two_points_marks_the_segment_in_lps(module):
         logic.segmentFromPoints(points)
     points.AddControlPointWorld(-4.0, 5.0, -6.0)
     assert logic.segmentFromPoints(points) == [[-10.0, 20.0, 30.0], [4.0, -5.0, -6.0]]  # RAS → LPS
+
+
+def test_a_point_list_of_one_point_gives_the_ostium_in_lps(module):
+    logic = module.SDFCARLogic()
+    point = module.scene.AddNewNodeByClass("vtkMRMLMarkupsFiducialNode", "ostium")
+    assert logic.ostiumFromPoint(None) is None  # none chosen: the tree's thickest end
+    with pytest.raises(ValueError, match="'ostium' has 0 point"):
+        logic.ostiumFromPoint(point)
+    point.AddControlPointWorld(10.0, -20.0, 30.0)
+    assert logic.ostiumFromPoint(point) == [-10.0, 20.0, 30.0]  # RAS → LPS
+    point.AddControlPointWorld(1.0, 2.0, 3.0)
+    with pytest.raises(ValueError, match="has 2 point.*exactly one"):
+        logic.ostiumFromPoint(point)

@@ -943,8 +943,8 @@ def _given_root_warning(given_root: Optional[Dict[str, Any]]) -> Optional[str]:
     return (f"the ostium given roots the tree where the vessel is {given:.1f} mm wide, but its thickest end, at ({where}) "
             f"LPS mm, is {best:.1f} mm wide: every branch is ordered from the ostium, so a point at a distal tip reads the "
             f"tree backwards (lengths from the wrong end, side branches as the main vessel). If the ostium is not where you "
-            f"put it, give the root end (Slicer shows RAS: negate x and y) or leave --ostium out to start from the "
-            f"thickest end.")
+            f"put it, give the root end (Slicer shows RAS: negate x and y) or leave --ostium out (in Slicer: no Ostium point "
+            f"list) to start from the thickest end.")
 
 
 def _thin_throat_warning(lesions: List[Dict[str, Any]], voxel_mm: float) -> Optional[str]:

@@ -71,5 +71,5 @@ def narrow_root_warning(found: Optional[Dict[str, Any]]) -> Optional[str]:
             "ostium, so this root is likely not the ostium — the guiding catheter, a distal end where the proximal "
             "vessel's own end came out thin, or a long ostial lesion. Lengths, positions and branch order are counted "
             "from it, and where it widens reads as a stenosis. Give the ostium where the artery begins (analyse --ostium "
-            "X Y Z in LPS mm; in Python analyse_result_dir(…, ostium_mm=…)); a catheter can also be erased from the "
-            "masks before reconstructing.")
+            "X Y Z in LPS mm; in Slicer a one-point list as the Ostium; in Python analyse_result_dir(…, ostium_mm=…)); a "
+            "catheter can also be erased from the masks before reconstructing.")
