@@ -1355,45 +1355,42 @@ class SDFCARLogic(ScriptedLoadableModuleLogic):
         return overlays[viewNumber]
 
     @staticmethod
-    def segmentFromPoints(pointsNode):
-        """The first two control points of a point list in LPS mm, as ``analyse --segment`` takes them (the
-        segment whose 3D length, foreshortening and best view the analysis reports); None without a list."""
+    def _pointsInLPS(pointsNode, count, what, place, otherwise):
+        """The ``count`` control points of a point list in LPS mm (None without a list); the C-arm's source list
+        or another number of points is refused, saying what to ``place`` or choose ``otherwise``."""
         from SDFCARLib import mrml
 
         if pointsNode is None:
             return None
+        name = pointsNode.GetName()
         if (pointsNode.GetAttribute("SDFCAR.role") or "").startswith("carm"):
-            raise ValueError(f"'{pointsNode.GetName()}' holds the C-arm's X-ray sources, not the ends of a segment: place "
-                             "two points on the tree in a new point list, or choose none to measure the worst lesion")
-        count = pointsNode.GetNumberOfControlPoints()
-        if count != 2:
-            raise ValueError(f"the point list '{pointsNode.GetName()}' has {count} point(s): place exactly two, at the "
-                             "ends of the segment to measure, or choose no point list to measure the worst lesion")
-        ends = []
-        for index in range(2):
+            raise ValueError(f"'{name}' holds the C-arm's X-ray sources, not {what}: place {place} in a new point list, "
+                             f"or choose none to {otherwise}")
+        found = pointsNode.GetNumberOfControlPoints()
+        if found != count:
+            raise ValueError(f"the point list '{name}' has {found} point(s): place exactly {place}, or choose no point "
+                             f"list to {otherwise}")
+        points = []
+        for index in range(count):
             ras = [0.0, 0.0, 0.0]
             pointsNode.GetNthControlPointPositionWorld(index, ras)
-            ends.append([float(c) for c in mrml.ras_to_lps(ras)])
-        return ends
+            points.append([float(c) for c in mrml.ras_to_lps(ras)])
+        return points
+
+    @staticmethod
+    def segmentFromPoints(pointsNode):
+        """The first two control points of a point list in LPS mm, as ``analyse --segment`` takes them (the
+        segment whose 3D length, foreshortening and best view the analysis reports); None without a list."""
+        return SDFCARLogic._pointsInLPS(pointsNode, 2, "the ends of a segment",
+                                        "two points, at the ends of the segment to measure", "measure the worst lesion")
 
     @staticmethod
     def ostiumFromPoint(pointsNode):
         """The one control point of a point list in LPS mm, as ``analyse --ostium`` takes it (the tree is rooted
         there); None without a list."""
-        from SDFCARLib import mrml
-
-        if pointsNode is None:
-            return None
-        if (pointsNode.GetAttribute("SDFCAR.role") or "").startswith("carm"):
-            raise ValueError(f"'{pointsNode.GetName()}' holds the C-arm's X-ray sources, not the ostium: place one point "
-                             "where the artery begins in a new point list, or choose none to root the tree at its thickest end")
-        count = pointsNode.GetNumberOfControlPoints()
-        if count != 1:
-            raise ValueError(f"the point list '{pointsNode.GetName()}' has {count} point(s): place exactly one, where the "
-                             "artery begins (its ostium), or choose no point list to root the tree at its thickest end")
-        ras = [0.0, 0.0, 0.0]
-        pointsNode.GetNthControlPointPositionWorld(0, ras)
-        return [float(c) for c in mrml.ras_to_lps(ras)]
+        points = SDFCARLogic._pointsInLPS(pointsNode, 1, "the ostium", "one point, where the artery begins (its ostium)",
+                                          "root the tree at its thickest end")
+        return None if points is None else points[0]
 
     @staticmethod
     def startAnalysis(resultNode, outputDir=None, options=None):

@@ -584,39 +584,26 @@ def test_a_result_whose_files_are_gone_says_so(sdfcar, tmp_path):
         widget.logic.startAnalysis(node)
 
 
-def test_analyse_measures_the_segment_the_chosen_point_list_marks(sdfcar, tmp_path, monkeypatch):
+def test_analyse_passes_the_segment_and_the_ostium_the_chosen_point_lists_mark(sdfcar, tmp_path, monkeypatch):
     widget = _widget(sdfcar)
     widget.initializeParameterNode()
     result = _result_node(tmp_path)
     started = []
     monkeypatch.setattr(sdfcar.SDFCARLogic, "startAnalysis", staticmethod(
         lambda node, outputDir=None, options=None: started.append(options) or (_FinishedJob({}), {"name": node.GetName()})))
-    ends = _node("vtkMRMLMarkupsFiducialNode", "ends")
     monkeypatch.setattr(sdfcar.SDFCARLogic, "segmentFromPoints",
                         staticmethod(lambda node: None if node is None else [[1.0, 2.0, 3.0], [4.0, 5.0, 6.0]]))
-    widget._startAnalysis(result)
-    widget.ui.segmentPointsSelector.setCurrentNode(ends)
-    widget._startAnalysis(result)
-    assert started == [None, {"segment_mm": [[1.0, 2.0, 3.0], [4.0, 5.0, 6.0]]}]
-
-
-def test_analyse_roots_the_tree_at_the_chosen_ostium_point(sdfcar, tmp_path, monkeypatch):
-    widget = _widget(sdfcar)
-    widget.initializeParameterNode()
-    result = _result_node(tmp_path)
-    started = []
-    monkeypatch.setattr(sdfcar.SDFCARLogic, "startAnalysis", staticmethod(
-        lambda node, outputDir=None, options=None: started.append(options) or (_FinishedJob({}), {"name": node.GetName()})))
     monkeypatch.setattr(sdfcar.SDFCARLogic, "ostiumFromPoint",
                         staticmethod(lambda node: None if node is None else [7.0, 8.0, 9.0]))
-    monkeypatch.setattr(sdfcar.SDFCARLogic, "segmentFromPoints",
-                        staticmethod(lambda node: None if node is None else [[1.0, 2.0, 3.0], [4.0, 5.0, 6.0]]))
-    widget.ui.ostiumPointSelector.setCurrentNode(_node("vtkMRMLMarkupsFiducialNode", "ostium"))
     widget._startAnalysis(result)
     widget.ui.segmentPointsSelector.setCurrentNode(_node("vtkMRMLMarkupsFiducialNode", "ends"))
     widget._startAnalysis(result)
-    assert started == [{"ostium_mm": [7.0, 8.0, 9.0]},
-                       {"segment_mm": [[1.0, 2.0, 3.0], [4.0, 5.0, 6.0]], "ostium_mm": [7.0, 8.0, 9.0]}]
+    widget.ui.ostiumPointSelector.setCurrentNode(_node("vtkMRMLMarkupsFiducialNode", "ostium"))
+    widget._startAnalysis(result)
+    widget.ui.segmentPointsSelector.setCurrentNode(None)
+    widget._startAnalysis(result)
+    segment, ostium = {"segment_mm": [[1.0, 2.0, 3.0], [4.0, 5.0, 6.0]]}, {"ostium_mm": [7.0, 8.0, 9.0]}
+    assert started == [None, segment, {**segment, **ostium}, ostium]
 
 
 def test_finished_reconstruction_selects_its_result_and_analyses_it(sdfcar, tmp_path, monkeypatch):
