@@ -433,12 +433,15 @@ def extract_centrelines(volume: np.ndarray, grid: VolumeGrid, level: float = 0.5
     volume = np.asarray(volume)
     if volume.shape != tuple(grid.shape):
         raise CentrelineError(f"the volume's shape {volume.shape} does not match its grid {tuple(grid.shape)}")
-    volume, _ = fill_lumen_cavities(volume, level)
     lumen = volume >= level if volume.dtype != bool else volume
     if not lumen.any():
         raise CentrelineError(f"no voxel reaches the level {level:g}: the volume is empty; check the reconstruction "
                               "(its report.json's warnings say what went wrong)")
     grid, (lumen, volume) = crop_to(lumen, grid, [lumen, volume], margin=3)
+    # on the crop (cheap: analyse_volume has filled the whole grid already): the background margin it keeps
+    # around the lumen joins every open path to its border, so it encloses the same cavities as the whole grid
+    volume, _ = fill_lumen_cavities(volume, level)
+    lumen = volume >= level if volume.dtype != bool else volume
     if CLOSE_TUNNELS:
         lumen = close_tunnels(lumen)
     spacing = np.asarray(grid.spacing_mm, float)
