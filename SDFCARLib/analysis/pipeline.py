@@ -126,7 +126,7 @@ from .lesion import (Lesion, ReferenceFit, find_lesions, is_same_lesion, lesion_
                      relative_scatter, same_lesion_on)
 from .mask_centreline import place_on_masks
 from .mask_order import MIN_SHARE_ON_MASK, better_order, mask_order_warning, shares_on_masks
-from .root_check import narrow_root, narrow_root_warning
+from .root_check import narrow_root, narrow_root_warning, through_vessel_root, through_vessel_root_warning
 from .section_centreline import centre_on_sections as centre_on_sections_of
 from .views import (EPIPOLAR_WEAK_DEG, ViewMap, chord_tangents, depth_view, epipolar_angles_deg, foreshortening,
                     other_vessel_clearance, overlap_fraction, view_label, view_map)
@@ -455,9 +455,11 @@ def analyse_volume(volume: np.ndarray, grid: VolumeGrid, level: float = 0.5, vie
                 target["depth_view"] = depth_view(seg, views, step_deg=view_step_deg)
         if best_view:
             vm = view_map(seg, seg_r, others, others_r, step_deg=view_step_deg)
-    # with no ostium given the root is the thickest end, which a guiding catheter can be (root_check.py)
+    # with no ostium given the root is the thickest end, which a guiding catheter or a blob on a vessel's side
+    # can be (root_check.py)
     main_profile = next((p for p in profiles if p.branch.branch_id == 0), None)
     root_found = None
+    through_root = through_vessel_root(tree) if ostium_mm is None else None
     if ostium_mm is None and main_profile is not None:
         root_found = narrow_root(main_profile.branch.arc_length_mm, main_profile.sections.equivalent_diameter_mm)
         if root_found:
@@ -466,7 +468,8 @@ def analyse_volume(volume: np.ndarray, grid: VolumeGrid, level: float = 0.5, vie
                 **({} if frame_contrasts is None else {"frame_vessel_contrast": frame_contrasts}),
                 "view_step_deg": view_step_deg, "ostium_mm": None if ostium_mm is None else list(map(float, ostium_mm)),
                 "min_component_share": min_component_share, "bridges_checked": len(bridges),
-                "strands_dropped": len(strands), "given_root": given_root, "narrow_root": root_found, "voxel_mm": voxel,
+                "strands_dropped": len(strands), "given_root": given_root, "narrow_root": root_found,
+                "through_vessel_root": through_root, "voxel_mm": voxel,
                 "lumen_cavities_filled": cavities_filled,
                 "centreline_share_on_masks": mask_shares, "masks_better_order": order, "centreline_on_masks": centreline_on_masks,
                 "centreline_placement": None if placement is None else [p.to_dict() for p in placement],
@@ -1016,6 +1019,7 @@ def summary(result: QCAResult) -> Dict[str, Any]:
                                  _depth_warning(result.target),
                                  _given_root_warning(result.settings.get("given_root")),
                                  narrow_root_warning(result.settings.get("narrow_root")),
+                                 through_vessel_root_warning(result.settings.get("through_vessel_root")),
                                  mask_order_warning(result.settings.get("centreline_share_on_masks") or (),
                                                     result.settings.get("masks_better_order")),
                                  frame_contrast_warning(result.settings.get("frame_vessel_contrast") or (),
