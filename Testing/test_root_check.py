@@ -72,8 +72,9 @@ def _root_and_side_branch(junction_mm=2.0, angle_deg=160.0, side_mm=40.0, root_b
     at = int(round(junction_mm / 0.5))
     a = np.radians(angle_deg)
     side = _line(main[at], (np.cos(a), np.sin(a), 0.0), side_mm)
+    # the side branch thickens towards its far end (the ostium's end)
     return CentrelineTree([CentrelineBranch(0, main, np.full(len(main), 1.5)),
-                           CentrelineBranch(1, side, np.full(len(side), 1.5), parent_id=0, parent_index=at)])
+                           CentrelineBranch(1, side, np.linspace(1.5, 2.0, len(side)), parent_id=0, parent_index=at)])
 
 
 def test_a_root_two_long_branches_leave_both_ways_is_found_and_a_bifurcation_is_not():
@@ -82,7 +83,7 @@ def test_a_root_two_long_branches_leave_both_ways_is_found_and_a_bifurcation_is_
     assert found["branch_ids"] == [0, 1] and found["lengths_mm"] == pytest.approx([58.0, 40.0])
     np.testing.assert_allclose(found["far_ends_mm"][0], (60.0, 0.0, 0.0))
     np.testing.assert_allclose(found["far_ends_mm"][1], (2.0 + 40.0 * np.cos(np.radians(160.0)), 40.0 * np.sin(np.radians(160.0)), 0.0))
-    assert found["root_mm"] == [0.0, 0.0, 0.0]
+    assert found["root_mm"] == [0.0, 0.0, 0.0] and found["likeliest_ostium_mm"] == found["far_ends_mm"][1]
     # the branches part under the angle; the junction as far as a left main's bifurcation; either way short
     assert through_vessel_root(_root_and_side_branch(angle_deg=THROUGH_MIN_ANGLE_DEG - 5.0)) is None
     assert through_vessel_root(_root_and_side_branch(angle_deg=THROUGH_MIN_ANGLE_DEG + 5.0)) is not None
@@ -91,7 +92,9 @@ def test_a_root_two_long_branches_leave_both_ways_is_found_and_a_bifurcation_is_
     assert through_vessel_root(_root_and_side_branch(root_branch_mm=2.0 + THROUGH_MIN_LENGTH_MM - 5.0)) is None
     assert through_vessel_root_warning(None) is None
     text = through_vessel_root_warning(found)
-    assert "(0.0, 0.0, 0.0) LPS mm" in text and "160° apart" in text and "(60.0, 0.0, 0.0)" in text and "--ostium" in text
+    likeliest = ", ".join(f"{v:.1f}" for v in found["likeliest_ostium_mm"])
+    assert "(0.0, 0.0, 0.0) LPS mm" in text and "160° apart" in text and f"({likeliest}) LPS mm" in text
+    assert "likeliest ostium" in text and "--ostium" in text
 
 
 def test_a_tree_rooted_at_a_ghost_on_its_vessel_s_side_is_warned_of_and_not_where_the_ostium_is_given():
@@ -111,6 +114,7 @@ def test_a_tree_rooted_at_a_ghost_on_its_vessel_s_side_is_warned_of_and_not_wher
     assert found["angle_deg"] > 120.0 and min(found["lengths_mm"]) > 40.0
     ends = np.asarray(found["far_ends_mm"])
     assert min(np.linalg.norm(ends - vessel[0], axis=1)) < 3.0 and min(np.linalg.norm(ends - vessel[-1], axis=1)) < 3.0
+    assert np.linalg.norm(np.asarray(found["likeliest_ostium_mm"]) - vessel[0]) < 3.0  # the vessel's thick end
     assert any("lies on the side of a vessel" in w for w in summary(result)["warnings"])
     given = analyse_volume(volume, grid, ostium_mm=vessel[0], best_view=False)
     assert given.settings["through_vessel_root"] is None

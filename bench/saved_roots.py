@@ -5,7 +5,8 @@
 Reads ``bench/variants.py --save`` results (``LAD-<case>-v<k>.npz`` / ``RCA-…``, the truth tree is
 ``lad_tree(case)`` / ``rca_tree(case)``), analyses each occupancy as ``analyse`` does without ``--ostium``
 (masks given, no view map) and prints per run: the root's distance from the true ostium, the two root
-checks of ``analysis/root_check.py`` (``narrow_root``, ``through_vessel_root``), and every side branch
+checks of ``analysis/root_check.py`` (``narrow_root``, ``through_vessel_root`` with its likeliest ostium's
+distance from the true one), and every side branch
 leaving the root branch within ``--reach-mm`` of the root (mm from the root, angle to the root branch
 beyond it, the shorter way's length in mm). Then the tallies: rooted more than ``--off-mm`` from the
 ostium, how many of those and of the others are warned of; and the machine.
@@ -64,14 +65,18 @@ def main() -> int:
                     root_check.root_junctions(result.tree)]
         finally:
             root_check.THROUGH_JUNCTION_MM = reach
-        rows.append((off, bool(narrow), bool(through)))
+        likeliest = float(np.linalg.norm(np.asarray(through["likeliest_ostium_mm"]) - ostium)) if through else None
+        rows.append((off, bool(narrow), bool(through), likeliest))
         print(f"{name}: root {off:5.1f} mm from the ostium; narrow_root {'yes' if narrow else 'no '}; "
-              f"through_vessel_root {'yes' if through else 'no '}; junctions (mm, °, mm) {near}", flush=True)
+              f"through_vessel_root {f'yes, its likeliest ostium {likeliest:.1f} mm from it' if through else 'no'}; "
+              f"junctions (mm, °, mm) {near}", flush=True)
     wrong = [r for r in rows if r[0] > args.off_mm]
     right = [r for r in rows if r[0] <= args.off_mm]
     print(f"\nrooted more than {args.off_mm:g} mm from the ostium: {len(wrong)} of {len(rows)}; warned of: "
           f"{sum(r[1] or r[2] for r in wrong)} (narrow_root {sum(r[1] for r in wrong)}, through_vessel_root "
           f"{sum(r[2] for r in wrong)}); rooted at it and warned of: {sum(r[1] or r[2] for r in right)} of {len(right)}; "
+          f"through_vessel_root's likeliest ostium within {args.off_mm:g} mm of the true one: "
+          f"{sum(r[3] is not None and r[3] <= args.off_mm for r in rows)} of {sum(r[2] for r in rows)}; "
           f"{time.perf_counter() - t0:.0f} s")
     return 0
 

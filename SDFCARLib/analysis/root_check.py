@@ -19,7 +19,8 @@ A root can also sit on the side of a vessel: a thick blob on a vessel's middle (
 cross in a view) is the thickest end, and the tree then leaves its root both ways along that vessel. An
 ostium begins one vessel. Where the root branch and a side branch, both running on for
 ``THROUGH_MIN_LENGTH_MM`` or more, part ``THROUGH_MIN_ANGLE_DEG`` or more apart within
-``THROUGH_JUNCTION_MM`` of the root (``through_vessel_root``), the root is likely no ostium. The junction's
+``THROUGH_JUNCTION_MM`` of the root (``through_vessel_root``), the root is likely no ostium, and the
+thickest of the tree's other ends (by the root rule's own measure) the likeliest one. The junction's
 nearness is what tells: a left main's bifurcation, about a centimetre from the ostium, can part its branches
 as widely, while a blob's end lies within its own radius of the vessel it sits on. Measured in
 bench/RESULTS.md §105b.
@@ -30,6 +31,8 @@ from __future__ import annotations
 from typing import Any, Dict, Optional
 
 import numpy as np
+
+from .centreline import ROOT_RADIUS_REACH_MM
 
 ROOT_SPAN_MM = 5.0
 WINDOW_MM = 3.0
@@ -122,16 +125,21 @@ def through_vessel_root(tree) -> Optional[Dict[str, Any]]:
     """Where the root branch and a side branch, both running on ``THROUGH_MIN_LENGTH_MM`` or more, part
     ``THROUGH_MIN_ANGLE_DEG`` or more apart within ``THROUGH_JUNCTION_MM`` of the root (``root_junctions``),
     the widest such: the angle, the junction's distance from the root, both branches' ids, lengths beyond
-    the junction and far ends, and the root (LPS mm); None where none do."""
+    the junction and far ends, the root, and the likeliest ostium: the end of the root's piece (the root
+    aside) with the largest inscribed radius within ``ROOT_RADIUS_REACH_MM`` of it (LPS mm); None where none
+    do."""
     found = [j for j in root_junctions(tree) if j[2] >= THROUGH_MIN_ANGLE_DEG and j[3] >= THROUGH_MIN_LENGTH_MM]
     if not found:
         return None
     child, junction_mm, angle, _ = max(found, key=lambda j: j[2])
     root_branch = tree.branch(0)
+    likeliest = max((b for b in tree.branches if b.tree_id == root_branch.tree_id), key=lambda b: float(
+        np.max(b.inscribed_radius_mm[b.arc_length_mm >= b.length_mm - ROOT_RADIUS_REACH_MM])))
     return {"angle_deg": angle, "junction_from_root_mm": junction_mm, "branch_ids": [0, child.branch_id],
             "lengths_mm": [float(root_branch.length_mm - junction_mm), child.length_mm],
             "far_ends_mm": [[float(v) for v in b.points_mm[-1]] for b in (root_branch, child)],
-            "root_mm": [float(v) for v in root_branch.points_mm[0]]}
+            "root_mm": [float(v) for v in root_branch.points_mm[0]],
+            "likeliest_ostium_mm": [float(v) for v in likeliest.points_mm[-1]]}
 
 
 def through_vessel_root_warning(found: Optional[Dict[str, Any]]) -> Optional[str]:
@@ -145,8 +153,8 @@ def through_vessel_root_warning(found: Optional[Dict[str, Any]]) -> Optional[str
     lengths = " and ".join(f"{v:.0f}" for v in found["lengths_mm"])
     return (f"the tree's thickest end, taken as the ostium at {at(found['root_mm'])} LPS mm, lies on the side of a "
             f"vessel: branches of {lengths} mm leave it {found['angle_deg']:.0f}° apart, running both ways, where an "
-            "ostium begins one vessel. The root is likely a ghost or a crossing on the vessel's middle, and the ostium "
-            f"up one of the two ways (towards {at(found['far_ends_mm'][0])} or {at(found['far_ends_mm'][1])} LPS mm). "
+            "ostium begins one vessel. The root is likely a ghost or a crossing on the vessel's middle. The thickest of "
+            f"the tree's other ends, at {at(found['likeliest_ostium_mm'])} LPS mm, is the likeliest ostium: check it. "
             "Lengths, positions and branch order are counted from the root. Give the ostium where the artery begins "
             "(analyse --ostium X Y Z in LPS mm; in Slicer a one-point list as the Ostium; in Python "
             "analyse_result_dir(…, ostium_mm=…)).")
