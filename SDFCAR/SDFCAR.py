@@ -716,9 +716,14 @@ class SDFCARWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
         if files is None:
             return
         with slicer.util.tryWithErrorDisplay("The analysis finished but its results could not be loaded.", waitCursor=True):
-            self.logic.addAnalysis(files, context)
+            nodes = self.logic.addAnalysis(files, context) or {}
             self.ui.statusLabel.text = (f"3D-QCA of '{context['name']}' done: curves, table and diameter plot are in the scene "
                                         f"(folder '{context['name']} QCA'; files in {files['folder']}).")
+            suggested = nodes.get("likeliest_ostium")
+            if suggested is not None:  # the root lies on a vessel's side (the analysis's warnings say why)
+                self.ui.statusLabel.text += (f" Its tree is likely rooted off the ostium: check the point list "
+                                             f"'{suggested.GetName()}', move it where the artery begins if need be, "
+                                             "choose it as the Ostium and press Analyse again.")
         self._resultPanelKey = None
         self._checkCanApply()
 

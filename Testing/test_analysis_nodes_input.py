@@ -55,6 +55,24 @@ def test_the_result_folder_or_the_json_given_links_the_analysis_folder(analysed)
     assert nodes["curves"]
 
 
+def test_a_root_on_a_vessel_s_side_adds_the_likeliest_ostium_as_a_point_list_in_ras(analysed, tmp_path):
+    finding = {"angle_deg": 150.0, "likeliest_ostium_mm": [10.0, -20.0, 30.0]}  # as root_check.through_vessel_root
+    folder = edited(analysed, tmp_path, lambda d: d["settings"].update(through_vessel_root=finding))
+    scene = new_scene()
+    result = scene.AddNewNodeByClass("vtkMRMLSegmentationNode", "result")
+    nodes = qca.add_analysis_to_scene(scene, folder, "case", result_node=result)
+    point = nodes["likeliest_ostium"]
+    assert point.IsA("vtkMRMLMarkupsFiducialNode") and point.GetName() == "case likeliest ostium"
+    assert point.GetNumberOfControlPoints() == 1 and not point.GetLocked()  # to be checked and moved
+    ras = [0.0, 0.0, 0.0]
+    point.GetNthControlPointPosition(0, ras)
+    np.testing.assert_allclose(ras, [-10.0, 20.0, 30.0])  # LPS → RAS
+    hierarchy = slicer.vtkMRMLSubjectHierarchyNode.GetSubjectHierarchyNode(scene)
+    assert hierarchy.GetItemParent(hierarchy.GetItemByDataNode(point)) == nodes["folder"]
+    assert point.GetAttribute("SDFCAR.analysisFolder") == str(folder)
+    assert qca.add_analysis_nodes(new_scene(), analysed, "case")["likeliest_ostium"] is None  # a root not flagged
+
+
 def test_a_result_node_that_is_no_segmentation_of_this_scene_is_refused_first(analysed):
     scene = new_scene()
     other = new_scene().AddNewNodeByClass("vtkMRMLSegmentationNode", "elsewhere")
@@ -83,6 +101,8 @@ def _without(*keys):
     (_without("branches", 0, "lesions", 0, "diameter_stenosis_pct"), r"lesions\[0\]\.diameter_stenosis_pct is missing"),
     (lambda d: d["branches"][0]["lesions"][0].update(length_mm="8"), r"lesions\[0\]\.length_mm is missing or not a number"),
     (lambda d: d["view_map"].update(overlap=[[0.0]]), r"'view_map' does not hold"),
+    (lambda d: d["settings"].update(through_vessel_root={"likeliest_ostium_mm": [1.0, None, 3.0]}),
+     r"settings\.through_vessel_root\.likeliest_ostium_mm is missing or not three numbers"),
 ])
 def test_an_edited_analysis_is_named_before_any_node_is_made(analysed, tmp_path, edit, expected):
     folder = edited(analysed, tmp_path, edit)

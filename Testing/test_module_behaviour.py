@@ -627,7 +627,14 @@ def test_finished_reconstruction_selects_its_result_and_analyses_it(sdfcar, tmp_
     analysis.state = "finished"
     widget.onPollJob()
     assert loaded and widget._analysisJob is None and widget.ui.analyseButton.enabled
-    assert "3D-QCA of 'Tree' done" in widget.ui.statusLabel.text
+    assert "3D-QCA of 'Tree' done" in widget.ui.statusLabel.text and "Ostium" not in widget.ui.statusLabel.text
+    # an analysis whose root lies on a vessel's side adds the likeliest ostium: the status names it
+    suggested = _node("vtkMRMLMarkupsFiducialNode", "Tree likeliest ostium")
+    monkeypatch.setattr(sdfcar.SDFCARLogic, "addAnalysis", lambda self, files, context: {"likeliest_ostium": suggested})
+    widget._analysisJob, widget._analysisContext = _FinishedJob({"folder": str(tmp_path)}), {"name": "Tree"}
+    widget._pollAnalysis()
+    assert "check the point list 'Tree likeliest ostium'" in widget.ui.statusLabel.text
+    assert "choose it as the Ostium and press Analyse again" in widget.ui.statusLabel.text
 
 
 def test_results_that_cannot_be_loaded_are_said_and_the_reports_warnings_still_shown(sdfcar, tmp_path, monkeypatch):

@@ -17,6 +17,10 @@ per-branch CSV profiles) and adds
     a scalar volume "… view map"      the foreshortening + overlap score (%) over (primary,
                                       secondary) in degrees as a one-slice image; attributes
                                       hold the suggested angles
+    a point list "… likeliest ostium" only where the analysis found its root on a vessel's side
+                                      (``root_check.through_vessel_root``): one point (RAS) at the
+                                      end it names instead, for the user to check, move and give as
+                                      the Ostium of the next analysis
 
 ``add_analysis_to_scene`` is what the Slicer module calls: the same nodes, all or nothing, in one
 subject-hierarchy folder, linked to the result segmentation (``SDFCAR.analysisFolder``), which
@@ -239,6 +243,12 @@ def _checked_summary(data: Any, path: Path) -> Dict[str, Any]:
         if not ok:
             raise bad("'view_map'", "does not hold primary_deg, secondary_deg and foreshortening and overlap of "
                       "(secondary × primary) values")
+    settings = data.get("settings")
+    through = settings.get("through_vessel_root") if isinstance(settings, dict) else None
+    if through is not None:
+        point = through.get("likeliest_ostium_mm") if isinstance(through, dict) else None
+        if not (isinstance(point, list) and len(point) == 3 and all(v is not None and _number(v) and math.isfinite(v) for v in point)):
+            raise bad("settings.through_vessel_root.likeliest_ostium_mm", "is missing or not three numbers (LPS mm)")
     return data
 
 
@@ -309,8 +319,22 @@ def _add_nodes(scene, slicer, data, profiles, name: str, point_step_mm: float) -
         rows["epipolar_angle_median_deg"].append((b.get("epipolar_angle_deg") or {}).get("median_deg"))
     table = _add_table(scene, f"{name} QCA", rows)
     view_map = _add_view_map(scene, f"{name} view map", data) if data.get("view_map") else None
+    through = (data.get("settings") or {}).get("through_vessel_root")
+    ostium = _add_point(scene, f"{name} likeliest ostium", through["likeliest_ostium_mm"]) if through else None
     return {"curves": curves, "table": table, "chart": chart, "series": series, "view_map": view_map,
-            "best_view": data.get("best_view")}
+            "best_view": data.get("best_view"), "likeliest_ostium": ostium}
+
+
+def _add_point(scene, name: str, lps_mm: Sequence[float]):
+    """A point list of one unlocked point at ``lps_mm`` (shown in RAS), labelled with the list's name."""
+    ras = lps_to_ras(np.asarray(lps_mm, float)[None, :])[0]
+    node = scene.AddNewNodeByClass("vtkMRMLMarkupsFiducialNode", name)
+    node.AddControlPoint(float(ras[0]), float(ras[1]), float(ras[2]))
+    node.SetNthControlPointLabel(0, name)
+    node.SetAttribute("SDFCAR.coordinateSystem", "RAS (from LPS files)")
+    if node.GetDisplayNode() is None:
+        node.CreateDefaultDisplayNodes()
+    return node
 
 
 def _add_view_map(scene, name: str, data: Dict[str, Any]):
@@ -420,14 +444,15 @@ def add_analysis_to_scene(scene, analysis_dir: PathLike, name: str = "SDFCAR", r
         for key in ("curves", "series"):
             for node in nodes[key]:
                 node.SetAttribute("SDFCAR.analysisFolder", str(folder))
-        for node in (nodes["table"], nodes["chart"], nodes["view_map"]):
+        for node in (nodes["table"], nodes["chart"], nodes["view_map"], nodes["likeliest_ostium"]):
             if node is not None:
                 node.SetAttribute("SDFCAR.analysisFolder", str(folder))
     hierarchy = slicer.vtkMRMLSubjectHierarchyNode.GetSubjectHierarchyNode(scene)
     item = None
     if hierarchy is not None:
         item = hierarchy.CreateFolderItem(hierarchy.GetSceneItemID(), f"{name} QCA")
-        members = [*nodes["curves"], nodes["table"], nodes["chart"], *nodes["series"], nodes["view_map"]]
+        members = [*nodes["curves"], nodes["table"], nodes["chart"], *nodes["series"], nodes["view_map"],
+                   nodes["likeliest_ostium"]]
         members += [scene.GetNodeByID(s.GetTableNodeID()) for s in nodes["series"]]
         invalid = hierarchy.GetInvalidItemID()
         for node in members:
