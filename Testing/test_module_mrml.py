@@ -173,6 +173,8 @@ def test_a_point_list_of_two_points_marks_the_segment_in_lps(module):
 
 
 def test_a_point_list_of_one_point_gives_the_ostium_in_lps(module):
+    from SDFCARLib.analysis.mrml_nodes import _add_point
+
     logic = module.SDFCARLogic()
     point = module.scene.AddNewNodeByClass("vtkMRMLMarkupsFiducialNode", "ostium")
     assert logic.ostiumFromPoint(None) is None  # none chosen: the tree's thickest end
@@ -183,7 +185,5 @@ def test_a_point_list_of_one_point_gives_the_ostium_in_lps(module):
     point.AddControlPointWorld(1.0, 2.0, 3.0)
     with pytest.raises(ValueError, match="has 2 point.*exactly one"):
         logic.ostiumFromPoint(point)
-    from SDFCARLib.analysis.mrml_nodes import _add_point
-
     suggested = _add_point(module.scene, "likeliest ostium", [10.0, -20.0, 30.0])  # as an analysis adds it, LPS
     assert logic.ostiumFromPoint(suggested) == [10.0, -20.0, 30.0]

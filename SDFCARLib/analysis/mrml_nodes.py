@@ -247,7 +247,8 @@ def _checked_summary(data: Any, path: Path) -> Dict[str, Any]:
     through = settings.get("through_vessel_root") if isinstance(settings, dict) else None
     if through is not None:
         point = through.get("likeliest_ostium_mm") if isinstance(through, dict) else None
-        if not (isinstance(point, list) and len(point) == 3 and all(v is not None and _number(v) and math.isfinite(v) for v in point)):
+        if not (isinstance(point, list) and len(point) == 3
+                and all(v is not None and _number(v) and math.isfinite(v) for v in point)):
             raise bad("settings.through_vessel_root.likeliest_ostium_mm", "is missing or not three numbers (LPS mm)")
     return data
 
