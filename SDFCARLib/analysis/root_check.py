@@ -23,7 +23,7 @@ ostium begins one vessel. Where the root branch and a side branch, both running 
 thickest of the tree's other ends (by the root rule's own measure) the likeliest one. The junction's
 nearness is what tells: a left main's bifurcation, about a centimetre from the ostium, can part its branches
 as widely, while a blob's end lies within its own radius of the vessel it sits on. Measured in
-bench/RESULTS.md §105b.
+bench/RESULTS.md §105b, §105e.
 """
 
 from __future__ import annotations
@@ -41,10 +41,10 @@ SEARCH_MM = 60.0
 MIN_WIDENING = 1.6
 NARROW_SHARE = 0.8
 MIN_NARROW_STRETCH_MM = 10.0
-#: chosen in the gap between trees rooted at the ostium and roots on a vessel's side (bench/RESULTS.md §105b)
+#: the middle of the gap between trees rooted at the ostium and roots on a vessel's side (bench/RESULTS.md §105e)
 THROUGH_JUNCTION_MM = 5.0
 THROUGH_MIN_LENGTH_MM = 30.0
-THROUGH_MIN_ANGLE_DEG = 110.0
+THROUGH_MIN_ANGLE_DEG = 95.0
 #: each branch's direction: from where it leaves the root to this far along it
 THROUGH_DIRECTION_MM = 5.0
 
