@@ -47,8 +47,8 @@ def main() -> int:
     rows, t0 = [], time.perf_counter()
     print(f"# {platform.processor() or platform.machine()}, {os.cpu_count()} cores; {len(paths)} saved runs", flush=True)
     for path in paths:
-        name = Path(path).stem
-        suite, case = name.split("-")[:2]
+        suite, case = Path(path).stem.split("-")[:2]
+        name = f"{Path(path).parent.name}/{Path(path).stem}"  # the same stems recur in other folders
         if suite not in makers:
             print(f"{name}: skipped (not LAD-… or RCA-…)")
             continue
