@@ -94,7 +94,7 @@ def test_a_root_two_long_branches_leave_both_ways_is_found_and_a_bifurcation_is_
     text = through_vessel_root_warning(found)
     likeliest = ", ".join(f"{v:.1f}" for v in found["likeliest_ostium_mm"])
     assert "(0.0, 0.0, 0.0) LPS mm" in text and "160° apart" in text and f"({likeliest}) LPS mm" in text
-    assert "likeliest ostium" in text and "--ostium" in text
+    assert "likeliest ostium" in text and "--ostium " + likeliest.replace(",", "") + ";" in text  # ready to paste
 
 
 def test_a_tree_rooted_at_a_ghost_on_its_vessel_s_side_is_warned_of_and_not_where_the_ostium_is_given():

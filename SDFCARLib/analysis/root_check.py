@@ -156,5 +156,5 @@ def through_vessel_root_warning(found: Optional[Dict[str, Any]]) -> Optional[str
             "ostium begins one vessel. The root is likely a ghost or a crossing on the vessel's middle. The thickest of "
             f"the tree's other ends, at {at(found['likeliest_ostium_mm'])} LPS mm, is the likeliest ostium: check it. "
             "Lengths, positions and branch order are counted from the root. Give the ostium where the artery begins "
-            "(analyse --ostium X Y Z in LPS mm; in Slicer a one-point list as the Ostium; in Python "
-            "analyse_result_dir(…, ostium_mm=…)).")
+            f"(there: analyse … --ostium {' '.join(f'{v:.1f}' for v in found['likeliest_ostium_mm'])}; in Slicer a "
+            "one-point list as the Ostium; in Python analyse_result_dir(…, ostium_mm=…)).")
