@@ -59,12 +59,8 @@ def main() -> int:
         ostium = makers[suite](int(case)).branches[0].points[0]
         off = float(np.linalg.norm(result.tree.branch(0).points_mm[0] - ostium))
         narrow, through = result.settings["narrow_root"], result.settings["through_vessel_root"]
-        reach, root_check.THROUGH_JUNCTION_MM = root_check.THROUGH_JUNCTION_MM, args.reach_mm
-        try:
-            near = [(round(mm, 1), round(angle), round(length)) for _, mm, angle, length in
-                    root_check.root_junctions(result.tree)]
-        finally:
-            root_check.THROUGH_JUNCTION_MM = reach
+        near = [(round(mm, 1), round(angle), round(length)) for _, mm, angle, length in
+                root_check.root_junctions(result.tree, args.reach_mm)]
         likeliest = float(np.linalg.norm(np.asarray(through["likeliest_ostium_mm"]) - ostium)) if through else None
         rows.append((off, bool(narrow), bool(through), likeliest))
         print(f"{name}: root {off:5.1f} mm from the ostium; narrow_root {'yes' if narrow else 'no '}; "

@@ -99,8 +99,8 @@ def _direction(points_mm: np.ndarray) -> np.ndarray:
     return step / max(float(np.linalg.norm(step)), 1e-12)
 
 
-def root_junctions(tree):
-    """Each side branch leaving the root branch within ``THROUGH_JUNCTION_MM`` of the root, with what
+def root_junctions(tree, reach_mm: float = THROUGH_JUNCTION_MM):
+    """Each side branch leaving the root branch within ``reach_mm`` of the root, with what
     both ways measure there: (child, mm from the root, angle (degrees) between the root branch's direction
     beyond the junction and the child's, the shorter one's length beyond the junction in mm).
     ``tree``: a ``CentrelineTree`` whose branch 0 is the root branch."""
@@ -112,7 +112,7 @@ def root_junctions(tree):
     out = []
     for child in tree.children(0):
         at = child.parent_index
-        if at is None or arc[at] > THROUGH_JUNCTION_MM:
+        if at is None or arc[at] > reach_mm:
             continue
         # a side branch's points start at its junction
         cosine = float(_direction(root_branch.points_mm[at:]) @ _direction(child.points_mm))
